@@ -1,0 +1,1 @@
+"""The RL side of crowdnav-mesrnn: SB3 feature extractors, training, evaluation, ablation."""

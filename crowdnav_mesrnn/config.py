@@ -1,0 +1,65 @@
+"""Dataclass configurations merged from YAML/mappings, rejecting unknown keys with the valid ones."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+T = TypeVar("T")
+
+
+class ConfigError(ValueError):
+    """A configuration key or value is invalid; the message names it and lists what is valid."""
+
+
+def check_keys(given: Mapping[str, Any], valid: list[str] | tuple[str, ...], where: str) -> None:
+    """Raise :class:`ConfigError` for any key of ``given`` not in ``valid``, listing the valid keys."""
+    unknown = sorted(set(given) - set(valid))
+    if unknown:
+        raise ConfigError(
+            f"unknown {where} key{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}; "
+            f"valid keys: {', '.join(sorted(valid))}"
+        )
+
+
+def replace_checked(cfg: T, overrides: Mapping[str, Any] | None, where: str = "config") -> T:
+    """``dataclasses.replace`` that rejects unknown keys and coerces simple types (tuples, floats)."""
+    if not overrides:
+        return cfg
+    fields = {f.name: f for f in dataclasses.fields(cfg)}  # type: ignore[arg-type]
+    check_keys(overrides, list(fields), where)
+    clean: dict[str, Any] = {}
+    for key, value in overrides.items():
+        current = getattr(cfg, key)
+        if isinstance(current, tuple) and isinstance(value, list | tuple):
+            value = tuple(value)
+        elif isinstance(current, bool) and not isinstance(value, bool):
+            raise ConfigError(f"{where} key {key!r} must be true or false, got {value!r}")
+        elif isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        elif (
+            isinstance(current, int)
+            and not isinstance(current, bool)
+            and isinstance(value, float)
+            and value.is_integer()
+        ):
+            value = int(value)
+        clean[key] = value
+    return dataclasses.replace(cfg, **clean)  # type: ignore[type-var]
+
+
+def load_yaml(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read a YAML mapping with ``yaml.safe_load``; an empty file is an empty mapping."""
+    path = Path(path)
+    with open(path, encoding="utf-8") as fh:
+        data = yaml.safe_load(fh)
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    return data

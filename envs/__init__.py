@@ -1,0 +1,1 @@
+"""The Gymnasium side of crowdnav-mesrnn: pymunk world, crowds, observation, reward, rendering."""

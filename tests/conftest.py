@@ -1,0 +1,27 @@
+"""Shared fixtures. Tests needing ETH/UCY data skip only when no data folder is configured."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("SB3_LOGDIR", str(Path(__file__).resolve().parent.parent / ".pytest_cache" / "sb3"))
+os.environ.setdefault("MPLBACKEND", "Agg")
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+
+import torch
+
+torch.set_num_threads(1)
+
+from crowdnav_mesrnn.data.paths import ENV_VAR, HOW_TO_GET_DATA, find_data_dir  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    """The ETH/UCY folder from ``$CROWDNAV_MESRNN_DATA``; skips when the variable is unset."""
+    if not os.environ.get(ENV_VAR):
+        pytest.skip(f"${ENV_VAR} is not set. {HOW_TO_GET_DATA}")
+    # Set but wrong is an error, not a skip: CI must not silently skip the data tests.
+    return find_data_dir()
