@@ -1,0 +1,151 @@
+"""``crowdnav-mesrnn predictor ...``: train, evaluate, export and plot trajectory predictors."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from crowdnav_mesrnn.cli import subcommand
+from crowdnav_mesrnn.data.constants import SPLITS
+from crowdnav_mesrnn.models.base import LEARNED_MODELS, MODELS
+
+
+def _parse_sets(items: list[str] | None) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"--set expects key=value, got {item!r}")
+        key, value = item.split("=", 1)
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
+def _train(args: argparse.Namespace) -> int:
+    import torch
+
+    from crowdnav_mesrnn.training import Trainer, load_configs
+
+    torch.set_num_threads(args.threads)
+    overrides = _parse_sets(args.set)
+    overrides["split"] = args.split
+    if args.epochs is not None:
+        overrides["epochs"] = args.epochs
+    if args.data_dir:
+        overrides["data_dir"] = args.data_dir
+    mcfg, tcfg = load_configs(args.model, args.config, overrides)
+    out = Path(args.out or f"runs/predictor/{args.model}_{args.split}")
+    trainer = Trainer(mcfg, tcfg, out)
+    if args.resume:
+        trainer.resume()
+        print(f"resumed {out / 'last.pt'} at epoch {trainer.epoch}")
+    elif (out / "last.pt").exists():
+        raise ValueError(f"{out / 'last.pt'} exists: pass --resume to continue it or --out for a new run")
+    out.mkdir(parents=True, exist_ok=True)
+    from crowdnav_mesrnn.utils import atomic_write_text
+
+    atomic_write_text(
+        out / "run.yaml",
+        yaml.safe_dump(
+            {"command": " ".join(sys.argv), "model": mcfg.to_dict(), "train": tcfg.__dict__}, sort_keys=False
+        ),
+    )
+    print(
+        f"training {args.model} on split {args.split}: {len(trainer.train_windows)} train / "
+        f"{len(trainer.val_windows)} val windows -> {out}"
+    )
+    res = trainer.fit(progress=not args.no_progress, tensorboard=args.tensorboard)
+    print(f"best val ADE {res['best_val_ade_m']:.3f} m; checkpoints in {out}")
+    return 0
+
+
+def _eval(args: argparse.Namespace) -> int:
+    import torch
+
+    from crowdnav_mesrnn.evaluation import evaluate_model, format_result
+
+    torch.set_num_threads(args.threads)
+    checkpoint_for = None
+    if args.checkpoint:
+        from crowdnav_mesrnn.models.learned import load_predictor
+
+        template = args.checkpoint
+
+        def checkpoint_for(split: str):  # type: ignore[no-redef]
+            return load_predictor(template.format(split=split, model=args.model), model=args.model, split=split)
+
+    result = evaluate_model(
+        args.model, args.split, data_dir=args.data_dir, checkpoint_for=checkpoint_for, part=args.part
+    )
+    if args.out:
+        from crowdnav_mesrnn.utils import atomic_write_json
+
+        atomic_write_json(args.out, result)
+    print(json.dumps(result, indent=2) if args.json else format_result(result))
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from crowdnav_mesrnn.models.pretrained import export_checkpoint
+
+    path = export_checkpoint(args.checkpoint, args.model, args.split, args.note)
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+    return 0
+
+
+def _plot(args: argparse.Namespace) -> int:
+    from crowdnav_mesrnn.plotting import plot_window
+
+    path = plot_window(args.split, args.window, args.out, models=args.models.split(","), data_dir=args.data_dir)
+    print(f"wrote {path}")
+    return 0
+
+
+@subcommand
+def _add_predictor(sub: Any) -> None:
+    p = sub.add_parser("predictor", help="train, evaluate, export and plot trajectory predictors")
+    psub = p.add_subparsers(dest="predictor_cmd", required=True)
+
+    t = psub.add_parser("train", help="train a structural RNN on a split's train part (val for selection)")
+    t.add_argument("--model", required=True, choices=LEARNED_MODELS)
+    t.add_argument("--split", required=True, choices=SPLITS)
+    t.add_argument("--config", default=None, help="YAML with model: and train: (default configs/predictor/MODEL.yaml)")
+    t.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a model or train key")
+    t.add_argument("--epochs", type=int, default=None)
+    t.add_argument("--out", default=None, help="run folder (default runs/predictor/MODEL_SPLIT)")
+    t.add_argument("--resume", action="store_true", help="continue the run in --out from last.pt")
+    t.add_argument("--data-dir", default=None)
+    t.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    t.add_argument("--tensorboard", action="store_true", help="log to RUN/tb (needs the tb extra)")
+    t.add_argument("--no-progress", action="store_true")
+    t.set_defaults(func=_train)
+
+    e = psub.add_parser("eval", help="ADE/FDE on the test parts with a true autoregressive rollout")
+    e.add_argument("--model", required=True, choices=MODELS)
+    e.add_argument("--split", default="all", choices=(*SPLITS, "all"))
+    e.add_argument("--part", default="test", choices=("test", "val"))
+    e.add_argument("--checkpoint", default=None, help="checkpoint path; may contain {split} and {model}")
+    e.add_argument("--json", action="store_true")
+    e.add_argument("--out", default=None, help="also write the JSON result here (atomically)")
+    e.add_argument("--data-dir", default=None)
+    e.add_argument("--threads", type=int, default=1)
+    e.set_defaults(func=_eval)
+
+    x = psub.add_parser("export", help="copy a trained checkpoint into the package's pretrained weights")
+    x.add_argument("checkpoint")
+    x.add_argument("--model", required=True, choices=LEARNED_MODELS)
+    x.add_argument("--split", required=True, choices=SPLITS)
+    x.add_argument("--note", default="", help="why this configuration was selected")
+    x.set_defaults(func=_export)
+
+    g = psub.add_parser("plot", help="draw observed paths, true futures and forecasts of one test window")
+    g.add_argument("--split", required=True, choices=SPLITS)
+    g.add_argument("--window", type=int, required=True, help="index among the split's test windows (>= 2 scored)")
+    g.add_argument("--models", default="cv,vlstm,srnn,mesrnn")
+    g.add_argument("--out", default=None, help="PNG path (default docs/results/SPLIT_window_N.png)")
+    g.add_argument("--data-dir", default=None)
+    g.set_defaults(func=_plot)

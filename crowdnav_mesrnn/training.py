@@ -1,0 +1,254 @@
+"""Batched, seeded, resumable training of the structural RNN predictors."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
+from crowdnav_mesrnn.data.constants import OBS_LEN, check_split
+from crowdnav_mesrnn.data.normalization import MinMax
+from crowdnav_mesrnn.data.recordings import load_split
+from crowdnav_mesrnn.data.windows import Window, collate, split_windows
+from crowdnav_mesrnn.evaluation import batches, evaluate_windows
+from crowdnav_mesrnn.models.learned import CHECKPOINT_FORMAT, LearnedPredictor, lean_state
+from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
+from crowdnav_mesrnn.utils import atomic_write, code_version
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "predictor"
+
+
+class TrainingDivergedError(RuntimeError):
+    """The loss became NaN or infinite; the last good checkpoint is kept."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """How a predictor is trained (paper recipe by default)."""
+
+    split: str = "zara1"
+    """Leave-one-out split: trains on its ``train`` part, selects on ``val``, never sees ``test``."""
+    epochs: int = 10
+    """Passes over the training windows (paper: 10)."""
+    batch_size: int = 32
+    """Windows per optimiser step (padded together, bucketed by size)."""
+    lr: float = 1e-3
+    """Adam learning rate (paper: 1e-3)."""
+    grad_clip: float = 10.0
+    """Gradient norm clip (paper: 10)."""
+    teacher_forcing: bool = True
+    """Feed true positions over the prediction period (paper). False trains on the model's own rollout."""
+    min_scored: int = 2
+    """Keep windows with at least this many pedestrians present in all 20 steps."""
+    augment_rotation: bool = False
+    """Rotate each training window by a random angle about its centre (metres) before normalising."""
+    seed: int = 0
+    """Seeds shuffling, initialisation, dropout and augmentation."""
+    data_dir: str | None = None
+    """ETH/UCY folder (default: the usual search order)."""
+    max_windows: int = 0
+    """Use only the first N training windows (0 = all); for smoke tests."""
+    extra: dict = field(default_factory=dict)
+    """Free-form notes recorded with the run (e.g. the config file it came from)."""
+
+
+def load_configs(
+    model: str, config_path: str | os.PathLike[str] | None = None, overrides: dict[str, Any] | None = None
+) -> tuple[ModelConfig, TrainConfig]:
+    """Merge ``configs/predictor/<model>.yaml`` (or ``config_path``) and overrides onto the defaults.
+
+    The YAML holds two mappings, ``model:`` and ``train:``; unknown keys are errors listing valid keys.
+    """
+    path = Path(config_path) if config_path else CONFIG_DIR / f"{model}.yaml"
+    raw = load_yaml(path) if path.is_file() else {}
+    check_keys(raw, ["model", "train"], f"{path.name}")
+    mraw = dict(raw.get("model") or {})
+    mraw.setdefault("model", model)
+    if mraw["model"] != model:
+        raise ConfigError(f"{path}: config is for model {mraw['model']!r}, not {model!r}")
+    traw = dict(raw.get("train") or {})
+    for key, value in (overrides or {}).items():
+        if key in {f for f in ModelConfig.__dataclass_fields__}:
+            mraw[key] = value
+        else:
+            traw[key] = value
+    mcfg = ModelConfig.from_dict(mraw)
+    tcfg = replace_checked(TrainConfig(), traw, "train config")
+    check_split(tcfg.split)
+    return mcfg, tcfg
+
+
+def rotate_windows(pos: np.ndarray, pres: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Rotate each window ``(B, T, N, 2)`` about the mean of its present positions by a random angle."""
+    out = pos.copy()
+    for b in range(pos.shape[0]):
+        pts = pos[b][pres[b]]
+        centre = pts.mean(0) if len(pts) else np.zeros(2, np.float32)
+        a = rng.uniform(0, 2 * math.pi)
+        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]], np.float32)
+        out[b] = (pos[b] - centre) @ rot.T + centre
+    return np.where(pres[..., None], out, 0.0).astype(np.float32)
+
+
+def masked_loss(pred: torch.Tensor, used: torch.Tensor, positions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """MSE over the predicted steps (targets ``OBS_LEN..T-1``) where input and target are present."""
+    p = pred[:, OBS_LEN - 1 :]
+    target = positions[:, OBS_LEN:]
+    valid = (used[:, OBS_LEN - 1 :] & mask[:, OBS_LEN:]).unsqueeze(-1).to(p.dtype)
+    n = valid.sum().clamp(min=1)
+    return (((p - target) ** 2) * valid).sum() / n
+
+
+class Trainer:
+    """Trains one model on one split; checkpoints ``last.pt`` and ``best.pt`` atomically every epoch."""
+
+    def __init__(self, mcfg: ModelConfig, tcfg: TrainConfig, out_dir: str | os.PathLike[str]) -> None:
+        self.mcfg, self.tcfg = mcfg, tcfg
+        self.out = Path(out_dir)
+        torch.manual_seed(tcfg.seed)
+        self.net = StructuralRNN(mcfg)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=tcfg.lr)
+        train_recs = load_split(tcfg.split, "train", tcfg.data_dir)
+        self.norm = MinMax.fit_recordings(train_recs)
+        self.train_windows: list[Window] = split_windows(tcfg.split, "train", tcfg.min_scored, tcfg.data_dir)
+        if tcfg.max_windows:
+            self.train_windows = self.train_windows[: tcfg.max_windows]
+        self.val_windows: list[Window] = split_windows(tcfg.split, "val", 2, tcfg.data_dir)
+        self.epoch = 0
+        self.best_val = math.inf
+        self.history: list[dict[str, float]] = []
+
+    # ----------------------------------------------------------------- checkpoints
+    def _payload(self, full: bool) -> dict[str, Any]:
+        payload: dict[str, Any] = {
+            "format": CHECKPOINT_FORMAT,
+            "model_config": self.mcfg.to_dict(),
+            "train_config": asdict(self.tcfg),
+            "norm": self.norm.to_dict(),
+            "epoch": self.epoch,
+            "val": self.history[-1] if self.history else None,
+            "history": self.history,
+            "best_val_ade_m": self.best_val,
+            "code_version": code_version(),
+        }
+        if full:
+            payload["state_dict"] = self.net.state_dict()
+            payload["optimizer"] = self.opt.state_dict()
+        else:
+            payload["state_dict"] = lean_state(self.net)
+        return payload
+
+    def save(self, name: str, full: bool = True) -> Path:
+        payload = self._payload(full)
+        return atomic_write(self.out / name, lambda fh: torch.save(payload, fh))
+
+    def resume(self) -> None:
+        """Continue from ``last.pt``; its configs must equal this run's."""
+        path = self.out / "last.pt"
+        if not path.is_file():
+            raise FileNotFoundError(f"cannot resume: no checkpoint at {path}")
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+        if ck["model_config"] != self.mcfg.to_dict():
+            raise ConfigError(
+                f"{path}: model config {ck['model_config']} differs from this run's {self.mcfg.to_dict()}"
+            )
+        theirs = {k: v for k, v in ck["train_config"].items() if k != "epochs"}
+        ours = {k: v for k, v in asdict(self.tcfg).items() if k != "epochs"}
+        if theirs != ours:
+            diff = sorted(k for k in ours if ours[k] != theirs.get(k))
+            raise ConfigError(f"{path}: train config differs from this run's in {', '.join(diff)}")
+        self.net.load_state_dict(ck["state_dict"])
+        self.opt.load_state_dict(ck["optimizer"])
+        self.epoch = int(ck["epoch"])
+        self.history = list(ck["history"])
+        self.best_val = float(ck["best_val_ade_m"])
+
+    # ----------------------------------------------------------------- training
+    def validate(self) -> dict[str, float]:
+        self.net.eval()
+        pred = LearnedPredictor(self.net, self.norm)
+        res = evaluate_windows(pred.predict_batch, self.val_windows, self.norm)
+        return {k: res[k] for k in ("ade_m", "fde_m", "ade_norm", "fde_norm")}
+
+    def train_epoch(self, progress: bool = True) -> dict[str, float]:
+        t = self.tcfg
+        epoch_seed = t.seed * 100_003 + self.epoch
+        torch.manual_seed(epoch_seed)
+        rng = np.random.default_rng(epoch_seed)
+        n_batches = math.ceil(len(self.train_windows) / t.batch_size)
+        order = rng.permutation(n_batches)
+        self.net.train()
+        total, count, seen = 0.0, 0, 0
+        t0 = time.perf_counter()
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(
+                total=len(self.train_windows), desc=f"epoch {self.epoch + 1}/{t.epochs}", unit="win", leave=False
+            )
+        for chunk in batches(self.train_windows, t.batch_size, order):
+            pos, pres, _ = collate([self.train_windows[i] for i in chunk])
+            if t.augment_rotation:
+                pos = rotate_windows(pos, pres, rng)
+            pos_t = torch.from_numpy(pos)
+            mask_t = torch.from_numpy(pres)
+            normed = torch.where(mask_t.unsqueeze(-1), self.norm.normalise(pos_t), torch.zeros_like(pos_t))
+            pred, used = self.net(normed, mask_t, OBS_LEN, teacher_forcing=t.teacher_forcing)
+            loss = masked_loss(pred, used, normed, mask_t)
+            if not torch.isfinite(loss):
+                raise TrainingDivergedError(
+                    f"loss became {loss.item()} in epoch {self.epoch + 1}; stopped. The last good checkpoint "
+                    f"({self.out / 'last.pt'}, epoch {self.epoch}) is kept; try a lower lr or grad_clip."
+                )
+            self.opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(self.net.parameters(), t.grad_clip)
+            self.opt.step()
+            total += loss.item() * len(chunk)
+            count += len(chunk)
+            seen += len(chunk)
+            if bar is not None:
+                bar.update(len(chunk))
+                bar.set_postfix(loss=f"{total / count:.5f}", wps=f"{seen / (time.perf_counter() - t0):.0f}")
+        if bar is not None:
+            bar.close()
+        return {"train_loss": total / max(count, 1), "windows_per_s": seen / (time.perf_counter() - t0)}
+
+    def fit(self, progress: bool = True, log: Any = print, tensorboard: bool = False) -> dict[str, Any]:
+        writer = None
+        if tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            writer = SummaryWriter(str(self.out / "tb"))
+        while self.epoch < self.tcfg.epochs:
+            stats = self.train_epoch(progress)
+            val = self.validate()
+            self.epoch += 1
+            row = {"epoch": self.epoch, **stats, **{f"val_{k}": v for k, v in val.items()}}
+            self.history.append(row)
+            improved = val["ade_m"] < self.best_val
+            if improved:
+                self.best_val = val["ade_m"]
+            self.save("last.pt", full=True)
+            if improved:
+                self.save("best.pt", full=False)
+            if writer is not None:
+                for k, v in row.items():
+                    if k != "epoch":
+                        writer.add_scalar(k, v, self.epoch)
+            log(
+                f"epoch {self.epoch}/{self.tcfg.epochs} loss {stats['train_loss']:.5f} "
+                f"val ADE/FDE {val['ade_m']:.3f}/{val['fde_m']:.3f} m "
+                f"({stats['windows_per_s']:.0f} windows/s){' *' if improved else ''}"
+            )
+        if writer is not None:
+            writer.close()
+        return {"best_val_ade_m": self.best_val, "history": self.history, "out_dir": str(self.out)}
