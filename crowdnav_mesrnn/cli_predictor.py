@@ -97,6 +97,68 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _select(args: argparse.Namespace) -> int:
+    import torch
+
+    from crowdnav_mesrnn.models.pretrained import export_checkpoint
+
+    candidates = []
+    for run in args.runs:
+        best = Path(run) / "best.pt"
+        if not best.is_file():
+            print(f"skipping {run}: no best.pt", file=sys.stderr)
+            continue
+        ck = torch.load(best, map_location="cpu", weights_only=True)
+        if ck["model_config"]["model"] != args.model or ck["train_config"]["split"] != args.split:
+            raise ValueError(
+                f"{best} is {ck['model_config']['model']}/{ck['train_config']['split']}, not {args.model}/{args.split}"
+            )
+        candidates.append((float(ck["best_val_ade_m"]), run, int(ck["epoch"])))
+    if not candidates:
+        raise ValueError("no candidate run has a best.pt")
+    candidates.sort()
+    val, run, epoch = candidates[0]
+    note = f"lowest val ADE {val:.3f} m (epoch {epoch}) of: " + "; ".join(
+        f"{Path(r).name} {v:.3f} m" for v, r, _ in candidates
+    )
+    path = export_checkpoint(Path(run) / "best.pt", args.model, args.split, note)
+    print(f"{args.model}/{args.split}: {note}\nwrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    import torch
+
+    from crowdnav_mesrnn.report import build_report
+    from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text
+
+    torch.set_num_threads(args.threads)
+    extra = dict(item.split("=", 1) for item in (args.extra or []))
+    text, results = build_report(extra, data_dir=args.data_dir)
+    out = Path(args.out)
+    atomic_write_text(out, text + "\n## Reproduce\n\n```bash\n" + REPRODUCE + "```\n")
+    atomic_write_json(out.with_suffix(".json"), results)
+    print(text)
+    print(f"wrote {out} and {out.with_suffix('.json')}")
+    return 0
+
+
+REPRODUCE = """\
+# shipped models: for each MODEL in vlstm srnn mesrnn and SPLIT in eth hotel univ zara1 zara2
+crowdnav-mesrnn predictor train --model MODEL --split SPLIT --config configs/predictor/MODEL_velocity.yaml \\
+    --set offset=cv_residual --out runs/predictor/MODEL_residual_SPLIT
+crowdnav-mesrnn predictor train --model MODEL --split SPLIT --out runs/predictor/MODEL_paper_SPLIT   # paper config
+crowdnav-mesrnn predictor select --model MODEL --split SPLIT runs/predictor/MODEL_*_SPLIT
+# this page (evaluates the shipped weights and, where present, the paper-config runs)
+crowdnav-mesrnn predictor report --out docs/results/predictors.md \\
+    --extra 'mesrnn:paper config=runs/predictor/mesrnn_paper_{split}/best.pt' \\
+    --extra 'srnn:paper config=runs/predictor/srnn_paper_{split}/best.pt' \\
+    --extra 'vlstm:paper config=runs/predictor/vlstm_paper_{split}/best.pt'
+# any single row
+crowdnav-mesrnn predictor eval --model mesrnn --split all
+"""
+
+
 def _plot(args: argparse.Namespace) -> int:
     from crowdnav_mesrnn.plotting import plot_window
 
@@ -141,6 +203,19 @@ def _add_predictor(sub: Any) -> None:
     x.add_argument("--split", required=True, choices=SPLITS)
     x.add_argument("--note", default="", help="why this configuration was selected")
     x.set_defaults(func=_export)
+
+    sel = psub.add_parser("select", help="export the run with the lowest validation ADE as the shipped weights")
+    sel.add_argument("--model", required=True, choices=LEARNED_MODELS)
+    sel.add_argument("--split", required=True, choices=SPLITS)
+    sel.add_argument("runs", nargs="+", help="run folders holding best.pt")
+    sel.set_defaults(func=_select)
+
+    r = psub.add_parser("report", help="evaluate every predictor and write docs/results/predictors.md (+ .json)")
+    r.add_argument("--out", default="docs/results/predictors.md")
+    r.add_argument("--extra", action="append", metavar="MODEL:LABEL=TEMPLATE", help="extra rows from checkpoints")
+    r.add_argument("--data-dir", default=None)
+    r.add_argument("--threads", type=int, default=1)
+    r.set_defaults(func=_report)
 
     g = psub.add_parser("plot", help="draw observed paths, true futures and forecasts of one test window")
     g.add_argument("--split", required=True, choices=SPLITS)

@@ -121,9 +121,18 @@ class Trainer:
         if tcfg.max_windows:
             self.train_windows = self.train_windows[: tcfg.max_windows]
         self.val_windows: list[Window] = split_windows(tcfg.split, "val", 2, tcfg.data_dir)
+        if mcfg.standardise:
+            self._fit_scales()
         self.epoch = 0
         self.best_val = math.inf
         self.history: list[dict[str, float]] = []
+
+    def _fit_scales(self, max_windows: int = 512) -> None:
+        rng = np.random.default_rng(self.tcfg.seed)
+        pick = rng.permutation(len(self.train_windows))[:max_windows]
+        pos, pres, _ = collate([self.train_windows[i] for i in pick])
+        p, m = torch.from_numpy(pos), torch.from_numpy(pres)
+        self.net.fit_input_scales(torch.where(m.unsqueeze(-1), self.norm.normalise(p), torch.zeros_like(p)), m)
 
     # ----------------------------------------------------------------- checkpoints
     def _payload(self, full: bool) -> dict[str, Any]:

@@ -48,6 +48,10 @@ class LearnedPredictor:
         out = self.net.rollout(normed, m, pred_len)
         return self.norm.denormalise(out)
 
+    def online(self, num_slots: int) -> OnlineForecaster:
+        """An incremental forecaster carrying hidden states for ``num_slots`` pedestrians."""
+        return OnlineForecaster(self, num_slots)
+
     def forecast(self, history: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """``(obs_len, N, 2)`` metres + ``(obs_len, N)`` mask -> ``(N, pred_len, 2)`` metres."""
         history, mask = check_history(history, mask, self.obs_len)
@@ -58,6 +62,62 @@ class LearnedPredictor:
         out = pred.permute(1, 0, 2).numpy().astype(np.float32)
         gone = ~mask[-1]
         out[gone] = last_known(history, mask)[gone, None, :]
+        return out
+
+
+class OnlineForecaster:
+    """Incremental forecasting with hidden states carried per pedestrian between annotation steps.
+
+    Feed one annotation step at a time with :meth:`observe` (slot ``i`` is always the same
+    pedestrian); :meth:`forecast` rolls out ``pred_len`` steps from copies of the carried states.
+    After exactly ``obs_len`` observations from a fresh start it equals
+    :meth:`LearnedPredictor.forecast` on the same history.
+    """
+
+    def __init__(self, predictor: LearnedPredictor, num_slots: int) -> None:
+        self.p = predictor
+        self.n = num_slots
+        self.state = predictor.net.init_state(num_slots)
+        self.pos = [torch.zeros(1, num_slots, 2) for _ in range(2)]  # t, t-1 (normalised)
+        self.mask = [torch.zeros(1, num_slots, dtype=torch.bool) for _ in range(2)]
+        self.next_pred = torch.zeros(1, num_slots, 2)
+        self.last_seen_m = np.zeros((num_slots, 2), np.float32)
+        self.steps = 0
+
+    @torch.no_grad()
+    def observe(self, positions_m: np.ndarray, present: np.ndarray) -> None:
+        """One annotation step: ``(num_slots, 2)`` metres and ``(num_slots,)`` bool presence."""
+        pos = np.asarray(positions_m, dtype=np.float32).reshape(self.n, 2)
+        m = torch.from_numpy(np.asarray(present, dtype=bool).reshape(1, self.n))
+        p_t = torch.where(
+            m.unsqueeze(-1), self.p.norm.normalise(torch.from_numpy(pos)[None]), torch.zeros(1, self.n, 2)
+        )
+        self.next_pred, self.state = self.p.net.step(
+            (p_t, self.pos[0], self.pos[1]), (m, self.mask[0], self.mask[1]), self.state
+        )
+        self.pos = [p_t, self.pos[0]]
+        self.mask = [m, self.mask[0]]
+        self.last_seen_m[m[0].numpy()] = pos[m[0].numpy()]
+        self.steps += 1
+
+    @torch.no_grad()
+    def forecast(self) -> np.ndarray:
+        """``(num_slots, pred_len, 2)`` metres for pedestrians present at the last observation."""
+        net = self.p.net
+        state = dict(self.state)
+        roll = self.mask[0]
+        preds = [self.next_pred]
+        p_prev, p_prev2 = self.pos[0], self.pos[1]
+        m_prev, m_prev2 = self.mask[0], self.mask[1]
+        for _ in range(self.p.pred_len - 1):
+            p_t = torch.where(roll.unsqueeze(-1), preds[-1], torch.zeros_like(preds[-1]))
+            nxt, state = net.step((p_t, p_prev, p_prev2), (roll, m_prev, m_prev2), state)
+            preds.append(nxt)
+            p_prev2, p_prev = p_prev, p_t
+            m_prev2, m_prev = m_prev, roll
+        out = self.p.norm.denormalise(torch.cat(preds, 0)).permute(1, 0, 2).numpy().astype(np.float32)
+        gone = ~roll[0].numpy()
+        out[gone] = self.last_seen_m[gone, None, :]
         return out
 
 

@@ -47,6 +47,13 @@ class ModelConfig:
     """Multiplier on edge features before the embedding (1 = paper)."""
     node_input: str = "position"
     """What the node embedding reads: ``position`` (paper) or ``velocity`` (last displacement; scene-independent)."""
+    offset: str = "absolute"
+    """What the decoder's offset is added to: ``absolute`` (paper: current position) or ``cv_residual``
+    (current position plus the last displacement, so the network learns a correction to constant velocity;
+    the decoder starts at zero, i.e. the untrained model is exactly constant velocity)."""
+    standardise: bool = False
+    """Scale every edge feature type and the node input by the inverse of its RMS on the training data
+    (fitted once before training, stored with the weights). Off in the paper."""
     types: tuple[str, ...] = field(default=())
     """Meta-path types; filled from ``model`` (not set by hand)."""
 
@@ -57,6 +64,8 @@ class ModelConfig:
             raise ConfigError(f"aggregate must be 'sum' or 'mean', got {self.aggregate!r}")
         if self.node_input not in ("position", "velocity"):
             raise ConfigError(f"node_input must be 'position' or 'velocity', got {self.node_input!r}")
+        if self.offset not in ("absolute", "cv_residual"):
+            raise ConfigError(f"offset must be 'absolute' or 'cv_residual', got {self.offset!r}")
         if self.types != MODEL_TYPES[self.model]:
             if self.types:
                 raise ConfigError(f"types {self.types} do not match model {self.model!r} ({MODEL_TYPES[self.model]})")
@@ -113,9 +122,15 @@ class StructuralRNN(nn.Module):
             self.edge_embed_w = nn.Parameter(torch.empty(k, 2, cfg.edge_embed).uniform_(-bound, bound))
             self.edge_embed_b = nn.Parameter(torch.empty(k, 1, cfg.edge_embed).uniform_(-bound, bound))
             self.edge_cell = GroupedLSTMCell(k, cfg.edge_embed, cfg.edge_hidden)
+        # Input scales (1 unless fitted by :meth:`fit_input_scales`); buffers, so saved with the weights.
+        self.register_buffer("edge_scale", torch.ones(max(k, 1), 1, 2))
+        self.register_buffer("node_scale", torch.ones(2))
         self.node_embed = nn.Linear(2, cfg.node_embed)
         self.node_cell = nn.LSTMCell(cfg.node_embed + k * cfg.edge_hidden, cfg.node_hidden)
         self.decoder = nn.Linear(cfg.node_hidden, 2)
+        if cfg.offset == "cv_residual":
+            nn.init.zeros_(self.decoder.weight)
+            nn.init.zeros_(self.decoder.bias)
 
     # ------------------------------------------------------------------ state
     def init_state(self, rows: int, device: torch.device | None = None) -> dict[str, torch.Tensor]:
@@ -143,7 +158,33 @@ class StructuralRNN(nn.Module):
         stacked = torch.stack([feats[t] for t in self.types], dim=0)  # (K, B, N, 2)
         if self.cfg.feature_scale != 1.0:
             stacked = stacked * self.cfg.feature_scale
-        return stacked.flatten(1, 2)
+        return stacked.flatten(1, 2) * self.edge_scale[: len(self.types)]
+
+    @torch.no_grad()
+    def fit_input_scales(self, positions: torch.Tensor, mask: torch.Tensor) -> None:
+        """Set the input scales to 1 / RMS of each edge feature type (and the node input) over present
+        pedestrians of a ``(B, T, N, 2)`` batch of training windows (normalised units)."""
+        self.edge_scale.fill_(1.0)
+        self.node_scale.fill_(1.0)
+        m = mask.bool()
+        p1 = torch.cat([torch.zeros_like(positions[:, :1]), positions[:, :-1]], 1)
+        m1 = torch.cat([torch.zeros_like(m[:, :1]), m[:, :-1]], 1)
+        p2 = torch.cat([torch.zeros_like(positions[:, :2]), positions[:, :-2]], 1)
+        m2 = torch.cat([torch.zeros_like(m[:, :2]), m[:, :-2]], 1)
+        flat = lambda x: x.flatten(0, 1)  # noqa: E731 - (B*T, N, ...)
+        pres = flat(m)
+        if self.types:
+            feats = self._features((flat(positions), flat(p1), flat(p2)), (pres, flat(m1), flat(m2)))
+            assert feats is not None
+            sel = feats[:, pres.reshape(-1)]  # (K, present rows, 2)
+            rms = sel.pow(2).mean(1, keepdim=True).sqrt().clamp(min=1e-6)
+            self.edge_scale[: len(self.types)] = 1.0 / rms
+        if self.cfg.node_input == "velocity":
+            both = m & m1
+            vel = (positions - p1)[both]
+        else:
+            vel = positions[m]
+        self.node_scale.copy_(1.0 / vel.pow(2).mean(0).sqrt().clamp(min=1e-6))
 
     def step(
         self,
@@ -163,11 +204,12 @@ class StructuralRNN(nn.Module):
         """
         b, n, _ = p[0].shape
         present = m[0].reshape(b * n, 1)
+        vel = (p[0] - p[1]) * (m[0] & m[1]).unsqueeze(-1).to(p[0].dtype)
         if self.cfg.node_input == "velocity":
-            node_in = (p[0] - p[1]) * (m[0] & m[1]).unsqueeze(-1).to(p[0].dtype)
+            node_in = vel
         else:
             node_in = p[0]
-        x_node = self.drop(torch.tanh(self.node_embed(node_in.reshape(b * n, 2))))
+        x_node = self.drop(torch.tanh(self.node_embed(node_in.reshape(b * n, 2) * self.node_scale)))
         edge = self._features(p, m)
         new = dict(state)
         if edge is not None:
@@ -180,6 +222,8 @@ class StructuralRNN(nn.Module):
         new["node_h"] = torch.where(present, nh, state["node_h"])
         new["node_c"] = torch.where(present, nc, state["node_c"])
         offset = torch.tanh(self.decoder(new["node_h"])).reshape(b, n, 2)
+        if self.cfg.offset == "cv_residual":
+            offset = offset + vel
         return p[0] + offset, new
 
     def forward(

@@ -157,3 +157,34 @@ def test_checkpoint_mismatch_errors(tmp_path: Path) -> None:
     path.write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError, match="unreadable"):
         load_predictor(path)
+
+
+@pytest.mark.parametrize("model", list(MODEL_TYPES))
+def test_online_forecaster_matches_from_scratch_forecast(model: str) -> None:
+    pred = LearnedPredictor(make_net(model), MinMax((0.0, 0.0), (10.0, 10.0)))
+    rng = np.random.default_rng(1)
+    hist = np.cumsum(rng.normal(0.3, 0.1, size=(8, 5, 2)), axis=0).astype(np.float32) + 2
+    mask = rng.uniform(size=(8, 5)) < 0.8
+    mask[-1, :2] = True
+    online = pred.online(5)
+    for t in range(8):
+        online.observe(hist[t], mask[t])
+    np.testing.assert_allclose(online.forecast(), pred.forecast(hist, mask), rtol=1e-5, atol=1e-5)
+
+
+def test_cv_residual_starts_as_constant_velocity() -> None:
+    net = make_net("mesrnn", offset="cv_residual")
+    pos, mask = random_batch(n=3)
+    mask[:] = True
+    out = net.rollout(pos[:, :8], mask[:, :8], 12)
+    vel = pos[:, 7] - pos[:, 6]
+    want = pos[:, 7].unsqueeze(1) + torch.arange(1, 13).view(1, 12, 1, 1) * vel.unsqueeze(1)
+    torch.testing.assert_close(out, want, rtol=1e-5, atol=1e-5)
+
+
+def test_fit_input_scales_gives_unit_rms_and_is_saved() -> None:
+    net = make_net("mesrnn", standardise=True, node_input="velocity")
+    pos, mask = random_batch(b=4, n=6)
+    net.fit_input_scales(pos, mask)
+    assert torch.all(net.edge_scale != 1.0) and torch.all(net.node_scale != 1.0)
+    assert "edge_scale" in net.state_dict() and "node_scale" in net.state_dict()

@@ -1,0 +1,261 @@
+"""Configuration of the crowd-navigation environment: defaults in code, overrides from mappings or YAML.
+
+Every setting is a field of :class:`CrowdNavConfig` with its unit in the name where it matters.
+``CrowdNavEnv(config=..., **kwargs)`` merges a mapping (or a YAML file) and keyword arguments onto
+the defaults with :func:`crowdnav_mesrnn.config.replace_checked`: an unknown key is a
+:class:`~crowdnav_mesrnn.config.ConfigError` listing the valid ones, and :meth:`CrowdNavConfig.validate`
+rejects bad values (an unknown split, part, scene, crowd, predictor or kinematics lists the valid values).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Final
+
+from crowdnav_mesrnn.config import ConfigError, load_yaml, replace_checked
+from crowdnav_mesrnn.data.constants import RECORDINGS, SPLIT_TEST_RECORDINGS, SPLITS
+
+#: Forecast sources accepted by ``predictor=``.
+FORECAST_SOURCES: Final[tuple[str, ...]] = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
+#: Forecast sources that load a pretrained predictor per split.
+LEARNED_SOURCES: Final[tuple[str, ...]] = ("mesrnn", "srnn", "vlstm")
+#: Crowd sources accepted by ``crowd=`` (or a :class:`~crowdnav_mesrnn.data.Recording` object).
+CROWDS: Final[tuple[str, ...]] = ("auto", "replay", "synthetic", "empty")
+#: Which recordings an episode may replay: ``test`` = the split's held-out scene, ``train`` = the other four.
+EPISODE_PARTS: Final[tuple[str, ...]] = ("train", "test")
+KINEMATICS: Final[tuple[str, ...]] = ("holonomic", "unicycle")
+
+
+@dataclass(frozen=True)
+class CrowdNavConfig:
+    """Every setting of :class:`envs.crowd_nav.CrowdNavEnv` (defaults here; ``configs/env/default.yaml`` mirrors them)."""
+
+    # ----------------------------------------------------------------- crowd and episodes
+    split: str = "zara1"
+    """Leave-one-out split (``eth``, ``hotel``, ``univ``, ``zara1``, ``zara2``) choosing the recordings."""
+    part: str = "train"
+    """``test``: episodes replay the split's held-out scene; ``train``: the other four scenes' recordings."""
+    scenes: tuple[str, ...] = ()
+    """Restrict episodes to these recordings (``crowds_zara01``) or scene labels (``zara1``, ``univ``); empty = all of the part."""
+    crowd: str = "auto"
+    """``replay`` (ETH/UCY), ``synthetic`` (social-force crowd), ``empty``, or ``auto`` (replay if data is found, else synthetic with a warning)."""
+    data_dir: str | None = None
+    """ETH/UCY folder; default: ``$CROWDNAV_MESRNN_DATA``, ``./data/eth_ucy``, ``~/.cache/crowdnav-mesrnn/eth_ucy``."""
+    predictor: str = "mesrnn"
+    """Forecast source: ``none``, ``cv``, ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, ``noisy_oracle`` (or pass a predictor object)."""
+
+    # ----------------------------------------------------------------- robot and physics
+    kinematics: str = "holonomic"
+    """``holonomic`` (action = velocity) or ``unicycle`` (action = speed, turn rate)."""
+    robot_radius_m: float = 0.3
+    """Robot disk radius, metres."""
+    robot_pref_speed_mps: float = 1.0
+    """Preferred (= maximum) robot speed, m/s; the action is scaled by it."""
+    robot_max_turn_rate_radps: float = 2.0
+    """Unicycle: maximum turn rate, rad/s (action[1] = ±1)."""
+    pedestrian_radius_m: float = 0.3
+    """Pedestrian disk radius, metres."""
+    dt_s: float = 0.4
+    """Control step, seconds (the data's annotation step)."""
+    physics_dt_s: float = 0.1
+    """Longest physics substep, seconds (substeps per control step = ceil(dt_s / physics_dt_s))."""
+
+    # ----------------------------------------------------------------- episodes
+    start_goal_distance_m: tuple[float, float] = (6.0, 12.0)
+    """Range of the straight-line start-goal distance, metres."""
+    start_clearance_m: float = 1.0
+    """Minimum gap (surface to surface) between the robot's start and every pedestrian at t0, metres."""
+    time_limit_factor: float = 3.0
+    """Time limit = factor x straight-line distance / preferred speed."""
+    goal_tolerance_m: float = 0.3
+    """The goal is reached when the robot's centre is this close to it, metres."""
+    terminate_on_collision: bool = True
+    """End the episode at the first robot-pedestrian contact (False: keep running, penalise every step in contact)."""
+
+    # ----------------------------------------------------------------- observation
+    num_pedestrians: int = 10
+    """K: the K nearest pedestrians within the sensor range are observed."""
+    sensor_range_m: float = 6.0
+    """Pedestrians farther than this (centre distance) are not observed, metres."""
+    horizon_steps: int = 12
+    """H: forecast steps of dt_s each (12 x 0.4 s = 4.8 s)."""
+    max_obs_speed_mps: float = 4.0
+    """Pedestrian speeds in the observation are clipped to this, m/s (bounds of the observation space)."""
+    max_goal_offset_m: float = 50.0
+    """Goal offset components are clipped to ±this, metres."""
+    flatten_observation: bool = True
+    """Give ``pedestrians`` and ``forecasts`` as 1-D vectors (row-major ``(K, 4)`` and ``(K, H, 2)``), as
+    Stable-Baselines3 expects; False gives them those shapes (see :func:`envs.observation.structured`)."""
+
+    # ----------------------------------------------------------------- forecasts
+    cache_forecasts: bool = True
+    """Memoise forecasts per (recording, time); identical to the online path (replayed pedestrians ignore the robot)."""
+    noisy_oracle_ade_m: float = 0.5
+    """``noisy_oracle``: expected ADE of the noise added to the true future, metres."""
+
+    # ----------------------------------------------------------------- reward (identical in every forecast arm)
+    success_reward: float = 10.0
+    """Reward when the goal is reached."""
+    collision_penalty: float = -20.0
+    """Reward on a step with a robot-pedestrian contact."""
+    discomfort_dist_m: float = 0.25
+    """Gaps below this are uncomfortable, metres."""
+    discomfort_scale: float = 10.0
+    """Discomfort = (gap - discomfort_dist_m) x scale x dt_s when gap < discomfort_dist_m, per metre-second."""
+    progress_weight: float = 1.0
+    """Weight of the potential-based progress term gamma * phi(s') - phi(s), phi = -distance to goal."""
+    progress_gamma: float = 0.99
+    """gamma of the progress term (use the agent's discount factor)."""
+    intrusion_penalty: float = 0.0
+    """Reward per step when the robot stands on a pedestrian's true future path within the horizon (0 = off)."""
+
+    # ----------------------------------------------------------------- synthetic crowd
+    synthetic_duration_s: float = 300.0
+    """Length of the generated social-force recording, seconds."""
+    synthetic_arrival_rate_per_s: float = 0.8
+    """Pedestrians entering the synthetic scene per second."""
+    synthetic_area_m: tuple[float, float] = (16.0, 12.0)
+    """Width and height of the synthetic scene, metres."""
+    synthetic_seed: int = 0
+    """Seed of the synthetic recording (fixed: the scene is data, episodes are seeded by reset)."""
+
+    # ----------------------------------------------------------------- rendering
+    render_px_per_m: float = 40.0
+    """Fixed scale of the rendering, pixels per metre."""
+    render_size_px: tuple[int, int] = (640, 640)
+    """Width and height of rendered frames, pixels."""
+    render_trail_steps: int = 8
+    """Length of the pedestrians' trails, control steps."""
+
+    @property
+    def substeps(self) -> int:
+        """Physics substeps per control step."""
+        return max(1, math.ceil(self.dt_s / self.physics_dt_s - 1e-9))
+
+    @property
+    def horizon_s(self) -> float:
+        return self.horizon_steps * self.dt_s
+
+    def validate(self) -> CrowdNavConfig:
+        """Raise :class:`ConfigError` naming the key and listing valid values; return self."""
+        _one_of("split", self.split, SPLITS)
+        _one_of("part", self.part, EPISODE_PARTS)
+        _one_of("crowd", self.crowd, CROWDS)
+        _one_of("predictor", self.predictor, FORECAST_SOURCES)
+        _one_of("kinematics", self.kinematics, KINEMATICS)
+        allowed = episode_recordings(self.split, self.part)
+        resolve_scenes(self.scenes, allowed, self.split, self.part)
+        for key in (
+            "robot_radius_m",
+            "robot_pref_speed_mps",
+            "robot_max_turn_rate_radps",
+            "pedestrian_radius_m",
+            "dt_s",
+            "physics_dt_s",
+            "time_limit_factor",
+            "goal_tolerance_m",
+            "sensor_range_m",
+            "max_obs_speed_mps",
+            "max_goal_offset_m",
+            "synthetic_duration_s",
+            "render_px_per_m",
+        ):
+            value = getattr(self, key)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"config key {key!r} must be a positive number, got {value!r}")
+        for key in ("num_pedestrians", "horizon_steps", "render_trail_steps"):
+            value = getattr(self, key)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ConfigError(f"config key {key!r} must be an integer >= 1, got {value!r}")
+        substep_s = self.dt_s / self.substeps
+        closing_m = (1.5 + self.robot_pref_speed_mps) * substep_s
+        if closing_m > self.robot_radius_m + self.pedestrian_radius_m:
+            raise ConfigError(
+                f"config key 'physics_dt_s' = {self.physics_dt_s!r} is too long: a 1.5 m/s pedestrian and the robot close "
+                f"{closing_m:.2f} m per substep, more than the sum of radii "
+                f"{self.robot_radius_m + self.pedestrian_radius_m:.2f} m (contacts could be missed)"
+            )
+        lo_hi = self.start_goal_distance_m
+        if len(lo_hi) != 2 or not 0 < lo_hi[0] <= lo_hi[1]:
+            raise ConfigError(
+                f"config key 'start_goal_distance_m' must be (min, max) with 0 < min <= max, got {lo_hi!r}"
+            )
+        for key in ("start_clearance_m", "noisy_oracle_ade_m", "discomfort_dist_m", "synthetic_arrival_rate_per_s"):
+            value = getattr(self, key)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ConfigError(f"config key {key!r} must be a number >= 0, got {value!r}")
+        if not 0 < self.progress_gamma <= 1:
+            raise ConfigError(f"config key 'progress_gamma' must be in (0, 1], got {self.progress_gamma!r}")
+        if len(self.synthetic_area_m) != 2 or min(self.synthetic_area_m) < 4:
+            raise ConfigError(
+                f"config key 'synthetic_area_m' must be (width, height) of at least 4 m, got {self.synthetic_area_m!r}"
+            )
+        if len(self.render_size_px) != 2 or min(self.render_size_px) < 16:
+            raise ConfigError(
+                f"config key 'render_size_px' must be (width, height) >= 16 px, got {self.render_size_px!r}"
+            )
+        return self
+
+
+def _one_of(key: str, value: Any, valid: tuple[str, ...]) -> None:
+    if value not in valid:
+        raise ConfigError(f"unknown {key} {value!r}; valid: {', '.join(valid)}")
+
+
+def episode_recordings(split: str, part: str) -> tuple[str, ...]:
+    """Recordings (whole files in ``all_data/``) an episode of ``split``/``part`` may replay.
+
+    ``test``: the split's held-out recording(s). ``train``: the held-out recordings of the four other
+    splits. ``crowds_zara03`` and ``uni_examples`` (training data of every predictor) are never replayed.
+    """
+    _one_of("split", split, SPLITS)
+    _one_of("part", part, EPISODE_PARTS)
+    if part == "test":
+        return SPLIT_TEST_RECORDINGS[split]
+    return tuple(r for s, recs in SPLIT_TEST_RECORDINGS.items() if s != split for r in recs)
+
+
+def resolve_scenes(scenes: tuple[str, ...], allowed: tuple[str, ...], split: str, part: str) -> tuple[str, ...]:
+    """Recording names selected by ``scenes`` (recording names or scene labels); all of ``allowed`` if empty."""
+    if not scenes:
+        return allowed
+    valid_labels = sorted({RECORDINGS[r] for r in allowed})
+    out: list[str] = []
+    for scene in scenes:
+        if scene in allowed:
+            names = [scene]
+        else:
+            names = [r for r in allowed if RECORDINGS[r] == scene]
+        if not names:
+            raise ConfigError(
+                f"unknown scene {scene!r} for split {split!r}, part {part!r}; valid: "
+                f"{', '.join([*allowed, *valid_labels])}"
+            )
+        out.extend(n for n in names if n not in out)
+    return tuple(out)
+
+
+def config_from(
+    config: Mapping[str, Any] | str | os.PathLike[str] | None, overrides: Mapping[str, Any]
+) -> CrowdNavConfig:
+    """Defaults, then ``config`` (a mapping or a YAML file), then keyword ``overrides``; validated."""
+    if config is None:
+        base: dict[str, Any] = {}
+    elif isinstance(config, Mapping):
+        base = dict(config)
+    elif isinstance(config, str | os.PathLike):
+        base = load_yaml(config)
+    else:
+        raise ConfigError(f"config must be a mapping or a YAML path, got {type(config).__name__}")
+    merged = {**base, **overrides}
+    cfg = replace_checked(CrowdNavConfig(), merged, where="env config")
+    return cfg.validate()
+
+
+def default_config() -> dict[str, Any]:
+    """The defaults as a flat dict (tuples as lists, YAML-ready)."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(CrowdNavConfig()).items()}

@@ -1,0 +1,193 @@
+"""Rendering with pygame (imported only here, only when rendering) and GIF export with Pillow.
+
+Save an episode as a GIF::
+
+    env = gymnasium.make("CrowdNav-CV-v0", render_mode="rgb_array")
+    obs, info = env.reset(seed=0)
+    frames = [env.render()]
+    done = False
+    while not done:
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        frames.append(env.render())
+        done = terminated or truncated
+    save_gif(frames, "episode.gif", fps=env.metadata["render_fps"])
+
+(``gymnasium.wrappers.RecordVideo`` also works with ``render_mode="rgb_array"`` if moviepy is installed.)
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from crowdnav_mesrnn.utils import atomic_write
+
+BACKGROUND = (250, 250, 250)
+GRID = (230, 230, 230)
+ROBOT = (220, 60, 40)
+GOAL = (40, 170, 70)
+PEDESTRIAN = (40, 90, 200)
+UNSEEN = (160, 170, 190)
+TRAIL = (150, 175, 225)
+FORECAST = (240, 140, 20)
+TRUTH = (120, 120, 120)
+SENSOR = (225, 225, 240)
+TEXT = (30, 30, 30)
+
+
+@dataclass
+class Scene:
+    """What to draw for one frame (world coordinates, metres).
+
+    Attributes:
+        robot: ``(2,)`` robot centre.
+        robot_radius_m: robot radius.
+        heading: robot heading, radians.
+        goal: ``(2,)`` goal.
+        goal_tolerance_m: radius of the goal marker.
+        pedestrians: ``(n, 2)`` present pedestrians.
+        visible: ``(n,)`` bool: observed by the robot.
+        ped_radius_m: pedestrian radius.
+        trails: list of ``(T_i, 2)`` recent positions of the present pedestrians.
+        forecasts: ``(m, H, 2)`` forecasts of the observed pedestrians (or None).
+        sensor_range_m: sensor range.
+        center: ``(2,)`` centre of the view.
+        text: a status line.
+        collided: draw the robot as collided.
+    """
+
+    robot: np.ndarray
+    robot_radius_m: float
+    heading: float
+    goal: np.ndarray
+    goal_tolerance_m: float
+    pedestrians: np.ndarray
+    visible: np.ndarray
+    ped_radius_m: float
+    trails: list[np.ndarray]
+    forecasts: np.ndarray | None
+    sensor_range_m: float
+    center: np.ndarray
+    text: str
+    collided: bool = False
+
+
+class Renderer:
+    """Draws scenes at a fixed scale (``px_per_m``) onto a ``size_px`` surface.
+
+    Args:
+        size_px: ``(width, height)`` pixels.
+        px_per_m: pixels per metre.
+        mode: ``"rgb_array"`` (returns ``(height, width, 3)`` uint8 frames) or ``"human"`` (a window).
+        fps: frames per second of the human window.
+    """
+
+    def __init__(self, size_px: tuple[int, int], px_per_m: float, mode: str, fps: float) -> None:
+        import pygame  # only when rendering
+
+        self.pygame = pygame
+        self.size = (int(size_px[0]), int(size_px[1]))
+        self.scale = float(px_per_m)
+        self.mode = mode
+        self.fps = fps
+        self.window: Any = None
+        self.clock: Any = None
+        self.font: Any = None
+        if mode == "human":
+            pygame.display.init()
+            self.window = pygame.display.set_mode(self.size)
+            pygame.display.set_caption("CrowdNav-MESRNN")
+            self.clock = pygame.time.Clock()
+        self.surface = pygame.Surface(self.size)
+        try:
+            pygame.font.init()
+            self.font = pygame.font.Font(None, 20)
+        except Exception:  # fonts are optional decoration
+            self.font = None
+
+    def to_px(self, p: np.ndarray, center: np.ndarray) -> tuple[int, int]:
+        x = self.size[0] / 2 + (p[0] - center[0]) * self.scale
+        y = self.size[1] / 2 - (p[1] - center[1]) * self.scale
+        return round(float(x)), round(float(y))
+
+    def draw(self, scene: Scene) -> np.ndarray | None:
+        """Draw a frame: ``(H, W, 3)`` uint8 in ``rgb_array`` mode, None in ``human`` mode."""
+        pg = self.pygame
+        surf = self.surface
+        c = scene.center
+        surf.fill(BACKGROUND)
+        # 1 m grid
+        half_w, half_h = self.size[0] / 2 / self.scale, self.size[1] / 2 / self.scale
+        for gx in range(int(np.floor(c[0] - half_w)), int(np.ceil(c[0] + half_w)) + 1):
+            x = self.to_px(np.array([gx, c[1]]), c)[0]
+            pg.draw.line(surf, GRID, (x, 0), (x, self.size[1]))
+        for gy in range(int(np.floor(c[1] - half_h)), int(np.ceil(c[1] + half_h)) + 1):
+            y = self.to_px(np.array([c[0], gy]), c)[1]
+            pg.draw.line(surf, GRID, (0, y), (self.size[0], y))
+        r_px = lambda r: max(1, round(r * self.scale))  # noqa: E731
+        pg.draw.circle(surf, SENSOR, self.to_px(scene.robot, c), r_px(scene.sensor_range_m), width=1)
+        pg.draw.circle(surf, GOAL, self.to_px(scene.goal, c), r_px(scene.goal_tolerance_m), width=2)
+        gx, gy = self.to_px(scene.goal, c)
+        pg.draw.line(surf, GOAL, (gx - 6, gy - 6), (gx + 6, gy + 6), 2)
+        pg.draw.line(surf, GOAL, (gx - 6, gy + 6), (gx + 6, gy - 6), 2)
+        for trail in scene.trails:
+            if len(trail) >= 2:
+                pg.draw.lines(surf, TRAIL, False, [self.to_px(p, c) for p in trail], 2)
+        if scene.forecasts is not None:
+            for fc in scene.forecasts:
+                pts = [self.to_px(p, c) for p in fc]
+                for a, b in itertools.pairwise(pts):
+                    # dotted polyline: a dot every 4 px along each segment
+                    n = max(1, int(np.hypot(b[0] - a[0], b[1] - a[1]) // 4))
+                    for i in range(n):
+                        t = i / n
+                        pg.draw.circle(
+                            surf, FORECAST, (round(a[0] + t * (b[0] - a[0])), round(a[1] + t * (b[1] - a[1]))), 1
+                        )
+                for p in pts:
+                    pg.draw.circle(surf, FORECAST, p, 2)
+        for p, seen in zip(scene.pedestrians, scene.visible, strict=True):
+            pg.draw.circle(surf, PEDESTRIAN if seen else UNSEEN, self.to_px(p, c), r_px(scene.ped_radius_m))
+        robot_px = self.to_px(scene.robot, c)
+        pg.draw.circle(surf, (0, 0, 0) if scene.collided else ROBOT, robot_px, r_px(scene.robot_radius_m))
+        tip = scene.robot + scene.robot_radius_m * np.array([np.cos(scene.heading), np.sin(scene.heading)])
+        pg.draw.line(surf, (255, 255, 255), robot_px, self.to_px(tip, c), 2)
+        if self.font is not None and scene.text:
+            surf.blit(self.font.render(scene.text, True, TEXT), (8, 8))
+        if self.mode == "human":
+            pg.event.pump()
+            self.window.blit(surf, (0, 0))
+            pg.display.flip()
+            self.clock.tick(self.fps)
+            return None
+        return np.transpose(pg.surfarray.array3d(surf), (1, 0, 2)).copy()
+
+    def close(self) -> None:
+        if self.window is not None:
+            self.pygame.display.quit()
+            self.window = None
+
+
+def save_gif(frames: Sequence[np.ndarray], path: str | os.PathLike[str], fps: float = 2.5) -> str:
+    """Write ``rgb_array`` frames (``(H, W, 3)`` uint8 each) as a looping GIF with Pillow (atomically).
+
+    Returns:
+        the path written.
+    """
+    from PIL import Image
+
+    if not frames:
+        raise ValueError("no frames to write")
+    images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
+    duration_ms = max(20, round(1000.0 / fps))
+
+    def write(fh: Any) -> None:
+        images[0].save(fh, format="GIF", save_all=True, append_images=images[1:], duration=duration_ms, loop=0)
+
+    atomic_write(path, write)
+    return str(path)

@@ -1,0 +1,170 @@
+"""Reward components and episode metrics — identical in every forecast arm.
+
+Nothing here sees the arm's forecasts: the optional future-intrusion term uses the replay's true future.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from envs.config import CrowdNavConfig
+
+#: Names of the reward components, in the order they are summed.
+REWARD_COMPONENTS: tuple[str, ...] = ("success", "collision", "discomfort", "progress", "intrusion")
+
+
+def reward_components(
+    cfg: CrowdNavConfig,
+    reached_goal: bool,
+    collided: bool,
+    min_gap_m: float,
+    dist_before_m: float,
+    dist_after_m: float,
+    intruding: bool,
+) -> dict[str, float]:
+    """The named reward components of one step; the reward is their sum (in this order).
+
+    Args:
+        cfg: the configuration (weights).
+        reached_goal: the robot is within the goal tolerance at the end of the step.
+        collided: a robot-pedestrian contact began or lasted during the step.
+        min_gap_m: smallest surface gap to any pedestrian during the step, metres (inf if none).
+        dist_before_m: distance to the goal before the step, metres.
+        dist_after_m: distance to the goal after the step, metres.
+        intruding: the robot stands on a pedestrian's true future path within the horizon.
+
+    Returns:
+        ``success`` (+success_reward if the goal was reached without contact), ``collision``
+        (collision_penalty on a step with contact), ``discomfort`` ((gap - discomfort_dist_m) x
+        discomfort_scale x dt_s when the gap is below discomfort_dist_m and there was no contact),
+        ``progress`` (progress_weight x (gamma x phi(s') - phi(s)), phi = -distance to goal) and
+        ``intrusion`` (intrusion_penalty when intruding).
+    """
+    success = cfg.success_reward if (reached_goal and not collided) else 0.0
+    collision = cfg.collision_penalty if collided else 0.0
+    if not collided and min_gap_m < cfg.discomfort_dist_m:
+        discomfort = (max(min_gap_m, 0.0) - cfg.discomfort_dist_m) * cfg.discomfort_scale * cfg.dt_s
+    else:
+        discomfort = 0.0
+    progress = cfg.progress_weight * (cfg.progress_gamma * -dist_after_m + dist_before_m)
+    intrusion = cfg.intrusion_penalty if intruding else 0.0
+    return {
+        "success": float(success),
+        "collision": float(collision),
+        "discomfort": float(discomfort),
+        "progress": float(progress),
+        "intrusion": float(intrusion),
+    }
+
+
+def total_reward(components: dict[str, float]) -> float:
+    """The reward: the plain sum of the components in :data:`REWARD_COMPONENTS` order."""
+    return float(sum(components[k] for k in REWARD_COMPONENTS))
+
+
+@dataclass
+class EpisodeMetrics:
+    """Accumulates an episode's metrics step by step; :meth:`summary` gives ``info["episode"]``.
+
+    Args:
+        start: ``(2,)`` robot start, metres.
+        goal: ``(2,)`` goal, metres.
+        dt_s: control step, seconds.
+        discomfort_dist_m: gap below which a step counts as uncomfortable, metres.
+    """
+
+    start: np.ndarray
+    goal: np.ndarray
+    dt_s: float
+    discomfort_dist_m: float
+    steps: int = 0
+    episode_return: float = 0.0
+    path_length_m: float = 0.0
+    min_gap_m: float = math.inf
+    discomfort_steps: int = 0
+    intrusion_steps: int = 0
+    collisions: int = 0
+    collision_fault: str | None = None
+    ade_sum: float = 0.0
+    ade_count: int = 0
+    fde_sum: float = 0.0
+    fde_count: int = 0
+    jerk_sum: float = 0.0
+    jerk_count: int = 0
+    _velocities: list[np.ndarray] = field(default_factory=list)
+
+    def update(
+        self,
+        reward: float,
+        displacement_m: float,
+        velocity: np.ndarray,
+        min_gap_m: float,
+        intruding: bool,
+        new_contacts: int,
+        fault: str | None,
+    ) -> None:
+        """Record one step (``velocity``: ``(2,)`` m/s average over the step)."""
+        self.steps += 1
+        self.episode_return += reward
+        self.path_length_m += displacement_m
+        self.min_gap_m = min(self.min_gap_m, min_gap_m)
+        self.discomfort_steps += int(min_gap_m < self.discomfort_dist_m)
+        self.intrusion_steps += int(intruding)
+        self.collisions += new_contacts
+        if fault is not None and self.collision_fault is None:
+            self.collision_fault = fault
+        v = self._velocities
+        v.append(np.asarray(velocity, dtype=np.float64))
+        if len(v) > 3:
+            del v[0]
+        # velocities before the first step are 0 (the robot starts at rest)
+        vs = [np.zeros(2)] * max(0, 3 - len(v)) + v
+        if self.steps >= 2:
+            jerk = (vs[2] - 2 * vs[1] + vs[0]) / self.dt_s**2
+            self.jerk_sum += float(np.hypot(jerk[0], jerk[1]))
+            self.jerk_count += 1
+
+    def add_forecast_errors(self, errors: np.ndarray, valid: np.ndarray) -> None:
+        """Displacement errors ``(m, H)`` metres of the arm's forecasts against the truth (``valid`` ``(m, H)``)."""
+        if errors.size == 0:
+            return
+        self.ade_sum += float(errors[valid].sum())
+        self.ade_count += int(valid.sum())
+        last = valid[:, -1]
+        self.fde_sum += float(errors[last, -1].sum())
+        self.fde_count += int(last.sum())
+
+    def summary(self, outcome: str, time_s: float, has_forecasts: bool) -> dict[str, Any]:
+        """The episode's metrics (JSON-ready; ``None`` where not defined).
+
+        Keys: ``outcome`` (success, collision, timeout), ``collision_fault`` (robot, pedestrian or
+        None), ``collisions`` (contacts begun), ``navigation_time_s``, ``path_length_m``,
+        ``path_ratio`` (path length / straight line), ``min_gap_m``, ``discomfort_frequency``
+        (share of steps with a gap below discomfort_dist_m), ``intrusion_ratio`` (share of steps
+        on a pedestrian's true future path), ``mean_jerk_mps3``, ``forecast_ade_m``,
+        ``forecast_fde_m`` (the arm's forecasts of the observed pedestrians against the replay's
+        truth), ``steps``, and ``r``/``l`` (return and length, as Gymnasium and SB3 name them).
+        """
+        straight = float(np.linalg.norm(self.goal - self.start))
+        n = max(self.steps, 1)
+        return {
+            "outcome": outcome,
+            "collision_fault": self.collision_fault,
+            "collisions": self.collisions,
+            "navigation_time_s": round(time_s, 9),
+            "path_length_m": self.path_length_m,
+            "path_ratio": self.path_length_m / straight if straight > 0 else None,
+            "min_gap_m": None if math.isinf(self.min_gap_m) else self.min_gap_m,
+            "discomfort_frequency": self.discomfort_steps / n,
+            "intrusion_ratio": self.intrusion_steps / n,
+            "mean_jerk_mps3": self.jerk_sum / self.jerk_count if self.jerk_count else 0.0,
+            "forecast_ade_m": (self.ade_sum / self.ade_count) if (has_forecasts and self.ade_count) else None,
+            "forecast_fde_m": (self.fde_sum / self.fde_count) if (has_forecasts and self.fde_count) else None,
+            "steps": self.steps,
+            "r": self.episode_return,
+            "l": self.steps,
+        }

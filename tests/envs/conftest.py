@@ -1,0 +1,64 @@
+"""Fixtures of the environment tests: a stand-in learned predictor and small scripted crowds."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+
+
+class FakeLearnedPredictor:
+    """Implements the predictor interface like a learned social model would, without weights.
+
+    Constant velocity plus a pull of 0.05 x (mean of the others' last positions - own) per step, so the
+    forecast of a pedestrian depends on everyone passed in the batch. Optionally records its inputs.
+    """
+
+    obs_len = 8
+    pred_len = 12
+
+    def __init__(self, name: str = "fake", record: bool = False) -> None:
+        self.name = name
+        self.record = record
+        self.calls: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def forecast(self, history: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        history = np.asarray(history, dtype=np.float32)
+        mask = np.asarray(mask, dtype=bool)
+        assert history.shape == (self.obs_len, mask.shape[1], 2)
+        if self.record:
+            self.calls.append((history.copy(), mask.copy()))
+        last = history[-1]
+        vel = np.where((mask[-1] & mask[-2])[:, None], history[-1] - history[-2], 0.0)
+        now = mask[-1]
+        others = last[now].mean(axis=0) if now.any() else np.zeros(2, dtype=np.float32)
+        pull = 0.05 * (others - last)
+        k = np.arange(1, self.pred_len + 1, dtype=np.float32)[None, :, None]
+        return (last[:, None] + k * (vel + pull)[:, None]).astype(np.float32)
+
+
+@pytest.fixture
+def fake_predictor() -> Callable[..., FakeLearnedPredictor]:
+    """Factory of :class:`FakeLearnedPredictor` objects."""
+    return FakeLearnedPredictor
+
+
+def run_episode(
+    env: Any, policy: Callable[[Any], Any], seed: int | None = None, options: dict | None = None
+) -> list[tuple]:
+    """Run one episode; returns ``[(obs, reward, terminated, truncated, info), ...]`` with the reset first."""
+    obs, info = env.reset(seed=seed, options=options)
+    out: list[tuple] = [(obs, 0.0, False, False, info)]
+    done = False
+    while not done:
+        obs, reward, terminated, truncated, info = env.step(policy(obs))
+        out.append((obs, reward, terminated, truncated, info))
+        done = terminated or truncated
+    return out
+
+
+@pytest.fixture
+def episode_runner() -> Callable[..., list[tuple]]:
+    return run_episode
