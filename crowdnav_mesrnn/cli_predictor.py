@@ -145,8 +145,8 @@ def _report(args: argparse.Namespace) -> int:
 
 REPRODUCE = """\
 # shipped models: for each MODEL in vlstm srnn mesrnn and SPLIT in eth hotel univ zara1 zara2
-crowdnav-mesrnn predictor train --model MODEL --split SPLIT --config configs/predictor/MODEL_velocity.yaml \\
-    --set offset=cv_residual --out runs/predictor/MODEL_residual_SPLIT
+crowdnav-mesrnn predictor train --model MODEL --split SPLIT --config configs/predictor/MODEL_residual.yaml \\
+    --out runs/predictor/MODEL_residual_SPLIT
 crowdnav-mesrnn predictor train --model MODEL --split SPLIT --out runs/predictor/MODEL_paper_SPLIT   # paper config
 crowdnav-mesrnn predictor select --model MODEL --split SPLIT runs/predictor/MODEL_*_SPLIT
 # this page (evaluates the shipped weights and, where present, the paper-config runs)

@@ -85,7 +85,7 @@ def test_shipped_yaml_configs_load() -> None:
         m, t = load_configs(model)
         assert (m.node_hidden, m.edge_hidden, m.node_embed, m.edge_embed) == (256, 128, 128, 64)
         assert t.epochs == 10 and t.lr == 1e-3 and t.grad_clip == 10.0 and t.teacher_forcing
-        mv, _ = load_configs(model, training.CONFIG_DIR / f"{model}_velocity.yaml")
+        mv, _ = load_configs(model, training.CONFIG_DIR / f"{model}_residual.yaml")
         assert mv.node_input == "velocity"
 
 
