@@ -5,7 +5,9 @@ crosses the split's held-out scene (ZARA1 by default; the synthetic crowd withou
 resets included. Prints the median of repeats, the ratio to the ``none`` arm measured in the same
 process, and the mean microseconds per step spent in the replay, physics, forecasts, observation,
 reward and resets. Cached arms are warmed first (``precompute_forecasts``; its time is printed).
-Learned arms need the pretrained weights and are reported as missing otherwise. Never asserts on time.
+Learned arms need the pretrained weights and are reported as missing otherwise. ``mesrnn carried``
+uses ``forecast_memory="carried"`` (cached only: online, most resets would restart the forecaster
+from the recording's first frame). Never asserts on time.
 """
 
 from __future__ import annotations
@@ -26,15 +28,16 @@ except ImportError:  # pragma: no cover
 from envs.crowd_nav import TIMING_KEYS, CrowdNavEnv
 from envs.forecasts import PredictorUnavailableError
 
-#: (label, predictor, cache, warm the cache first)
-ARMS: tuple[tuple[str, str, bool, bool], ...] = (
-    ("none", "none", True, False),
-    ("oracle", "oracle", True, False),
-    ("noisy_oracle", "noisy_oracle", True, False),
-    ("cv (cached)", "cv", True, True),
-    ("cv (online)", "cv", False, False),
-    ("mesrnn (cached)", "mesrnn", True, True),
-    ("mesrnn (online)", "mesrnn", False, False),
+#: (label, predictor, cache, warm the cache first, forecast memory)
+ARMS: tuple[tuple[str, str, bool, bool, str], ...] = (
+    ("none", "none", True, False, "window"),
+    ("oracle", "oracle", True, False, "window"),
+    ("noisy_oracle", "noisy_oracle", True, False, "window"),
+    ("cv (cached)", "cv", True, True, "window"),
+    ("cv (online)", "cv", False, False, "window"),
+    ("mesrnn (cached)", "mesrnn", True, True, "window"),
+    ("mesrnn (online)", "mesrnn", False, False, "window"),
+    ("mesrnn carried", "mesrnn", True, True, "carried"),
 )
 
 
@@ -64,9 +67,11 @@ def main() -> None:
 
     rows: list[tuple[str, float | None, dict[str, float] | None, str]] = []
     base: float | None = None
-    for label, predictor, cache, warm in ARMS:
+    for label, predictor, cache, warm, memory in ARMS:
         try:
-            env = CrowdNavEnv(predictor=predictor, split=args.split, part="test", cache_forecasts=cache)
+            env = CrowdNavEnv(
+                predictor=predictor, split=args.split, part="test", cache_forecasts=cache, forecast_memory=memory
+            )
         except PredictorUnavailableError as exc:
             rows.append((label, None, None, f"skipped: {str(exc).split('. ')[0]}"))
             continue

@@ -89,9 +89,13 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     | ``robot`` [2:4] | (2,) | robot velocity | -v | v | m/s |
     | ``robot`` [4:6] | (2,) | cos, sin of the heading (unicycle only) | -1 | 1 | |
     | ``pedestrians`` [:, 0:2] | (K, 2) | pedestrian minus robot position, nearest first | -R | R | m |
-    | ``pedestrians`` [:, 2:4] | (K, 2) | pedestrian minus robot velocity | -(s+v) | s+v | m/s |
+    | ``pedestrians`` [:, 2:4] | (K, 2) | pedestrian minus robot velocity (*) | -(s+v) | s+v | m/s |
     | ``mask`` | (K,) | 1 where the row holds a pedestrian within R | 0 | 1 | |
     | ``forecasts`` | (K, H, 2) | forecast position at t + h dt minus robot position (absent for ``none``) | -(R+sHdt) | R+sHdt | m |
+
+    (*) A pedestrian's velocity is what an observer at t can know: at an annotation time the slope of
+    the interval that ends there (0 for a pedestrian that has just appeared), never the next interval's
+    (that would give away the next annotated position); between two annotations the current slope.
 
     ## Rewards
 
@@ -191,6 +195,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             cfg.horizon_steps,
             cfg.cache_forecasts,
             cfg.noisy_oracle_ade_m,
+            cfg.forecast_memory,
         )
         self.predictor_name = self.forecaster.name
         self.with_forecasts = self.forecaster.active
@@ -226,6 +231,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._replay: Replay | None = None
         self._done = True
         self._started = False
+        self._forecast_rng_parent: np.random.Generator | None = None
+        self._forecast_rng: np.random.Generator | None = None
 
     # ------------------------------------------------------------------ construction helpers
 
@@ -322,6 +329,15 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         super().reset(seed=seed)
+        if self._forecast_rng_parent is not self.np_random:
+            # Forecast noise (noisy_oracle) draws from its own stream, spawned from the episode generator without
+            # drawing from it: otherwise the noise would consume the generator the episodes are sampled from, and
+            # the noisy arm would get other episodes than every other arm after the first (unseeded) reset.
+            self._forecast_rng_parent = self.np_random
+            try:
+                self._forecast_rng = self.np_random.spawn(1)[0]
+            except (TypeError, ValueError):  # a generator without a seed sequence
+                self._forecast_rng = np.random.default_rng(int(self.np_random.integers(2**63)))
         t_start = time.perf_counter()
         cfg = self.config
         opts = dict(options or {})
@@ -540,14 +556,15 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self.timings["observation"] += t1 - tick
         fc = None
         if self.with_forecasts and len(rows):
-            fc = self.forecaster.forecast(self._replay, t_s, rows, truth, self.np_random)
+            assert self._forecast_rng is not None
+            fc = self.forecaster.forecast(self._replay, t_s, rows, truth, self._forecast_rng)
             if fc is not None and truth is not None:
                 err = np.hypot(fc[..., 0] - truth.positions[..., 0], fc[..., 1] - truth.positions[..., 1])
                 self._metrics.add_forecast_errors(err, truth.valid)
         t2 = time.perf_counter()
         self.timings["forecasts"] += t2 - t1
         heading = self._heading
-        v_rows = self._replay.velocity_at(t_s)[rows] if len(rows) else np.zeros((0, 2))
+        v_rows = self._replay.observed_velocity_at(t_s)[rows] if len(rows) else np.zeros((0, 2))
         obs = self._builder.build(robot, self._velocity, heading, self.episode.goal, p_now[rows], v_rows, fc)
         self._trails.append((p_now, pres_now))
         self._last = {"rows": rows, "forecasts": fc, "positions": p_now, "present": pres_now}

@@ -259,6 +259,8 @@ class Replay:
         prev_valid[1:] = valid[:-1]
         prev_vel[1:] = vel[:-1]
         self.annotation_velocity = np.where(valid[..., None], vel, np.where(prev_valid[..., None], prev_vel, 0.0))
+        # slope of the interval ending at each annotation (0 where the pedestrian was not at the previous one)
+        self.arrival_velocity = np.where(prev_valid[..., None], prev_vel, 0.0)
         # presence at an annotation (index 0) and strictly after it (index 1): (F, 2, N)
         self._presence = np.ascontiguousarray(np.stack([self.present, self.valid], axis=1))
         self._times_list = self.times.tolist()
@@ -300,6 +302,18 @@ class Replay:
         if t_s - self._times_list[i] > TIME_TOL_S:
             return self.slopes[i].copy()
         return self.annotation_velocity[i].copy()
+
+    def observed_velocity_at(self, t_s: float) -> np.ndarray:
+        """``(N, 2)`` velocities at one time as an observer at ``t_s`` can know them, m/s (0 where not present).
+
+        Strictly between two annotations: the current slope (as :meth:`velocity_at`). At an annotation: the
+        slope of the interval ending there, 0 for a pedestrian that was not at the previous annotation --
+        not the following interval's, which would give away the position at the next annotation.
+        """
+        i = max(bisect.bisect_right(self._times_list, t_s + TIME_TOL_S) - 1, 0)
+        if t_s - self._times_list[i] > TIME_TOL_S:
+            return self.slopes[i].copy()
+        return self.arrival_velocity[i].copy()
 
     def state_at(self, times_s: np.ndarray | float) -> ReplayState:
         """Positions, velocities and presence at ``times_s`` (``(T,)`` or scalar seconds -> ``T = 1``)."""
@@ -468,12 +482,22 @@ class EpisodeSampler:
         return rec.positions[i0 + frame[k], col[k]].astype(np.float64)
 
     def _clear(self, rec: Recording, times: np.ndarray, t0: float, start: np.ndarray) -> bool:
+        """Nobody within the clearance of ``start`` at the annotations around ``t0`` nor, between them, at ``t0``
+        itself (on the line between two annotations a pedestrian can come closer than at either end)."""
         i = int(np.searchsorted(times, t0 + TIME_TOL_S, "right")) - 1
         if i < 0:
             return True
         rows = slice(i, min(i + 2, len(times)))
         mask = rec.present[rows]
-        if not mask.any():
-            return True
-        d = np.linalg.norm(rec.positions[rows][mask] - start, axis=-1)
-        return bool(np.all(d >= self.clear_m))
+        if mask.any():
+            d = np.linalg.norm(rec.positions[rows][mask] - start, axis=-1)
+            if not np.all(d >= self.clear_m):
+                return False
+        tau = t0 - float(times[i])
+        if tau > TIME_TOL_S and i + 1 < len(times):
+            both = rec.present[i] & rec.present[i + 1]
+            p0, p1 = rec.positions[i, both], rec.positions[i + 1, both]
+            p = p0 + (p1 - p0) / (times[i + 1] - times[i]) * tau  # as Replay.positions_at
+            if len(p) and not np.all(np.linalg.norm(p - start, axis=-1) >= self.clear_m):
+                return False
+        return True

@@ -8,9 +8,14 @@ histories up to the current time, sampled from the replay every annotation step 
 onto the environment's grid ``t + h * dt_s`` (h = 1..H) by linear interpolation in time (beyond the
 predictor's last step the last forecast position is held).
 
+With ``forecast_memory="carried"`` a learned predictor instead carries its hidden states per
+pedestrian from the pedestrian's first appearance (:class:`CarriedPredictorForecast`): an online
+forecaster fed every annotation frame of the recording in order, whose forecast at the latest
+annotation at or before the current time is resampled onto the same grid.
+
 Replayed pedestrians ignore the robot, so forecasts depend only on (recording, time): they are
 memoised per (recording, time) and a forecast taken from the cache is identical to one computed
-online (``tests/envs/test_forecasts.py``).
+online (``tests/envs/test_replay_and_forecasts.py``).
 """
 
 from __future__ import annotations
@@ -21,9 +26,11 @@ from typing import Any, Final, Protocol
 
 import numpy as np
 
+from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, SPLIT_TEST_RECORDINGS
-from envs.config import LEARNED_SOURCES
-from envs.crowds import Replay
+from crowdnav_mesrnn.data.recordings import Recording
+from envs.config import FORECAST_MEMORIES, LEARNED_SOURCES
+from envs.crowds import TIME_TOL_S, Replay
 
 
 class PredictorUnavailableError(FileNotFoundError):
@@ -83,14 +90,15 @@ def fill_forward(positions: np.ndarray, valid: np.ndarray, current: np.ndarray) 
 
 
 def resample_weights(
-    step_s: float, dt_s: float, horizon: int, pred_len: int
+    step_s: float, dt_s: float, horizon: int, pred_len: int, offset_s: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Linear interpolation from the annotation grid ``j * step_s`` (j = 0..pred_len) onto ``h * dt_s`` (h = 1..H).
+    """Linear interpolation from the annotation grid ``j * step_s`` (j = 0..pred_len) onto ``offset_s + h * dt_s``
+    (h = 1..H); ``offset_s`` >= 0 is how far the wanted grid's origin lies after the annotation grid's.
 
     Returns:
         ``(j0, j1, w)`` each ``(H,)``: value = (1 - w) * f[j0] + w * f[j1] (held at j = pred_len beyond).
     """
-    u = np.arange(1, horizon + 1) * dt_s / step_s
+    u = (offset_s + np.arange(1, horizon + 1) * dt_s) / step_s
     u = np.minimum(u, pred_len)
     j0 = np.floor(u + 1e-9).astype(np.int64)
     j0 = np.minimum(j0, pred_len)
@@ -111,6 +119,8 @@ class ForecastSource:
     name: str = "base"
     needs_truth: bool = False
     active: bool = True
+    memory: str | None = None
+    """``window`` or ``carried`` for predictor sources, None for sources without memory."""
 
     def forecast(
         self, replay: Replay, t_s: float, rows: np.ndarray, truth: TrueFuture | None, rng: np.random.Generator
@@ -191,6 +201,7 @@ class PredictorForecast(ForecastSource):
         cache: bool = True,
     ) -> None:
         self.name = name
+        self.memory = "window"
         self.predictors = predictors
         self.default = default
         self.dt_s = dt_s
@@ -279,6 +290,156 @@ class PredictorForecast(ForecastSource):
             self.all_forecasts(replay, t)
 
 
+class _CarriedWalk:
+    """One online forecaster walking a recording's annotation frames in order (slot = recording column).
+
+    :meth:`at` observes frames up to ``i`` (restarting from the first frame when asked for an earlier
+    one) and returns the forecast at frame ``i`` of the pedestrians present there.
+    """
+
+    def __init__(self, model: Any, recording: Recording) -> None:
+        self.model = model
+        self.recording = recording
+        self.num_slots = int(recording.present.shape[1])
+        self.pred_len = int(getattr(model, "pred_len", PRED_LEN))
+        self.forecaster: Any = None
+        self.observed = 0  # frames 0 .. observed - 1 have been fed
+        self.last: tuple[int, np.ndarray, np.ndarray] | None = None
+        self.calls = 0
+
+    def at(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(columns (n,), forecasts (n, pred_len, 2) float32 metres)`` at annotation frame ``i``."""
+        if self.last is not None and self.last[0] == i:
+            return self.last[1], self.last[2]
+        rec = self.recording
+        if self.forecaster is None or i < self.observed - 1:
+            self.forecaster = self.model.online(self.num_slots)
+            self.observed = 0
+        while self.observed <= i:
+            self.forecaster.observe(rec.positions[self.observed], rec.present[self.observed])
+            self.observed += 1
+        cols = np.flatnonzero(rec.present[i])
+        pred = np.asarray(self.forecaster.forecast())
+        self.calls += 1
+        if pred.shape != (self.num_slots, self.pred_len, 2):
+            raise ValueError(
+                f"online forecaster of {getattr(self.model, 'name', self.model)!r} returned shape {pred.shape}, "
+                f"expected {(self.num_slots, self.pred_len, 2)}"
+            )
+        out = np.ascontiguousarray(pred[cols], dtype=np.float32)
+        self.last = (i, cols, out)
+        return cols, out
+
+
+class CarriedPredictorForecast(PredictorForecast):
+    """Forecasts of a recurrent predictor carrying hidden states per pedestrian (``forecast_memory="carried"``).
+
+    The predictor's ``online(num_slots)`` forecaster (:class:`crowdnav_mesrnn.models.learned.OnlineForecaster`)
+    gets one slot per pedestrian id of the recording and observes every annotation frame of the whole
+    recording in time order from its first frame (the file's positions and presence, frames as in the file:
+    the predictor's training windows also step over annotation gaps frame by frame), so each pedestrian's
+    hidden states run from its first appearance. Its forecast at frame ``i`` covers ``tau + j * step_s``
+    (j = 1..pred_len, ``tau`` = the frame's time). At env time ``t`` the latest frame with ``tau <= t`` is
+    used: the file's position at ``tau`` (j = 0) and the forecast are resampled linearly onto
+    ``t + h * dt_s``, i.e. with the interpolation shifted by ``t - tau`` (non-zero on ``biwi_eth``, whose
+    0.667 s annotations fall between env times); beyond the last forecast step it is held. A pedestrian is
+    forecast when the replay has it at ``t`` (present at ``tau``, and at the next frame when ``t > tau``).
+    The forecaster only ever sees frames up to ``t``.
+
+    With ``cache=True`` a recording's forecasts at all its frames are computed in one pass on first use
+    (replayed pedestrians ignore the robot) and the resampled forecasts memoised per (recording, time).
+    With ``cache=False`` (online) a forecaster per recording advances frame by frame as the env's time
+    does, restarting from the first frame when an episode goes back in time. Both feed the same frames
+    in the same order, so they give identical forecasts. Cost: every step of the forecaster runs all of
+    the recording's pedestrians as slots (absent ones masked), so one pass over a long, busy recording
+    (``students003``: 541 frames, 434 pedestrians) takes minutes with paper-size weights on one core.
+
+    Args: as :class:`PredictorForecast`; every predictor must have an ``online(num_slots)`` method.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        predictors: dict[str, ForecastModel],
+        default: ForecastModel | None,
+        dt_s: float,
+        horizon: int,
+        cache: bool = True,
+    ) -> None:
+        super().__init__(name, predictors, default, dt_s, horizon, cache)
+        self.memory = "carried"
+        for model in [*predictors.values(), *([default] if default is not None else [])]:
+            if not callable(getattr(model, "online", None)):
+                raise ConfigError(
+                    f"forecast_memory 'carried' needs a predictor with an online(num_slots) method (hidden states "
+                    f"carried between steps); {getattr(model, 'name', model)!r} has none. Use forecast_memory 'window'."
+                )
+        self._tables: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._walks: dict[str, _CarriedWalk] = {}
+        self._shifted: dict[tuple[float, int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def clear_cache(self) -> None:
+        super().clear_cache()
+        self._tables.clear()
+        self._walks.clear()
+
+    def _walk(self, recording: Recording) -> _CarriedWalk:
+        walk = self._walks.get(recording.name)
+        if walk is None or walk.recording is not recording:
+            walk = _CarriedWalk(self.predictor_for(recording.name), recording)
+            self._walks[recording.name] = walk
+        return walk
+
+    def frame_forecasts(self, recording: Recording, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(columns (n,), forecasts (n, pred_len, 2) float32)`` at annotation frame ``i`` of ``recording`` for the
+        pedestrians present there (recording columns, ascending; metres on the annotation grid after the frame)."""
+        if not self.use_cache:
+            walk = self._walk(recording)
+            before = walk.calls
+            out = walk.at(i)
+            self.calls += walk.calls - before
+            return out
+        table = self._tables.get(recording.name)
+        if table is None:
+            walk = _CarriedWalk(self.predictor_for(recording.name), recording)
+            parts = [walk.at(k) for k in range(len(recording.frames))]
+            self.calls += walk.calls
+            sizes = np.array([len(c) for c, _ in parts], dtype=np.int64)
+            offsets = np.concatenate([[0], np.cumsum(sizes)])
+            cols = np.concatenate([c for c, _ in parts]) if parts else np.zeros(0, dtype=np.int64)
+            fcs = np.concatenate([f for _, f in parts]) if parts else np.zeros((0, walk.pred_len, 2), np.float32)
+            table = (offsets, cols, fcs)
+            self._tables[recording.name] = table
+        offsets, cols, fcs = table
+        return cols[offsets[i] : offsets[i + 1]], fcs[offsets[i] : offsets[i + 1]]
+
+    def _compute(self, replay: Replay, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        rec = replay.recording
+        empty = (np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2)))
+        times = rec.times_s()
+        i = int(np.searchsorted(times, t_s + TIME_TOL_S, "right")) - 1
+        if i < 0 or rec.present.shape[1] == 0:
+            return empty
+        offset = float(t_s - times[i])
+        on_frame = offset <= TIME_TOL_S
+        if not on_frame and i + 1 >= len(times):
+            return empty  # after the recording's last annotation nobody is replayed
+        cols, fc = self.frame_forecasts(rec, i)
+        if not on_frame:
+            keep = rec.present[i + 1, cols]
+            cols, fc = cols[keep], fc[keep]
+        if len(cols) == 0:
+            return empty
+        offset = 0.0 if on_frame else offset
+        pred_len = fc.shape[1]
+        wkey = (float(rec.step_s), pred_len, time_key(offset))
+        if wkey not in self._shifted:
+            self._shifted[wkey] = resample_weights(float(rec.step_s), self.dt_s, self.horizon, pred_len, offset)
+        j0, j1, w = self._shifted[wkey]
+        full = np.concatenate([rec.positions[i, cols][:, None, :], fc.astype(np.float64)], axis=1)
+        return cols, full[:, j0] * (1.0 - w)[None, :, None] + full[:, j1] * w[None, :, None]
+
+
 # ----------------------------------------------------------------------------- construction
 
 _LOADED: dict[tuple[str, str], Any] = {}
@@ -320,6 +481,7 @@ def make_forecast_source(
     horizon: int,
     cache: bool,
     noisy_oracle_ade_m: float,
+    memory: str = "window",
 ) -> ForecastSource:
     """The forecast source for a set of recordings.
 
@@ -332,13 +494,21 @@ def make_forecast_source(
         horizon: H.
         cache: memoise forecasts per (recording, time).
         noisy_oracle_ade_m: target ADE of ``noisy_oracle``.
+        memory: ``window`` or ``carried`` (see :attr:`envs.config.CrowdNavConfig.forecast_memory`); ignored by
+            ``none``, ``cv``, ``oracle`` and ``noisy_oracle``.
+
+    Raises:
+        ConfigError: ``carried`` with a predictor object (or loaded predictor) without ``online(num_slots)``.
     """
+    if memory not in FORECAST_MEMORIES:
+        raise ConfigError(f"unknown forecast_memory {memory!r}; valid: {', '.join(FORECAST_MEMORIES)}")
+    learned_cls = CarriedPredictorForecast if memory == "carried" else PredictorForecast
     if not isinstance(predictor, str):
         if not callable(getattr(predictor, "forecast", None)):
             raise TypeError(
                 f"predictor must be a name or an object with a forecast(history, mask) method, got {predictor!r}"
             )
-        return PredictorForecast(str(getattr(predictor, "name", "custom")), {}, predictor, dt_s, horizon, cache)
+        return learned_cls(str(getattr(predictor, "name", "custom")), {}, predictor, dt_s, horizon, cache)
     if predictor == "none":
         return NoForecast()
     if predictor == "oracle":
@@ -358,5 +528,5 @@ def make_forecast_source(
                 default = load_learned(predictor, default_split, rec)
             else:
                 per_recording[rec] = load_learned(predictor, split, rec)
-        return PredictorForecast(predictor, per_recording, default, dt_s, horizon, cache)
+        return learned_cls(predictor, per_recording, default, dt_s, horizon, cache)
     raise ValueError(f"unknown predictor {predictor!r}")

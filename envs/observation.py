@@ -23,7 +23,8 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
         velocity x, y (m/s), and for the unicycle cos and sin of the heading.
         ``pedestrians``: ``(K, 4)`` float32: position relative to the robot (m) and velocity relative
         to the robot's (m/s) of the K nearest pedestrians within the sensor range, nearest first;
-        zero rows where the mask is 0.
+        zero rows where the mask is 0 (velocities as known at t: see
+        :meth:`envs.crowds.Replay.observed_velocity_at`).
         ``mask``: ``(K,)`` int8 MultiBinary: 1 where a row holds a pedestrian.
         ``forecasts`` (unless the predictor is ``none``): ``(K, H, 2)`` float32 forecast positions
         relative to the robot's current position (m) at ``t + h * dt_s``, h = 1..H.

@@ -45,6 +45,25 @@ def fake_predictor() -> Callable[..., FakeLearnedPredictor]:
     return FakeLearnedPredictor
 
 
+def make_tiny_learned_predictor(model: str = "mesrnn", seed: int = 0) -> Any:
+    """A small randomly initialised :class:`~crowdnav_mesrnn.models.learned.LearnedPredictor` (no weights on disk)."""
+    import torch
+
+    from crowdnav_mesrnn.data.normalization import MinMax
+    from crowdnav_mesrnn.models.learned import LearnedPredictor
+    from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
+
+    torch.manual_seed(seed)
+    cfg = ModelConfig(model=model, node_hidden=16, node_embed=8, edge_hidden=8, edge_embed=4)
+    return LearnedPredictor(StructuralRNN(cfg), MinMax((0.0, 0.0), (20.0, 20.0)))
+
+
+@pytest.fixture
+def tiny_learned_predictor() -> Callable[..., Any]:
+    """Factory of small random learned predictors (they have ``online(num_slots)``)."""
+    return make_tiny_learned_predictor
+
+
 def run_episode(
     env: Any, policy: Callable[[Any], Any], seed: int | None = None, options: dict | None = None
 ) -> list[tuple]:

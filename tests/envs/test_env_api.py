@@ -103,6 +103,24 @@ def test_same_seed_gives_identical_episode(data_dir: Path, predictor: str) -> No
     assert not data_equivalence(_random_episode(a, 8)[0], ep_a[0])
 
 
+def test_every_arm_gets_the_same_episodes(data_dir: Path) -> None:
+    """The noisy oracle's noise must not consume the generator episodes are drawn from."""
+    episodes: dict[str, list[tuple[Any, ...]]] = {}
+    for predictor in ("none", "cv", "noisy_oracle"):
+        env = CrowdNavEnv(predictor=predictor, data_dir=str(data_dir), split="univ", part="test")
+        _, info = env.reset(seed=5)
+        seq = []
+        for _ in range(4):
+            seq.append((info["recording"], info["t0_s"], info["start"], info["goal"]))
+            for _ in range(5):
+                *_, terminated, truncated, _ = env.step(np.zeros(2, dtype=np.float32))
+                if terminated or truncated:
+                    break
+            _, info = env.reset()  # unseeded: continues the generator
+        episodes[predictor] = seq
+    assert episodes["noisy_oracle"] == episodes["none"] == episodes["cv"]
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [

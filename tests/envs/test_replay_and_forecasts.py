@@ -51,6 +51,54 @@ def test_replay_interpolates_linearly_in_real_time() -> None:
     np.testing.assert_allclose(r.state_at(4 / 3).velocities[0, 0], [3.0, 0.0], atol=1e-12)
 
 
+def test_observed_velocities_do_not_reveal_the_next_annotation(data_dir: Path) -> None:
+    # 1 m/s along x for two annotations, then along y (annotations every 0.4 s); the robot stands still
+    path = [[2.0, 0.0], [2.4, 0.0], [2.8, 0.0], [2.8, 0.4], [2.8, 0.8]]
+    env = CrowdNavEnv(predictor="none", crowd=scripted_recording([path], num_steps=40), flatten_observation=False)
+    obs, _ = env.reset(seed=0, options={"t0_s": 0.0, "start": (0.0, -3.0), "goal": (0.0, -11.0)})
+    seen = [obs["pedestrians"][0, 2:4].copy()]
+    for _ in range(4):
+        obs, *_ = env.step(np.zeros(2, dtype=np.float32))
+        seen.append(obs["pedestrians"][0, 2:4].copy())
+    # at each annotation: the interval that ends there (nothing yet at the first), not the one that starts there
+    np.testing.assert_allclose(seen, [[0, 0], [1, 0], [1, 0], [0, 1], [0, 1]], atol=1e-6)
+    # between annotations (ETH-like 2/3 s step): the current slope
+    crowd = scripted_recording([[[0, 0], [1, 0], [3, 0]]], step_s=2 / 3)
+    r = Replay(crowd)
+    np.testing.assert_allclose(r.observed_velocity_at(1.0)[0], [3.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(r.observed_velocity_at(2 / 3)[0], [1.5, 0.0], atol=1e-12)
+    # on ZARA1 at 0.4 s: the backward difference of the file, and p + v * 0.4 is not the next annotation
+    rec = load_recording("crowds_zara01", data_dir=data_dir)
+    times = rec.times_s()
+    env = CrowdNavEnv(predictor="none", data_dir=str(data_dir), split="zara1", part="test", flatten_observation=False)
+    obs, _ = env.reset(seed=1)
+    checked = 0
+    for _ in range(5):
+        i = int(np.argmin(np.abs(times - env.time_s)))
+        assert abs(times[i] - env.time_s) < 1e-6 and times[i] - times[i - 1] == pytest.approx(0.4)
+        cols = env.replay.columns[env.observed_rows]
+        both = rec.present[i, cols] & rec.present[i - 1, cols]
+        backward = np.where(both[:, None], (rec.positions[i, cols] - rec.positions[i - 1, cols]) / 0.4, 0.0)
+        ped_velocity = obs["pedestrians"][: len(cols), 2:4] + obs["robot"][2:4]
+        np.testing.assert_allclose(ped_velocity, backward, atol=1e-5)
+        checked += int(both.sum())
+        obs, *_ = env.step(np.zeros(2, dtype=np.float32))
+    assert checked > 10
+
+
+def test_start_clearance_holds_between_annotations() -> None:
+    # ETH-like step: a pedestrian 1.64 m from the start at two annotations passes 1.43 m from it in between
+    crowd = scripted_recording([[[-1.0, 1.3], [1.0, 1.3]]], start_steps=[1], num_steps=30, step_s=2 / 3)
+    env = CrowdNavEnv(predictor="none", crowd=crowd)
+    times = crowd.times_s()
+    assert env.sampler.clear_m == pytest.approx(1.6)
+    pos, present = Replay(crowd).positions_at(np.array([1.2]))
+    assert present[0, 0] and np.linalg.norm(pos[0, 0]) < 1.6
+    assert not env.sampler._clear(crowd, times, 1.2, np.zeros(2))
+    assert env.sampler._clear(crowd, times, 1.2, np.array([0.0, -0.5]))
+    assert env.sampler._clear(crowd, times, 2.0, np.zeros(2))  # gone
+
+
 def test_env_replays_the_file_at_annotation_times(data_dir: Path) -> None:
     env = CrowdNavEnv(predictor="none", data_dir=str(data_dir), split="zara1", part="test")
     rec = load_recording("crowds_zara01", data_dir=data_dir)
@@ -231,7 +279,7 @@ def test_learned_forecasts_are_out_of_sample(monkeypatch: pytest.MonkeyPatch, fa
     assert env.forecaster.default.name == "srnn-hotel"  # type: ignore[attr-defined]
 
 
-@pytest.mark.parametrize(("split", "part"), [("zara1", "test"), ("hotel", "test"), ("eth", "train")])
+@pytest.mark.parametrize(("split", "part"), [("zara1", "test"), ("hotel", "test"), ("eth", "train"), ("eth", "test")])
 def test_episodes_cross_the_crowd_from_a_clear_start(data_dir: Path, split: str, part: str) -> None:
     env = CrowdNavEnv(predictor="none", data_dir=str(data_dir), split=split, part=part)
     cfg = env.config
