@@ -84,17 +84,37 @@ class OnlineForecaster:
         self.last_seen_m = np.zeros((num_slots, 2), np.float32)
         self.steps = 0
 
+    def _gather(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {k: (v[:, idx] if k.startswith("edge") else v[idx]) for k, v in self.state.items()}
+
+    def _scatter(self, idx: torch.Tensor, sub: dict[str, torch.Tensor]) -> None:
+        for k, v in sub.items():
+            if k.startswith("edge"):
+                self.state[k][:, idx] = v
+            else:
+                self.state[k][idx] = v
+
     @torch.no_grad()
     def observe(self, positions_m: np.ndarray, present: np.ndarray) -> None:
-        """One annotation step: ``(num_slots, 2)`` metres and ``(num_slots,)`` bool presence."""
+        """One annotation step: ``(num_slots, 2)`` metres and ``(num_slots,)`` bool presence.
+
+        Only pedestrians present now or at the previous step enter the computation (the others
+        can neither update nor influence anyone), so the cost follows the crowd, not the slot count.
+        """
         pos = np.asarray(positions_m, dtype=np.float32).reshape(self.n, 2)
         m = torch.from_numpy(np.asarray(present, dtype=bool).reshape(1, self.n))
         p_t = torch.where(
             m.unsqueeze(-1), self.p.norm.normalise(torch.from_numpy(pos)[None]), torch.zeros(1, self.n, 2)
         )
-        self.next_pred, self.state = self.p.net.step(
-            (p_t, self.pos[0], self.pos[1]), (m, self.mask[0], self.mask[1]), self.state
-        )
+        idx = torch.nonzero((m | self.mask[0])[0]).flatten()
+        if len(idx):
+            nxt, sub = self.p.net.step(
+                (p_t[:, idx], self.pos[0][:, idx], self.pos[1][:, idx]),
+                (m[:, idx], self.mask[0][:, idx], self.mask[1][:, idx]),
+                self._gather(idx),
+            )
+            self._scatter(idx, sub)
+            self.next_pred[:, idx] = nxt
         self.pos = [p_t, self.pos[0]]
         self.mask = [m, self.mask[0]]
         self.last_seen_m[m[0].numpy()] = pos[m[0].numpy()]
@@ -102,22 +122,27 @@ class OnlineForecaster:
 
     @torch.no_grad()
     def forecast(self) -> np.ndarray:
-        """``(num_slots, pred_len, 2)`` metres for pedestrians present at the last observation."""
+        """``(num_slots, pred_len, 2)`` metres for pedestrians present at the last observation
+        (rolled out together, each step feeding all their predictions back); other slots hold their
+        last observed position."""
         net = self.p.net
-        state = dict(self.state)
-        roll = self.mask[0]
-        preds = [self.next_pred]
-        p_prev, p_prev2 = self.pos[0], self.pos[1]
-        m_prev, m_prev2 = self.mask[0], self.mask[1]
+        out = np.repeat(self.last_seen_m[:, None, :], self.p.pred_len, axis=1)
+        idx = torch.nonzero(self.mask[0][0]).flatten()
+        if len(idx) == 0:
+            return out
+        state = self._gather(idx)
+        roll = self.mask[0][:, idx]
+        preds = [self.next_pred[:, idx]]
+        p_prev, p_prev2 = self.pos[0][:, idx], self.pos[1][:, idx]
+        m_prev, m_prev2 = roll, self.mask[1][:, idx]
         for _ in range(self.p.pred_len - 1):
-            p_t = torch.where(roll.unsqueeze(-1), preds[-1], torch.zeros_like(preds[-1]))
+            p_t = preds[-1]
             nxt, state = net.step((p_t, p_prev, p_prev2), (roll, m_prev, m_prev2), state)
             preds.append(nxt)
             p_prev2, p_prev = p_prev, p_t
             m_prev2, m_prev = m_prev, roll
-        out = self.p.norm.denormalise(torch.cat(preds, 0)).permute(1, 0, 2).numpy().astype(np.float32)
-        gone = ~roll[0].numpy()
-        out[gone] = self.last_seen_m[gone, None, :]
+        sub = self.p.norm.denormalise(torch.cat(preds, 0)).permute(1, 0, 2).numpy().astype(np.float32)
+        out[idx.numpy()] = sub
         return out
 
 

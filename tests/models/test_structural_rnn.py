@@ -188,3 +188,24 @@ def test_fit_input_scales_gives_unit_rms_and_is_saved() -> None:
     net.fit_input_scales(pos, mask)
     assert torch.all(net.edge_scale != 1.0) and torch.all(net.node_scale != 1.0)
     assert "edge_scale" in net.state_dict() and "node_scale" in net.state_dict()
+
+
+def test_online_forecaster_carries_state_and_ignores_absent_slots() -> None:
+    """Many steps with pedestrians coming and going: the subset computation equals the full batch."""
+    pred = LearnedPredictor(make_net("mesrnn"), MinMax((0.0, 0.0), (10.0, 10.0)))
+    rng = np.random.default_rng(2)
+    t_len, n = 14, 7
+    pos = (np.cumsum(rng.normal(0.2, 0.1, size=(t_len, n, 2)), axis=0) + 2).astype(np.float32)
+    mask = rng.uniform(size=(t_len, n)) < 0.6
+    online = pred.online(n)
+    for t in range(t_len):
+        online.observe(pos[t], mask[t])
+    # Reference: the full structural RNN over all slots for all steps, then the same rollout.
+    net = pred.net
+    normed = torch.where(torch.from_numpy(mask)[..., None], pred.norm.normalise(torch.from_numpy(pos)), 0.0)
+    with torch.no_grad():
+        full = net.rollout(normed[None], torch.from_numpy(mask)[None], 12)[0]
+    want = pred.norm.denormalise(full).permute(1, 0, 2).numpy()
+    got = online.forecast()
+    live = mask[-1]
+    np.testing.assert_allclose(got[live], want[live], rtol=1e-5, atol=1e-5)

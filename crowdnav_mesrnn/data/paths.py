@@ -1,0 +1,69 @@
+"""Where the ETH/UCY files are found.
+
+Order (ARCHITECTURE.md): an explicit argument or config value; the ``CROWDNAV_MESRNN_DATA``
+environment variable; ``./data/eth_ucy``; ``~/.cache/crowdnav-mesrnn/eth_ucy``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+ENV_VAR = "CROWDNAV_MESRNN_DATA"
+
+HOW_TO_GET_DATA = (
+    "The ETH/UCY recordings (SGAN format, metres: all_data/, train/, val/) are not shipped with "
+    "crowdnav-mesrnn. Download the Social-GAN copy of the datasets and point the project at it with "
+    f"`export {ENV_VAR}=/path/to/eth_ucy`, or pass `--data-dir`, or place it in ./data/eth_ucy or "
+    "~/.cache/crowdnav-mesrnn/eth_ucy."
+)
+
+
+class DataNotFoundError(FileNotFoundError):
+    """No ETH/UCY data folder was found; the message lists where the project looked."""
+
+
+def candidate_dirs(data_dir: str | os.PathLike[str] | None = None) -> list[tuple[str, Path]]:
+    """The places searched for data, in order, each with a label saying where it came from."""
+    out: list[tuple[str, Path]] = []
+    if data_dir is not None:
+        out.append(("argument", Path(data_dir).expanduser()))
+    env = os.environ.get(ENV_VAR)
+    if env:
+        out.append((f"${ENV_VAR}", Path(env).expanduser()))
+    out.append(("working directory", Path.cwd() / "data" / "eth_ucy"))
+    out.append(("user cache", Path.home() / ".cache" / "crowdnav-mesrnn" / "eth_ucy"))
+    return out
+
+
+def _looks_like_data(path: Path) -> bool:
+    return (path / "all_data").is_dir()
+
+
+def find_data_dir(data_dir: str | os.PathLike[str] | None = None) -> Path:
+    """Return the first data folder holding ``all_data/``.
+
+    An explicit ``data_dir`` that does not hold data is an error even if a later place would
+    (a typo should not silently fall through to another copy); the same holds for the
+    environment variable.
+
+    Raises:
+        DataNotFoundError: with every place looked at and how to provide the data.
+    """
+    looked: list[str] = []
+    for label, path in candidate_dirs(data_dir):
+        if _looks_like_data(path):
+            return path
+        looked.append(f"  {label}: {path} ({'no all_data/ inside' if path.exists() else 'missing'})")
+        if label != "working directory" and label != "user cache":
+            break
+    raise DataNotFoundError("no ETH/UCY data found. Looked in:\n" + "\n".join(looked) + "\n" + HOW_TO_GET_DATA)
+
+
+def data_available(data_dir: str | os.PathLike[str] | None = None) -> bool:
+    """True when :func:`find_data_dir` would succeed."""
+    try:
+        find_data_dir(data_dir)
+    except DataNotFoundError:
+        return False
+    return True
