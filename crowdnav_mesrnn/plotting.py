@@ -62,7 +62,7 @@ def plot_window(
         *[plt.Line2D([], [], color=COLOURS.get(n, "grey"), ls=":", label=n.upper()) for n in forecasts],
         plt.Line2D([], [], color="lightgrey", marker=".", ls="", label="context pedestrians"),
     ]
-    ax.legend(handles=handles, loc="best", fontsize=8)
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
