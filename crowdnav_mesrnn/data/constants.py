@@ -30,9 +30,7 @@ RECORDINGS: Final[dict[str, str]] = {
 }
 
 #: Recording name -> seconds per annotation step.
-STEP_S: Final[dict[str, float]] = {
-    name: (BIWI_ETH_DT_S if name == "biwi_eth" else ETH_UCY_DT_S) for name in RECORDINGS
-}
+STEP_S: Final[dict[str, float]] = {name: (BIWI_ETH_DT_S if name == "biwi_eth" else ETH_UCY_DT_S) for name in RECORDINGS}
 
 #: The five leave-one-out splits; the value is the list of whole recordings tested on.
 SPLIT_TEST_RECORDINGS: Final[dict[str, tuple[str, ...]]] = {

@@ -86,7 +86,9 @@ def parse_file(path: str | os.PathLike[str], step_s: float | None = None) -> Rec
             if not all(math.isfinite(v) for v in values):
                 raise DataFormatError(f"{path}:{lineno}: NaN or infinite value in {line.strip()!r}")
             if frame != int(frame) or pid != int(pid):
-                raise DataFormatError(f"{path}:{lineno}: frame and pedestrian id must be integers, got {line.strip()!r}")
+                raise DataFormatError(
+                    f"{path}:{lineno}: frame and pedestrian id must be integers, got {line.strip()!r}"
+                )
             key = (int(frame), int(pid))
             if key in seen:
                 raise DataFormatError(
