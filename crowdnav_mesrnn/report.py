@@ -56,9 +56,10 @@ DEPARTURES = """## Configurations: the paper's and the shipped ones
 *Paper config* (`configs/predictor/{mesrnn,srnn,vlstm}.yaml`): node embedding 128, node hidden 256,
 edge embedding 64, edge hidden 128; the node RNN reads the absolute (normalised) position; meta-paths
 summed over neighbours; MSE on the 12 predicted steps with teacher forcing; Adam 1e-3, gradient norm
-10, 10 epochs. At these sizes MESRNN trains at about 13 windows/s on one core of this 2-core CPU
-(`python benchmarks/predictor_speed.py`), about 30 minutes per split, so the paper config was trained
-only where the compute budget allowed (rows marked *paper config*).
+10, 10 epochs. At these sizes MESRNN trained at 9-10 windows/s on one core of this 2-core CPU (the
+progress lines of `crowdnav-mesrnn predictor train --model mesrnn --split zara1`, with another job on
+the second core; see also `docs/results/speed.md`), about 40 minutes per split, so the paper config was
+trained only where the compute budget allowed (rows marked *paper config*; empty cells were not run).
 
 *Shipped candidates* (`configs/predictor/{mesrnn,srnn,vlstm}_residual.yaml`), options added beside
 the paper's, each a documented `ModelConfig`/`TrainConfig` key:
