@@ -148,9 +148,13 @@ REPRODUCE = """\
 crowdnav-mesrnn predictor train --model MODEL --split SPLIT --config configs/predictor/MODEL_residual.yaml \\
     --out runs/predictor/MODEL_residual_SPLIT
 crowdnav-mesrnn predictor train --model MODEL --split SPLIT --out runs/predictor/MODEL_paper_SPLIT   # paper config
+# MESRNN only (compute budget): the same with rotation augmentation
+crowdnav-mesrnn predictor train --model mesrnn --split SPLIT --config configs/predictor/mesrnn_residual.yaml \\
+    --set augment_rotation=true --out runs/predictor/mesrnn_rotaug_SPLIT
 crowdnav-mesrnn predictor select --model MODEL --split SPLIT runs/predictor/MODEL_*_SPLIT
-# this page (evaluates the shipped weights and, where present, the paper-config runs)
+# this page (evaluates the shipped weights and, where present, the other candidates)
 crowdnav-mesrnn predictor report --out docs/results/predictors.md \\
+    --extra 'mesrnn:residual, no rotation=runs/predictor/mesrnn_residual_{split}/best.pt' \\
     --extra 'mesrnn:paper config=runs/predictor/mesrnn_paper_{split}/best.pt' \\
     --extra 'srnn:paper config=runs/predictor/srnn_paper_{split}/best.pt' \\
     --extra 'vlstm:paper config=runs/predictor/vlstm_paper_{split}/best.pt'

@@ -73,7 +73,12 @@ the paper's, each a documented `ModelConfig`/`TrainConfig` key:
 - `teacher_forcing: false` — trained on its own 12-step rollout, exactly as evaluated;
 - `aggregate: mean`, `standardise: true` — meta-paths averaged over neighbours and every feature type
   scaled to unit RMS on training data (the raw SS/TT products are orders of magnitude smaller than S);
-- halved sizes, lr 3e-4 and 8 epochs, to fit the compute budget.
+- halved sizes, lr 3e-4 and 8 epochs, to fit the compute budget;
+- MESRNN only, as a second candidate: `augment_rotation: true` (each training window rotated by a
+  random angle about its centre before normalising), so the learned corrections cannot depend on the
+  walking directions of the training scenes. SRNN and VLSTM were not given this candidate (compute
+  budget), so **the MESRNN vs SRNN/VLSTM comparison below is confounded by it**; the row
+  *MESRNN (residual, no rotation)* is the like-for-like one.
 These change the inputs and the training, not the protocol: same windows, same rollout, same metric.
 Validation data are the `_val` pieces of the training scenes (in-domain), so they cannot show how a
 model transfers to the held-out scene; every selection below used them only."""
