@@ -8,9 +8,9 @@ import torch
 
 from crowdnav_mesrnn.data import (
     EXPECTED_TEST_WINDOWS,
-    MinMax,
     SPLITS,
     STEP_S,
+    MinMax,
     collate,
     load_split,
     split_recordings,
