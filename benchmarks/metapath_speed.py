@@ -5,10 +5,8 @@ Run: ``python benchmarks/metapath_speed.py``. Prints medians of repeats; never a
 
 from __future__ import annotations
 
-import statistics
-import time
-
 import torch
+from _timing import median_seconds
 
 from crowdnav_mesrnn.graph import METAPATH_TYPES, metapath_features
 
@@ -30,15 +28,6 @@ def naive(p: torch.Tensor, m: torch.Tensor) -> None:
                             acc += dij * (p[t, j] - p[t, k])
 
 
-def timeit(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
 def main() -> None:
     torch.set_num_threads(1)
     t_len = 20
@@ -47,16 +36,16 @@ def main() -> None:
     for n in (1, 2, 5, 10, 20, 50, 100):
         p = torch.randn(t_len, n, 2)
         m = torch.rand(t_len, n) < 0.9
-        vec = timeit(lambda p=p, m=m: metapath_features(p, m), 20)
+        vec = median_seconds(lambda p=p, m=m: metapath_features(p, m), 20)
         if n <= 10:
-            slow = timeit(lambda p=p, m=m: naive(p, m), 3)
+            slow = median_seconds(lambda p=p, m=m: naive(p, m), 3)
             print(f"{n:>5}{vec * 1e3:>16.3f}{slow * 1e3:>12.1f}{slow / vec:>9.0f}x")
         else:
             print(f"{n:>5}{vec * 1e3:>16.3f}{'-':>12}{'-':>10}")
     b, n = 64, 30
     p = torch.randn(b, t_len, n, 2)
     m = torch.rand(b, t_len, n) < 0.7
-    vec = timeit(lambda: metapath_features(p, m), 10)
+    vec = median_seconds(lambda: metapath_features(p, m), 10)
     print(f"batch of {b} windows x {n} pedestrians: {vec * 1e3:.2f} ms ({b / vec:.0f} windows/s)")
 
 

@@ -9,11 +9,11 @@ never asserts on time.
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 
 import numpy as np
 import torch
+from _timing import median_seconds
 
 from crowdnav_mesrnn.data import MinMax, collate, data_available, split_windows
 from crowdnav_mesrnn.data.constants import OBS_LEN
@@ -59,12 +59,7 @@ def train_rate(cfg: ModelConfig, windows: list, norm: MinMax, batch_size: int, m
 
 
 def median_ms(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times) * 1e3
+    return median_seconds(fn, repeats) * 1e3
 
 
 def main() -> None:
