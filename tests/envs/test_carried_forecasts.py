@@ -19,7 +19,6 @@ from crowdnav_mesrnn.data.recordings import Recording
 from envs.crowd_nav import CrowdNavEnv
 from envs.crowds import make_recording, scripted_recording
 from envs.forecasts import CarriedPredictorForecast, PredictorForecast
-from envs.policies import go_to_goal
 
 #: Robot far from the crowd, seeing everybody, never ending the episode on contact.
 WATCHER: dict[str, Any] = {"sensor_range_m": 200.0, "num_pedestrians": 40, "terminate_on_collision": False}
@@ -125,7 +124,12 @@ def test_carried_memory_changes_the_forecasts(data_dir: Path, tiny_learned_predi
     ("name", "frames", "starts"), [("students003", 70, (14.0, 18.0, 15.2)), ("biwi_eth", 50, (8.0, 12.0, 9.2))]
 )
 def test_carried_cached_and_online_forecasts_are_identical(
-    data_dir: Path, tiny_learned_predictor: Callable, name: str, frames: int, starts: tuple[float, ...]
+    data_dir: Path,
+    tiny_learned_predictor: Callable,
+    lockstep: Callable,
+    name: str,
+    frames: int,
+    starts: tuple[float, ...],
 ) -> None:
     predictor = tiny_learned_predictor()
     rec = prefix(data_dir, name, frames)
@@ -134,24 +138,9 @@ def test_carried_cached_and_online_forecasts_are_identical(
         return CrowdNavEnv(predictor=predictor, crowd=rec, forecast_memory="carried", cache_forecasts=cache)
 
     cached, online = make(True), make(False)
-    compared = 0
     # overlapping episodes, the last one going back in time (the online forecaster restarts from the first frame)
-    for k, t0 in enumerate(starts):
-        opts = {"t0_s": t0, "start": (1.0, 1.0), "goal": (7.0, 3.0), "time_limit_s": 6.0}
-        a_obs, _ = cached.reset(seed=k, options=opts)
-        b_obs, _ = online.reset(seed=k, options=opts)
-        done = False
-        while not done:
-            for key in b_obs:
-                np.testing.assert_array_equal(a_obs[key], b_obs[key])
-            fa, fb = cached.last_forecasts, online.last_forecasts
-            assert (fa is None) == (fb is None)
-            if fa is not None:
-                np.testing.assert_array_equal(fa, fb)
-                compared += len(fa)
-            a_obs, _, term, trunc, _ = cached.step(go_to_goal(a_obs, cached.config))
-            b_obs, *_ = online.step(go_to_goal(b_obs, online.config))
-            done = term or trunc
+    options = [{"t0_s": t0, "start": (1.0, 1.0), "goal": (7.0, 3.0), "time_limit_s": 6.0} for t0 in starts]
+    compared = lockstep(cached, online, options)
     assert compared > 20
     assert isinstance(cached.forecaster, CarriedPredictorForecast)
     assert cached.forecaster.cache_size > 0 and online.forecaster.cache_size == 0  # type: ignore[attr-defined]
