@@ -3,19 +3,27 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
-Handler = Callable[[argparse.Namespace], int]
-_SUBCOMMAND_BUILDERS: list[Callable[[Any], None]] = []
+#: subcommand -> ("module:function" adding its parser to argparse sub-parsers, one-line help). The module is
+#: imported only when its subcommand runs, so no lower package imports a higher one and ``--help`` stays fast.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "data": ("crowdnav_mesrnn.cli:add_data", "inspect and verify the ETH/UCY data"),
+    "predictor": ("crowdnav_mesrnn.cli_predictor:add_parser", "train, evaluate, export and plot trajectory predictors"),
+    "forecasts": ("envs.cli:add_forecasts", "build and inspect the shared on-disk forecast cache"),
+    "demo": ("agents.cli:add_demo", "a policy crosses a held-out ETH/UCY scene with forecasts; metrics and a GIF"),
+    "agent": ("agents.cli:add_agent", "train and evaluate navigation policies (PPO, SAC, planners)"),
+    "ablation": ("agents.cli:add_ablation", "run the planning-aid ablation grid and summarise it"),
+}
 
 
-def subcommand(builder: Callable[[Any], None]) -> Callable[[Any], None]:
-    """Register a function that adds a sub-parser (called with the top-level ``subparsers``)."""
-    _SUBCOMMAND_BUILDERS.append(builder)
-    return builder
+def _resolve(target: str) -> Callable[[Any], None]:
+    module, _, func = target.partition(":")
+    return getattr(importlib.import_module(module), func)
 
 
 # ---------------------------------------------------------------------------- data
@@ -41,8 +49,7 @@ def _data_check(args: argparse.Namespace) -> int:
     return 0 if report.ok else 1
 
 
-@subcommand
-def _add_data(sub: Any) -> None:
+def add_data(sub: Any) -> None:
     p = sub.add_parser("data", help="inspect and verify the ETH/UCY data")
     dsub = p.add_subparsers(dest="data_cmd", required=True)
     s = dsub.add_parser("summary", help="frames, pedestrians, step time and window counts")
@@ -54,23 +61,20 @@ def _add_data(sub: Any) -> None:
     c.set_defaults(func=_data_check)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only ``command``'s module is imported (every other subcommand is a stub that lists its help)."""
     from crowdnav_mesrnn import __version__
 
-    # Sub-commands of other modules register themselves on import.
-    for mod in ("crowdnav_mesrnn.cli_predictor", "crowdnav_mesrnn.cli_env", "agents.cli"):
-        try:
-            __import__(mod)
-        except ModuleNotFoundError as exc:
-            if exc.name != mod:
-                raise
     parser = argparse.ArgumentParser(
         prog="crowdnav-mesrnn", description="MESRNN trajectory prediction and robot crowd navigation on ETH/UCY."
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
-    for builder in _SUBCOMMAND_BUILDERS:
-        builder(sub)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (target, help_text) in COMMANDS.items():
+        if name == command:
+            _resolve(target)(sub)
+        else:
+            sub.add_parser(name, help=help_text)
     return parser
 
 
@@ -79,7 +83,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from crowdnav_mesrnn.data.paths import DataNotFoundError
     from crowdnav_mesrnn.data.recordings import DataFormatError
 
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(command if command in COMMANDS else None)
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)

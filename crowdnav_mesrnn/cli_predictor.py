@@ -10,7 +10,6 @@ from typing import Any
 
 import yaml
 
-from crowdnav_mesrnn.cli import subcommand
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.models.base import LEARNED_MODELS, MODELS
 
@@ -171,8 +170,7 @@ def _plot(args: argparse.Namespace) -> int:
     return 0
 
 
-@subcommand
-def _add_predictor(sub: Any) -> None:
+def add_parser(sub: Any) -> None:
     p = sub.add_parser("predictor", help="train, evaluate, export and plot trajectory predictors")
     psub = p.add_subparsers(dest="predictor_cmd", required=True)
 

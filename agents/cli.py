@@ -1,7 +1,7 @@
-"""``crowdnav-mesrnn demo``: a scripted robot crosses a held-out scene with forecasts; metrics and a GIF.
+"""The agents' subcommands of ``crowdnav-mesrnn``: ``demo``, ``agent`` and ``ablation``.
 
-Imported by :func:`crowdnav_mesrnn.cli.build_parser` when present. The environment (``envs``) is
-imported only when the command runs.
+Each ``add_*`` function is named in :data:`crowdnav_mesrnn.cli.COMMANDS` and imported only when its
+subcommand runs.
 """
 
 from __future__ import annotations
@@ -12,7 +12,6 @@ import sys
 import time
 from typing import Any
 
-from crowdnav_mesrnn.cli import subcommand
 from crowdnav_mesrnn.data.constants import SPLITS
 
 _PREDICTORS = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
@@ -84,8 +83,7 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
-@subcommand
-def _add_demo(sub: Any) -> None:
+def add_demo(sub: Any) -> None:
     p = sub.add_parser(
         "demo",
         help="a scripted robot crosses a held-out ETH/UCY scene with forecasts; prints metrics, writes a GIF",
@@ -109,3 +107,18 @@ def _add_demo(sub: Any) -> None:
     p.add_argument("--data-dir", default=None, help="data folder (default: $CROWDNAV_MESRNN_DATA, ...)")
     p.add_argument("--json", action="store_true", help="print the metrics as one JSON object")
     p.set_defaults(func=_demo)
+
+
+def add_agent(sub: Any) -> None:
+    p = sub.add_parser("agent", help="train and evaluate navigation policies (PPO, SAC, planners)")
+    p.set_defaults(func=lambda args: _not_yet("agent"))
+
+
+def add_ablation(sub: Any) -> None:
+    p = sub.add_parser("ablation", help="run the planning-aid ablation grid and summarise it")
+    p.set_defaults(func=lambda args: _not_yet("ablation"))
+
+
+def _not_yet(name: str) -> int:
+    print(f"crowdnav-mesrnn {name}: not implemented yet", file=sys.stderr)
+    return 2
