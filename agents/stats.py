@@ -1,0 +1,230 @@
+"""Statistics for evaluations and the ablation: intervals, paired tests, multiple-comparison correction.
+
+Distributions and resampling come from scipy; the only formulas written here are the Holm step-down
+rule and the sample-size relation of the McNemar power approximation (both stated where defined).
+
+Conventions: every interval is a ``(lo, hi)`` tuple of floats (``nan`` when there is nothing to
+estimate from); every test returns a JSON-serialisable dict; ``nan`` inputs (a metric that does not
+apply to an episode, e.g. the forecast ADE of the ``none`` arm) are dropped — pairwise for paired
+functions — and the number of values used is reported.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from scipy import optimize, stats
+
+__all__ = [
+    "bootstrap_mean_ci",
+    "holm",
+    "mcnemar_exact",
+    "mcnemar_min_detectable_difference",
+    "paired_bootstrap_diff_ci",
+    "wilcoxon_paired",
+    "wilson_interval",
+]
+
+NAN_CI: tuple[float, float] = (math.nan, math.nan)
+
+
+def _check_confidence(confidence: float) -> None:
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must lie in (0, 1), got {confidence!r}")
+
+
+def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion ``successes / n`` (no continuity correction).
+
+    ``n = 0`` gives ``(0.0, 1.0)``: nothing is known about the rate.
+    """
+    _check_confidence(confidence)
+    successes, n = int(successes), int(n)
+    if n < 0 or not 0 <= successes <= max(n, 0):
+        raise ValueError(f"need 0 <= successes <= n, got successes={successes}, n={n}")
+    if n == 0:
+        return (0.0, 1.0)
+    ci = stats.binomtest(successes, n).proportion_ci(confidence_level=confidence, method="wilson")
+    return (float(ci.low), float(ci.high))
+
+
+def _finite(values: Sequence[float] | np.ndarray) -> np.ndarray:
+    x = np.asarray(values, dtype=float).ravel()
+    return x[np.isfinite(x)]
+
+
+def bootstrap_mean_ci(
+    values: Sequence[float] | np.ndarray,
+    confidence: float = 0.95,
+    n_resamples: int = 2000,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """Bootstrap interval of the mean (``scipy.stats.bootstrap``, BCa; percentile when BCa is degenerate).
+
+    Non-finite values are dropped. No values gives ``(nan, nan)``; one value or a constant array gives
+    ``(v, v)`` (the resampling distribution is a point), without warnings.
+    """
+    _check_confidence(confidence)
+    x = _finite(values)
+    if x.size == 0:
+        return NAN_CI
+    if x.size == 1 or np.all(x == x[0]):
+        return (float(x[0]), float(x[0]))
+    for method in ("BCa", "percentile"):
+        # BCa can be degenerate for nearly constant data (a warning and nan); the percentile method is not.
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", stats.DegenerateDataWarning)
+            res = stats.bootstrap(
+                (x,),
+                np.mean,
+                n_resamples=n_resamples,
+                confidence_level=confidence,
+                method=method,
+                vectorized=True,
+                rng=np.random.default_rng(seed),
+            )
+        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+        if math.isfinite(lo) and math.isfinite(hi):
+            return (lo, hi)
+    return NAN_CI  # pragma: no cover - percentile intervals of finite data are finite
+
+
+def _paired(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    x = np.asarray(a, dtype=float).ravel()
+    y = np.asarray(b, dtype=float).ravel()
+    if x.shape != y.shape:
+        raise ValueError(f"paired samples need the same length, got {x.size} and {y.size}")
+    keep = np.isfinite(x) & np.isfinite(y)
+    return x[keep], y[keep]
+
+
+def paired_bootstrap_diff_ci(
+    a: Sequence[float] | np.ndarray,
+    b: Sequence[float] | np.ndarray,
+    confidence: float = 0.95,
+    n_resamples: int = 2000,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """Bootstrap interval of ``mean(a - b)`` over pairs (pairs resampled together; non-finite pairs dropped)."""
+    x, y = _paired(a, b)
+    return bootstrap_mean_ci(x - y, confidence=confidence, n_resamples=n_resamples, seed=seed)
+
+
+def mcnemar_exact(
+    a_success: Sequence[bool] | np.ndarray,
+    b_success: Sequence[bool] | np.ndarray,
+    confidence: float = 0.95,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Exact McNemar test of paired successes: a two-sided binomial test on the discordant pairs.
+
+    ``b10`` counts pairs where ``a`` succeeded and ``b`` did not, ``b01`` the reverse; under the null
+    hypothesis of equal success rates ``b10 ~ Binomial(b10 + b01, 1/2)``. No discordant pair gives
+    ``p_value = 1``. ``difference`` is ``rate(a) - rate(b) = (b10 - b01) / n`` with a paired bootstrap
+    interval (``difference_ci``).
+    """
+    a = np.asarray(a_success).ravel()
+    b = np.asarray(b_success).ravel()
+    if a.shape != b.shape:
+        raise ValueError(f"paired samples need the same length, got {a.size} and {b.size}")
+    a, b = a.astype(bool), b.astype(bool)
+    n = int(a.size)
+    b10 = int(np.sum(a & ~b))
+    b01 = int(np.sum(~a & b))
+    discordant = b10 + b01
+    p_value = 1.0 if discordant == 0 else float(stats.binomtest(b10, discordant, 0.5).pvalue)
+    if n == 0:
+        diff, ci = math.nan, NAN_CI
+        rate_a = rate_b = math.nan
+    else:
+        diff = (b10 - b01) / n
+        ci = paired_bootstrap_diff_ci(a.astype(float), b.astype(float), confidence=confidence, seed=seed)
+        rate_a, rate_b = float(a.mean()), float(b.mean())
+    return {
+        "test": "exact McNemar",
+        "n": n,
+        "b01": b01,
+        "b10": b10,
+        "rate_a": rate_a,
+        "rate_b": rate_b,
+        "difference": diff,
+        "difference_ci": [ci[0], ci[1]],
+        "p_value": min(p_value, 1.0),
+    }
+
+
+def wilcoxon_paired(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarray) -> dict[str, Any]:
+    """Two-sided Wilcoxon signed-rank test of ``a - b`` (``scipy.stats.wilcoxon``, zero differences dropped).
+
+    Pairs with a non-finite member are dropped first; ``n`` counts the pairs used, ``n_nonzero`` those with a
+    non-zero difference. With no pair, or no non-zero difference, there is no evidence of a difference:
+    ``statistic = 0.0`` and ``p_value = 1.0`` (``note`` says which case). ``median_difference`` is the median
+    of ``a - b`` over all used pairs (``nan`` without pairs).
+    """
+    x, y = _paired(a, b)
+    d = x - y
+    n = int(d.size)
+    nonzero = int(np.count_nonzero(d))
+    out: dict[str, Any] = {
+        "test": "Wilcoxon signed-rank",
+        "n": n,
+        "n_nonzero": nonzero,
+        "median_difference": float(np.median(d)) if n else math.nan,
+    }
+    if nonzero == 0:
+        out.update(statistic=0.0, p_value=1.0, note="no pairs" if n == 0 else "all differences are zero")
+        return out
+    res = stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided")
+    out.update(statistic=float(res.statistic), p_value=float(res.pvalue))
+    return out
+
+
+def holm(pvalues: Sequence[float]) -> list[float]:
+    """Holm–Bonferroni adjusted p-values, in the input order.
+
+    Step-down rule: with the ``m`` p-values sorted ascending, ``p_(i)`` (``i = 1..m``) becomes
+    ``max_{j <= i} min(1, (m - j + 1) * p_(j))``. Rejecting where the adjusted value is ``<= alpha``
+    controls the family-wise error rate at ``alpha``.
+    """
+    p = np.asarray(pvalues, dtype=float).ravel()
+    if np.any(~np.isfinite(p)) or np.any((p < 0) | (p > 1)):
+        raise ValueError(f"p-values must lie in [0, 1], got {list(p)}")
+    m = p.size
+    order = np.argsort(p, kind="stable")
+    stepped = np.minimum(1.0, (m - np.arange(m)) * p[order])
+    adjusted = np.empty(m)
+    adjusted[order] = np.maximum.accumulate(stepped)
+    return [float(v) for v in adjusted]
+
+
+def mcnemar_min_detectable_difference(
+    n: int, discordant_fraction: float, alpha: float = 0.05, power: float = 0.8
+) -> float:
+    """Smallest ``|rate(a) - rate(b)|`` a two-sided McNemar test detects with the given power.
+
+    Normal approximation of Connor (1987): ``n`` pairs with discordant fraction ``psi`` detect a
+    difference ``delta`` when ``sqrt(n) * delta = z_{1-alpha/2} * sqrt(psi) + z_{power} * sqrt(psi - delta**2)``;
+    solved for ``delta`` in ``(0, psi]``. ``nan`` when ``n = 0`` or ``psi = 0`` (no discordance observed,
+    nothing to plan from). ``psi`` is taken as observed, i.e. assumed to stay the same under the alternative.
+    """
+    if not 0.0 < alpha < 1.0 or not 0.0 < power < 1.0:
+        raise ValueError(f"alpha and power must lie in (0, 1), got alpha={alpha!r}, power={power!r}")
+    psi = float(discordant_fraction)
+    if n <= 0 or psi <= 0.0:
+        return math.nan
+    if psi > 1.0:
+        raise ValueError(f"discordant_fraction must lie in [0, 1], got {psi!r}")
+    z_a = float(stats.norm.ppf(1.0 - alpha / 2.0))
+    z_b = float(stats.norm.ppf(power))
+
+    def gap(delta: float) -> float:
+        return math.sqrt(n) * delta - z_a * math.sqrt(psi) - z_b * math.sqrt(max(psi - delta * delta, 0.0))
+
+    hi = min(psi, 1.0)
+    if gap(hi) < 0.0:
+        return math.nan  # even the largest difference the discordance allows is not detectable
+    return float(optimize.brentq(gap, 0.0, hi))

@@ -1,0 +1,134 @@
+"""agents.stats against values computed by hand or from closed forms."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+from agents.stats import (
+    bootstrap_mean_ci,
+    holm,
+    mcnemar_exact,
+    mcnemar_min_detectable_difference,
+    paired_bootstrap_diff_ci,
+    wilcoxon_paired,
+    wilson_interval,
+)
+
+
+def test_wilson_matches_closed_form() -> None:
+    k, n = 8, 10
+    z = sps.norm.ppf(0.975)
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    lo, hi = wilson_interval(k, n)
+    assert lo == pytest.approx(centre - half, abs=1e-12)
+    assert hi == pytest.approx(centre + half, abs=1e-12)
+    assert (lo, hi) == pytest.approx((0.4901624715, 0.9433178485), abs=1e-9)
+
+
+def test_wilson_edges() -> None:
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    lo, hi = wilson_interval(0, 20)
+    assert lo == pytest.approx(0.0, abs=1e-12) and 0 < hi < 0.2
+    lo, hi = wilson_interval(20, 20)
+    assert hi == pytest.approx(1.0, abs=1e-12) and 0.8 < lo < 1
+    with pytest.raises(ValueError, match="successes"):
+        wilson_interval(11, 10)
+
+
+def test_bootstrap_degenerate_inputs_without_warnings() -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert all(math.isnan(v) for v in bootstrap_mean_ci([]))
+        assert all(math.isnan(v) for v in bootstrap_mean_ci([math.nan]))
+        assert bootstrap_mean_ci([2.5]) == (2.5, 2.5)
+        assert bootstrap_mean_ci([1.0] * 7) == (1.0, 1.0)
+        lo, hi = bootstrap_mean_ci([0.0] * 99 + [1.0])  # nearly constant: still a finite interval
+        assert 0.0 <= lo <= 0.01 <= hi <= 0.05
+
+
+def test_bootstrap_covers_mean_and_is_seeded() -> None:
+    x = np.random.default_rng(1).normal(3.0, 1.0, size=200)
+    lo, hi = bootstrap_mean_ci(x)
+    se = x.std(ddof=1) / math.sqrt(x.size)
+    assert lo < x.mean() < hi
+    assert hi - lo == pytest.approx(2 * 1.96 * se, rel=0.2)
+    assert bootstrap_mean_ci(x, seed=3) == bootstrap_mean_ci(x, seed=3)
+    # non-finite values are ignored
+    assert bootstrap_mean_ci([*x, math.nan]) == (lo, hi)
+
+
+def test_paired_bootstrap_diff_is_interval_of_differences() -> None:
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=100)
+    b = a - 0.5 + 0.01 * rng.normal(size=100)  # strongly paired: the interval is narrow around 0.5
+    lo, hi = paired_bootstrap_diff_ci(a, b)
+    assert lo < 0.5 < hi and hi - lo < 0.01
+    assert paired_bootstrap_diff_ci(a, b) == bootstrap_mean_ci(a - b)
+
+
+def test_mcnemar_exact_hand_value() -> None:
+    # 9 pairs where only a succeeds, 1 where only b does, 5 + 5 concordant
+    a = [1] * 9 + [0] + [1] * 5 + [0] * 5
+    b = [0] * 9 + [1] + [1] * 5 + [0] * 5
+    res = mcnemar_exact(a, b)
+    assert (res["b10"], res["b01"], res["n"]) == (9, 1, 20)
+    assert res["p_value"] == pytest.approx(0.021484375, abs=1e-12)  # 2 * binom.cdf(1, 10, 0.5)
+    assert res["difference"] == pytest.approx(8 / 20)
+    assert res["rate_a"] == pytest.approx(14 / 20) and res["rate_b"] == pytest.approx(6 / 20)
+    lo, hi = res["difference_ci"]
+    assert 0 < lo < 0.4 < hi
+
+
+def test_mcnemar_no_discordance() -> None:
+    res = mcnemar_exact([1, 0, 1], [1, 0, 1])
+    assert res["p_value"] == 1.0 and res["difference"] == 0.0 and res["difference_ci"] == [0.0, 0.0]
+    assert mcnemar_exact([], [])["n"] == 0
+
+
+def test_wilcoxon_hand_worked() -> None:
+    # differences 1, 2, 3, -4, 5 -> ranks 1..5, W- = 4; exact two-sided p = 2 * #{subsets with sum <= 4} / 2**5
+    # subsets of {1..5} with sum <= 4: {}, {1}, {2}, {3}, {4}, {1,2}, {1,3} = 7
+    a = [11.0, 12.0, 13.0, 6.0, 15.0]
+    b = [10.0] * 5
+    res = wilcoxon_paired(a, b)
+    assert res["n"] == 5 and res["n_nonzero"] == 5
+    assert res["statistic"] == pytest.approx(4.0)
+    assert res["p_value"] == pytest.approx(2 * 7 / 32)
+    assert res["median_difference"] == pytest.approx(2.0)
+
+
+def test_wilcoxon_degenerate() -> None:
+    none = wilcoxon_paired([], [])
+    assert none["n"] == 0 and none["p_value"] == 1.0 and math.isnan(none["median_difference"])
+    same = wilcoxon_paired([1.0, 2.0], [1.0, 2.0])
+    assert same["n"] == 2 and same["p_value"] == 1.0 and same["median_difference"] == 0.0
+    # a pair with nan is dropped, not an error
+    assert wilcoxon_paired([1.0, math.nan], [0.0, 3.0])["n"] == 1
+    with pytest.raises(ValueError, match="same length"):
+        wilcoxon_paired([1.0], [1.0, 2.0])
+
+
+def test_holm_hand_value() -> None:
+    assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
+    assert holm([0.5, 0.6]) == pytest.approx([1.0, 1.0])
+    assert holm([]) == []
+    with pytest.raises(ValueError):
+        holm([1.5])
+
+
+def test_min_detectable_difference_has_the_stated_power() -> None:
+    n, psi = 500, 0.1
+    delta = mcnemar_min_detectable_difference(n, psi)
+    z_a = sps.norm.ppf(0.975)
+    power = sps.norm.cdf((math.sqrt(n) * delta - z_a * math.sqrt(psi)) / math.sqrt(psi - delta**2))
+    assert power == pytest.approx(0.8, abs=1e-9)
+    assert 0.03 < delta < 0.045  # about (1.96 + 0.84) * sqrt(0.1 / 500) = 0.0396, a bit less
+    assert math.isnan(mcnemar_min_detectable_difference(500, 0.0))
+    assert mcnemar_min_detectable_difference(1500, psi) < delta
