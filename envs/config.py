@@ -30,6 +30,9 @@ EPISODE_PARTS: Final[tuple[str, ...]] = ("train", "test")
 KINEMATICS: Final[tuple[str, ...]] = ("holonomic", "unicycle")
 #: How learned forecasts remember the past (``forecast_memory=``); ``window`` is the evaluated protocol.
 FORECAST_MEMORIES: Final[tuple[str, ...]] = ("window", "carried")
+#: Which part of each recording's duration episodes lie in (``episode_time=``): ``val`` = the last
+#: ``val_fraction``, ``train`` = before it, ``all`` = anywhere.
+EPISODE_TIMES: Final[tuple[str, ...]] = ("all", "train", "val")
 
 
 @dataclass(frozen=True)
@@ -77,6 +80,14 @@ class CrowdNavConfig:
     """The goal is reached when the robot's centre is this close to it, metres."""
     terminate_on_collision: bool = True
     """End the episode at the first robot-pedestrian contact (False: keep running, penalise every step in contact)."""
+    require_pedestrians: bool = False
+    """Resample episodes until at least one pedestrian comes within ``sensor_range_m`` of the straight start-goal
+    segment during the episode (at annotation times); deterministic per seed and identical in every forecast arm."""
+    episode_time: str = "all"
+    """Where episodes lie in each recording's duration: ``all`` (anywhere), ``train`` (wholly before the last
+    ``val_fraction``) or ``val`` (wholly inside the last ``val_fraction``), for validating agents on unseen times."""
+    val_fraction: float = 0.2
+    """Share of each recording's duration (its end) reserved for ``episode_time="val"`` episodes, in (0, 1)."""
 
     # ----------------------------------------------------------------- observation
     num_pedestrians: int = 10
@@ -89,6 +100,8 @@ class CrowdNavConfig:
     """Pedestrian speeds in the observation are clipped to this, m/s (bounds of the observation space)."""
     max_goal_offset_m: float = 50.0
     """Goal offset components are clipped to ±this, metres."""
+    observe_time_left: bool = False
+    """Append the fraction of the time limit left, in [0, 1], to ``robot`` (1 at reset, 0 at the last step)."""
     flatten_observation: bool = True
     """Give ``pedestrians`` and ``forecasts`` as 1-D vectors (row-major ``(K, 4)`` and ``(K, H, 2)``), as
     Stable-Baselines3 expects; False gives them those shapes (see :func:`envs.observation.structured`)."""
@@ -122,6 +135,8 @@ class CrowdNavConfig:
     """gamma of the progress term (use the agent's discount factor)."""
     intrusion_penalty: float = 0.0
     """Reward per step when the robot stands on a pedestrian's true future path within the horizon (0 = off)."""
+    time_penalty: float = 0.0
+    """Reward added at every step (component ``time``; e.g. -0.01 to favour short episodes; 0 = off)."""
 
     # ----------------------------------------------------------------- synthetic crowd
     synthetic_duration_s: float = 300.0
@@ -158,6 +173,7 @@ class CrowdNavConfig:
         _one_of("predictor", self.predictor, FORECAST_SOURCES)
         _one_of("kinematics", self.kinematics, KINEMATICS)
         _one_of("forecast_memory", self.forecast_memory, FORECAST_MEMORIES)
+        _one_of("episode_time", self.episode_time, EPISODE_TIMES)
         allowed = episode_recordings(self.split, self.part)
         resolve_scenes(self.scenes, allowed, self.split, self.part)
         for key in (
@@ -199,6 +215,10 @@ class CrowdNavConfig:
             value = getattr(self, key)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise ConfigError(f"config key {key!r} must be a number >= 0, got {value!r}")
+        if not (isinstance(self.val_fraction, int | float) and 0 < self.val_fraction < 1):
+            raise ConfigError(f"config key 'val_fraction' must be a number in (0, 1), got {self.val_fraction!r}")
+        if not (isinstance(self.time_penalty, int | float) and math.isfinite(self.time_penalty)):
+            raise ConfigError(f"config key 'time_penalty' must be a finite number, got {self.time_penalty!r}")
         if not 0 < self.progress_gamma <= 1:
             raise ConfigError(f"config key 'progress_gamma' must be in (0, 1], got {self.progress_gamma!r}")
         if len(self.synthetic_area_m) != 2 or min(self.synthetic_area_m) < 4:

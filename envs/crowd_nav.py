@@ -88,6 +88,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     | ``robot`` [0:2] | (2,) | goal minus robot position | -50 | 50 | m |
     | ``robot`` [2:4] | (2,) | robot velocity | -v | v | m/s |
     | ``robot`` [4:6] | (2,) | cos, sin of the heading (unicycle only) | -1 | 1 | |
+    | ``robot`` [-1] | (1,) | fraction of the time limit left (``observe_time_left`` only) | 0 | 1 | |
     | ``pedestrians`` [:, 0:2] | (K, 2) | pedestrian minus robot position, nearest first | -R | R | m |
     | ``pedestrians`` [:, 2:4] | (K, 2) | pedestrian minus robot velocity (*) | -(s+v) | s+v | m/s |
     | ``mask`` | (K,) | 1 where the row holds a pedestrian within R | 0 | 1 | |
@@ -103,9 +104,10 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     ``success`` (+10 on reaching the goal), ``collision`` (-20 on a step with a contact),
     ``discomfort`` (``(gap - 0.25) * 10 * dt`` when the smallest gap to a pedestrian during the step
     is under 0.25 m), ``progress`` (``gamma * phi(s') - phi(s)``, ``phi = -distance to goal``,
-    gamma = ``progress_gamma``) and ``intrusion`` (``intrusion_penalty``, default 0, when the robot
+    gamma = ``progress_gamma``), ``intrusion`` (``intrusion_penalty``, default 0, when the robot
     stands on a pedestrian's true future path within the horizon — from the replay, never from the
-    arm's forecasts). All values are configurable.
+    arm's forecasts) and ``time`` (``time_penalty`` at every step, default 0). All values are
+    configurable.
 
     ## Starting State
 
@@ -113,9 +115,14 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     annotations of history and the whole episode, and a start/goal pair
     ``start_goal_distance_m`` apart inside the scene, on a straight line through a position a
     pedestrian occupies during the episode, with no pedestrian within ``start_clearance_m`` (gap)
-    of the start. The robot starts at rest facing the goal. All randomness comes from
-    ``reset(seed=...)``; ``reset(options=...)`` may fix ``recording``, ``t0_s``, ``start``, ``goal``
-    and ``time_limit_s``.
+    of the start. The robot starts at rest facing the goal. With ``episode_time="train"``/``"val"``
+    episodes lie wholly before/inside the last ``val_fraction`` of each recording's duration; with
+    ``require_pedestrians`` episodes are redrawn until a pedestrian comes within ``sensor_range_m``
+    of the straight start-goal segment. All randomness comes from ``reset(seed=...)``;
+    ``reset(options=...)`` may fix ``recording``, ``t0_s``, ``start``, ``goal`` and ``time_limit_s``.
+    The reset ``info`` holds ``recording``, ``crowd``, ``predictor``, ``t0_s``, ``start``, ``goal``,
+    ``time_limit_s``, ``crowd_density`` (mean number of pedestrians within ``sensor_range_m`` of the
+    start-goal segment at the annotation times of the episode) and ``pedestrians_near_path``.
 
     ## Episode End
 
@@ -124,9 +131,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     the robot or the pedestrian moved faster towards the other). With
     ``terminate_on_collision=False`` the episode continues and every step in contact is penalised.
     Truncated at the time limit, ``time_limit_factor`` (3) x straight-line distance / preferred
-    speed. The last step's ``info["episode"]`` (and ``info["episode_metrics"]``, which monitoring
-    wrappers do not overwrite) holds the episode metrics (see
-    :meth:`envs.rewards.EpisodeMetrics.summary`). Stepping after the end without ``reset`` raises
+    speed. The last step's ``info["episode_metrics"]`` holds the episode metrics (see
+    :meth:`envs.rewards.EpisodeMetrics.summary`); ``info["episode"]`` is left to Gymnasium's
+    ``RecordEpisodeStatistics`` and SB3's ``Monitor``. Stepping after the end without ``reset`` raises
     ``RuntimeError``.
 
     ## Arguments
@@ -209,6 +216,10 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             ped_radius_m=cfg.pedestrian_radius_m,
             speed_mps=cfg.robot_pref_speed_mps,
             time_limit_factor=cfg.time_limit_factor,
+            sensor_range_m=cfg.sensor_range_m,
+            require_pedestrians=cfg.require_pedestrians,
+            episode_time=cfg.episode_time,
+            val_fraction=cfg.val_fraction,
         )
         self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
         self.observation_space = observation_space(cfg, self.with_forecasts)
@@ -358,7 +369,14 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._n = 0
         self._heading = math.atan2(ep.goal[1] - ep.start[1], ep.goal[0] - ep.start[0])
         self._velocity = np.zeros(2)
-        self._metrics = EpisodeMetrics(ep.start.copy(), ep.goal.copy(), cfg.dt_s, cfg.discomfort_dist_m)
+        self._metrics = EpisodeMetrics(
+            ep.start.copy(),
+            ep.goal.copy(),
+            cfg.dt_s,
+            cfg.discomfort_dist_m,
+            crowd_density=ep.crowd_density,
+            pedestrians_near_path=ep.pedestrians_near_path,
+        )
         self._done = False
         self._started = True
         self._collided_last = False
@@ -378,6 +396,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             "start": ep.start.tolist(),
             "goal": ep.goal.tolist(),
             "time_limit_s": ep.time_limit_s,
+            "crowd_density": ep.crowd_density,
+            "pedestrians_near_path": ep.pedestrians_near_path,
         }
         if self.render_mode == "human":
             self.render()
@@ -479,6 +499,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             extra["intruding"],
             len(ws.contacts),
             fault,
+            len(self._last["rows"]),
         )
         info: dict[str, Any] = {
             "time_s": round(self._n * cfg.dt_s, 9),
@@ -498,9 +519,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                 outcome = "success"
             else:
                 outcome = "timeout"
-            info["episode"] = self._metrics.summary(outcome, self._n * cfg.dt_s, self.with_forecasts)
-            # the same under a key that SB3's Monitor and RecordEpisodeStatistics do not overwrite
-            info["episode_metrics"] = dict(info["episode"])
+            # info["episode"] belongs to Gymnasium's RecordEpisodeStatistics and SB3's Monitor
+            info["episode_metrics"] = self._metrics.summary(outcome, self._n * cfg.dt_s, self.with_forecasts)
         timings["reward"] += time.perf_counter() - t3
         if self.render_mode == "human":
             self.render()
@@ -565,7 +585,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self.timings["forecasts"] += t2 - t1
         heading = self._heading
         v_rows = self._replay.observed_velocity_at(t_s)[rows] if len(rows) else np.zeros((0, 2))
-        obs = self._builder.build(robot, self._velocity, heading, self.episode.goal, p_now[rows], v_rows, fc)
+        time_left = 1.0 - self._n / self.episode.max_steps
+        obs = self._builder.build(robot, self._velocity, heading, self.episode.goal, p_now[rows], v_rows, fc, time_left)
         self._trails.append((p_now, pres_now))
         self._last = {"rows": rows, "forecasts": fc, "positions": p_now, "present": pres_now}
         self.timings["observation"] += time.perf_counter() - t2

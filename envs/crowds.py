@@ -337,6 +337,9 @@ class Episode:
         goal: ``(2,)`` robot goal, metres.
         time_limit_s: truncation after this many seconds.
         max_steps: truncation after this many control steps.
+        crowd_density: mean number of pedestrians within the sensor range of the straight start-goal segment,
+            over the annotation times of ``[t0_s, t0_s + time_limit_s]`` (policy-independent).
+        pedestrians_near_path: distinct pedestrians within the sensor range of that segment at those times.
     """
 
     recording: Recording
@@ -345,6 +348,28 @@ class Episode:
     goal: np.ndarray
     time_limit_s: float
     max_steps: int
+    crowd_density: float = 0.0
+    pedestrians_near_path: int = 0
+
+
+def crowd_near_path(
+    recording: Recording, t0_s: float, time_limit_s: float, start: np.ndarray, goal: np.ndarray, range_m: float
+) -> tuple[float, int]:
+    """``(mean count, distinct pedestrians)`` within ``range_m`` (centre distance) of the segment ``start``-``goal``
+    at the recording's annotation times in ``[t0_s, t0_s + time_limit_s]`` (0, 0 when there are none)."""
+    times = recording.times_s()
+    i0 = int(np.searchsorted(times, t0_s - TIME_TOL_S, "left"))
+    i1 = int(np.searchsorted(times, t0_s + time_limit_s + TIME_TOL_S, "right"))
+    if i1 <= i0:
+        return 0.0, 0
+    present = recording.present[i0:i1]
+    seg = np.asarray(goal, dtype=np.float64) - np.asarray(start, dtype=np.float64)
+    length2 = float(seg @ seg)
+    rel = recording.positions[i0:i1] - np.asarray(start, dtype=np.float64)
+    along = np.clip((rel @ seg) / length2, 0.0, 1.0) if length2 > 0 else np.zeros(present.shape)
+    dist = np.linalg.norm(rel - along[..., None] * seg, axis=-1)
+    near = present & (dist <= range_m)
+    return float(near.sum(axis=1).mean()), int(near.any(axis=0).sum())
 
 
 def recording_extent(recording: Recording, margin_m: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
@@ -369,6 +394,8 @@ class EpisodeSampler:
     """
 
     MAX_TRIES: Final[int] = 500
+    #: Episodes drawn at most to find one with a pedestrian near its path (``require_pedestrians``).
+    MAX_DRAWS: Final[int] = 200
 
     def __init__(
         self,
@@ -381,8 +408,16 @@ class EpisodeSampler:
         ped_radius_m: float,
         speed_mps: float,
         time_limit_factor: float,
+        sensor_range_m: float = 6.0,
+        require_pedestrians: bool = False,
+        episode_time: str = "all",
+        val_fraction: float = 0.2,
     ) -> None:
         self.recordings = list(recordings)
+        self.sensor_range_m = sensor_range_m
+        self.require_pedestrians = require_pedestrians
+        self.episode_time = episode_time
+        self.val_fraction = val_fraction
         self.dt_s = dt_s
         self.history_steps = history_steps
         self.distance_m = distance_m
@@ -407,6 +442,16 @@ class EpisodeSampler:
             f"unknown recording {name!r} for this env; valid: {', '.join(r.name for r in self.recordings)}"
         )
 
+    def time_window(self, rec: Recording) -> tuple[float, float]:
+        """``(earliest, latest)`` seconds an episode of ``rec`` may cover under ``episode_time``."""
+        end = float(rec.times_s()[-1])
+        cut = (1.0 - self.val_fraction) * end
+        if self.episode_time == "train":
+            return 0.0, cut
+        if self.episode_time == "val":
+            return cut, end
+        return 0.0, end
+
     def sample(
         self,
         rng: np.random.Generator,
@@ -416,13 +461,45 @@ class EpisodeSampler:
         goal: np.ndarray | None = None,
         time_limit_s: float | None = None,
     ) -> Episode:
-        """An episode; any of recording, start time, start, goal and time limit may be fixed."""
+        """An episode; any of recording, start time, start, goal and time limit may be fixed.
+
+        With ``require_pedestrians`` episodes are drawn until one has a pedestrian near its path (all draws
+        come from ``rng``, so the result is a function of the generator's state); an episode fixed entirely
+        by the arguments is returned as it is.
+        """
+        fixed = t0_s is not None and start is not None and goal is not None
+        for _ in range(self.MAX_DRAWS):
+            ep = self._draw(rng, recording, t0_s, start, goal, time_limit_s)
+            if not self.require_pedestrians or fixed or ep.pedestrians_near_path > 0:
+                return ep
+        raise RuntimeError(
+            f"require_pedestrians: no episode out of {self.MAX_DRAWS} drawn had a pedestrian within "
+            f"{self.sensor_range_m} m of its path; the recording(s) {', '.join(r.name for r in self.recordings)} "
+            "hold too few pedestrians for the fixed options (or set require_pedestrians=False)"
+        )
+
+    def _draw(
+        self,
+        rng: np.random.Generator,
+        recording: str | None,
+        t0_s: float | None,
+        start: np.ndarray | None,
+        goal: np.ndarray | None,
+        time_limit_s: float | None,
+    ) -> Episode:
         if recording is not None:
             rec = self.recording_named(recording)
         else:
             rec = self.recordings[int(rng.choice(len(self.recordings), p=self.weights))]
         times = rec.times_s()
         lo, hi = self.extents[rec.name]
+        if t0_s is not None and self.episode_time != "all":
+            window_lo, window_hi = self.time_window(rec)
+            if not window_lo - TIME_TOL_S <= t0_s < window_hi:
+                raise ValueError(
+                    f"reset option 't0_s' = {t0_s!r} lies outside the {self.episode_time!r} episode time of "
+                    f"{rec.name!r}: [{window_lo:.2f}, {window_hi:.2f}) s"
+                )
         for _ in range(self.MAX_TRIES):
             dist = float(rng.uniform(*self.distance_m))
             if start is not None and goal is not None:
@@ -432,17 +509,20 @@ class EpisodeSampler:
                 steps = max(1, math.ceil(time_limit_s / self.dt_s - 1e-9))
                 limit_s = steps * self.dt_s
             if t0_s is None:
+                window_lo, window_hi = self.time_window(rec)
                 history_s = self.history_steps * rec.step_s
-                first = math.ceil(min(history_s, times[-1]) / self.dt_s - 1e-9)
-                last = math.floor((times[-1] - limit_s) / self.dt_s + 1e-9)
+                first = math.ceil(min(max(history_s, window_lo), window_hi) / self.dt_s - 1e-9)
+                last = math.floor((window_hi - limit_s) / self.dt_s + 1e-9)
                 if last < first:
+                    if self.episode_time != "all":
+                        continue  # another distance (a shorter time limit) may fit
                     first, last = 0, max(0, math.floor((times[-1] - limit_s) / self.dt_s + 1e-9))
                 t0 = float(rng.integers(first, last + 1)) * self.dt_s
             else:
                 t0 = float(t0_s)
             if start is not None and goal is not None:
                 s, g = np.asarray(start, dtype=np.float64), np.asarray(goal, dtype=np.float64)
-                return Episode(rec, t0, s.copy(), g.copy(), limit_s, steps)
+                return self._episode(rec, t0, s.copy(), g.copy(), limit_s, steps)
             cross = self._crossing_point(rec, times, t0, limit_s, rng, lo, hi)
             theta = float(rng.uniform(0.0, 2.0 * math.pi))
             u = np.array([math.cos(theta), math.sin(theta)])
@@ -457,11 +537,16 @@ class EpisodeSampler:
                 continue
             if time_limit_s is None:
                 limit_s, steps = self.time_limit(s, g)
-            return Episode(rec, t0, s, g, limit_s, steps)
+            return self._episode(rec, t0, s, g, limit_s, steps)
         raise RuntimeError(
             f"could not place a start and goal {self.distance_m} m apart in {rec.name!r} after {self.MAX_TRIES} tries "
-            f"(extent {lo.round(1).tolist()}..{hi.round(1).tolist()} m); lower start_goal_distance_m or start_clearance_m"
+            f"(extent {lo.round(1).tolist()}..{hi.round(1).tolist()} m, episode_time {self.episode_time!r}); lower "
+            "start_goal_distance_m or start_clearance_m"
         )
+
+    def _episode(self, rec: Recording, t0: float, s: np.ndarray, g: np.ndarray, limit_s: float, steps: int) -> Episode:
+        density, near = crowd_near_path(rec, t0, limit_s, s, g, self.sensor_range_m)
+        return Episode(rec, t0, s, g, limit_s, steps, density, near)
 
     def _crossing_point(
         self,

@@ -19,8 +19,9 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
     """The ``Dict`` space (``pedestrians`` and ``forecasts`` flattened row-major if ``flatten_observation``).
 
     Keys:
-        ``robot``: ``(4,)`` or ``(6,)`` float32: goal offset x, y (m, clipped to ±max_goal_offset_m),
-        velocity x, y (m/s), and for the unicycle cos and sin of the heading.
+        ``robot``: ``(4,)`` to ``(7,)`` float32: goal offset x, y (m, clipped to ±max_goal_offset_m),
+        velocity x, y (m/s), for the unicycle cos and sin of the heading, and with ``observe_time_left``
+        the fraction of the time limit left (in [0, 1]) last.
         ``pedestrians``: ``(K, 4)`` float32: position relative to the robot (m) and velocity relative
         to the robot's (m/s) of the K nearest pedestrians within the sensor range, nearest first;
         zero rows where the mask is 0 (velocities as known at t: see
@@ -33,6 +34,11 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
     v = cfg.robot_pref_speed_mps
     g = cfg.max_goal_offset_m
     robot_hi = [g, g, v, v] + ([1.0, 1.0] if cfg.kinematics == "unicycle" else [])
+    robot_lo = [-x for x in robot_hi]
+    if cfg.observe_time_left:
+        robot_lo.append(0.0)
+        robot_hi.append(1.0)
+    robot_lo_arr = np.array(robot_lo, dtype=np.float32)
     robot_hi_arr = np.array(robot_hi, dtype=np.float32)
     rel_speed = cfg.max_obs_speed_mps + v
     ped_hi = np.tile(np.array([cfg.sensor_range_m, cfg.sensor_range_m, rel_speed, rel_speed], dtype=np.float32), (k, 1))
@@ -40,7 +46,7 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
     if cfg.flatten_observation:
         ped_hi, fc_hi = ped_hi.reshape(-1), fc_hi.reshape(-1)
     out: dict[str, spaces.Space[Any]] = {
-        "robot": spaces.Box(-robot_hi_arr, robot_hi_arr, dtype=np.float32),
+        "robot": spaces.Box(robot_lo_arr, robot_hi_arr, dtype=np.float32),
         "pedestrians": spaces.Box(-ped_hi, ped_hi, dtype=np.float32),
         "mask": spaces.MultiBinary(k),
     }
@@ -104,6 +110,8 @@ class ObservationBuilder:
         self.h = cfg.horizon_steps
         self.with_forecasts = with_forecasts
         self.unicycle = cfg.kinematics == "unicycle"
+        self.time_left = cfg.observe_time_left
+        self.robot_size = 4 + 2 * self.unicycle + int(self.time_left)
         self.goal_clip = cfg.max_goal_offset_m
         self.speed = cfg.robot_pref_speed_mps
         self.rel_speed = cfg.max_obs_speed_mps + cfg.robot_pref_speed_mps
@@ -121,6 +129,7 @@ class ObservationBuilder:
         ped_positions: np.ndarray,
         ped_velocities: np.ndarray,
         forecasts: np.ndarray | None,
+        time_left: float = 1.0,
     ) -> dict[str, np.ndarray]:
         """One observation.
 
@@ -132,9 +141,10 @@ class ObservationBuilder:
             ped_positions: ``(m, 2)`` world positions of the visible pedestrians, nearest first.
             ped_velocities: ``(m, 2)`` their world velocities, m/s.
             forecasts: ``(m, H, 2)`` world forecast positions, or None.
+            time_left: fraction of the time limit left (used with ``observe_time_left``).
         """
         m = len(ped_positions)
-        robot = np.empty(6 if self.unicycle else 4, dtype=np.float32)
+        robot = np.empty(self.robot_size, dtype=np.float32)
         g, v = self.goal_clip, self.speed
         robot[0] = min(max(goal[0] - robot_position[0], -g), g)
         robot[1] = min(max(goal[1] - robot_position[1], -g), g)
@@ -143,6 +153,8 @@ class ObservationBuilder:
         if self.unicycle:
             robot[4] = math.cos(heading)
             robot[5] = math.sin(heading)
+        if self.time_left:
+            robot[-1] = min(max(time_left, 0.0), 1.0)
         peds = np.zeros((self.k, 4), dtype=np.float32)
         mask = np.zeros(self.k, dtype=np.int8)
         if m:

@@ -14,7 +14,7 @@ import numpy as np
 from envs.config import CrowdNavConfig
 
 #: Names of the reward components, in the order they are summed.
-REWARD_COMPONENTS: tuple[str, ...] = ("success", "collision", "discomfort", "progress", "intrusion")
+REWARD_COMPONENTS: tuple[str, ...] = ("success", "collision", "discomfort", "progress", "intrusion", "time")
 
 
 def reward_components(
@@ -42,7 +42,7 @@ def reward_components(
         (collision_penalty on a step with contact), ``discomfort`` ((gap - discomfort_dist_m) x
         discomfort_scale x dt_s when the gap is below discomfort_dist_m and there was no contact),
         ``progress`` (progress_weight x (gamma x phi(s') - phi(s)), phi = -distance to goal) and
-        ``intrusion`` (intrusion_penalty when intruding).
+        ``intrusion`` (intrusion_penalty when intruding) and ``time`` (time_penalty, every step).
     """
     success = cfg.success_reward if (reached_goal and not collided) else 0.0
     collision = cfg.collision_penalty if collided else 0.0
@@ -58,6 +58,7 @@ def reward_components(
         "discomfort": float(discomfort),
         "progress": float(progress),
         "intrusion": float(intrusion),
+        "time": float(cfg.time_penalty),
     }
 
 
@@ -68,19 +69,24 @@ def total_reward(components: dict[str, float]) -> float:
 
 @dataclass
 class EpisodeMetrics:
-    """Accumulates an episode's metrics step by step; :meth:`summary` gives ``info["episode"]``.
+    """Accumulates an episode's metrics step by step; :meth:`summary` gives ``info["episode_metrics"]``.
 
     Args:
         start: ``(2,)`` robot start, metres.
         goal: ``(2,)`` goal, metres.
         dt_s: control step, seconds.
         discomfort_dist_m: gap below which a step counts as uncomfortable, metres.
+        crowd_density: the episode's policy-independent crowd density (see :func:`envs.crowds.crowd_near_path`).
+        pedestrians_near_path: pedestrians within sensor range of the start-goal segment during the episode.
     """
 
     start: np.ndarray
     goal: np.ndarray
     dt_s: float
     discomfort_dist_m: float
+    crowd_density: float = 0.0
+    pedestrians_near_path: int = 0
+    visible_sum: int = 0
     steps: int = 0
     episode_return: float = 0.0
     path_length_m: float = 0.0
@@ -106,9 +112,12 @@ class EpisodeMetrics:
         intruding: bool,
         new_contacts: int,
         fault: str | None,
+        num_visible: int = 0,
     ) -> None:
-        """Record one step (``velocity``: ``(2,)`` m/s average over the step)."""
+        """Record one step (``velocity``: ``(2,)`` m/s average over the step; ``num_visible``: pedestrians in the
+        observation at its end)."""
         self.steps += 1
+        self.visible_sum += num_visible
         self.episode_return += reward
         self.path_length_m += displacement_m
         self.min_gap_m = min(self.min_gap_m, min_gap_m)
@@ -147,7 +156,9 @@ class EpisodeMetrics:
         (share of steps with a gap below discomfort_dist_m), ``intrusion_ratio`` (share of steps
         on a pedestrian's true future path), ``mean_jerk_mps3``, ``forecast_ade_m``,
         ``forecast_fde_m`` (the arm's forecasts of the observed pedestrians against the replay's
-        truth), ``steps``, and ``r``/``l`` (return and length, as Gymnasium and SB3 name them).
+        truth), ``mean_visible_pedestrians`` (pedestrians in the observation, mean over steps),
+        ``crowd_density`` and ``pedestrians_near_path`` (as in the reset info), ``steps``, and ``r``/``l``
+        (return and length; kept so the metrics are complete without a monitoring wrapper).
         """
         straight = float(np.linalg.norm(self.goal - self.start))
         n = max(self.steps, 1)
@@ -164,6 +175,9 @@ class EpisodeMetrics:
             "mean_jerk_mps3": self.jerk_sum / self.jerk_count if self.jerk_count else 0.0,
             "forecast_ade_m": (self.ade_sum / self.ade_count) if (has_forecasts and self.ade_count) else None,
             "forecast_fde_m": (self.fde_sum / self.fde_count) if (has_forecasts and self.fde_count) else None,
+            "mean_visible_pedestrians": self.visible_sum / n,
+            "crowd_density": self.crowd_density,
+            "pedestrians_near_path": self.pedestrians_near_path,
             "steps": self.steps,
             "r": self.episode_return,
             "l": self.steps,

@@ -186,7 +186,7 @@ def test_step_before_reset_and_after_the_end_raise() -> None:
     while not done:
         _, _, terminated, truncated, info = env.step(np.zeros(2))
         done = terminated or truncated
-    assert truncated and info["episode"]["outcome"] == "timeout"
+    assert truncated and info["episode_metrics"]["outcome"] == "timeout"
     with pytest.raises(RuntimeError, match="ended"):
         env.step(np.zeros(2))
     env.reset()
