@@ -24,10 +24,10 @@ def _fmt(value: Any) -> str:
 
 
 def _demo(args: argparse.Namespace) -> int:
+    from agents.planners import SamplingPlanner
     from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, data_available
     from envs.crowd_nav import CrowdNavEnv
     from envs.forecasts import PredictorUnavailableError
-    from envs.policies import ForecastAwarePolicy
     from envs.rendering import save_gif
 
     started = time.perf_counter()
@@ -52,7 +52,7 @@ def _demo(args: argparse.Namespace) -> int:
         predictor = "cv"
         env = CrowdNavEnv(predictor=predictor, **kwargs)
 
-    policy = ForecastAwarePolicy(env.config)
+    policy = SamplingPlanner(env.config)
     obs, info = env.reset(seed=args.seed)
     scene = f"{info['recording']} ({info['crowd']})"
     print(

@@ -86,7 +86,7 @@ def episode_runner() -> Callable[..., list[tuple]]:
 def run_in_lockstep(cached: Any, online: Any, options: list[dict]) -> int:
     """Drive two environments with go-to-goal through the same seeded episodes, asserting identical
     observations and forecasts at every step; returns the number of forecast rows compared."""
-    from envs.policies import go_to_goal
+    from agents.planners import go_to_goal
 
     compared = 0
     for k, opts in enumerate(options):

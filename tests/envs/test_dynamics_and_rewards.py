@@ -13,7 +13,7 @@ import pytest
 from envs.config import CrowdNavConfig
 from envs.crowd_nav import CrowdNavEnv
 from envs.crowds import Replay, scripted_recording, synthetic_recording
-from envs.policies import go_to_goal
+from agents.planners import go_to_goal
 from envs.rewards import REWARD_COMPONENTS
 from envs.world import World, fault_of
 
