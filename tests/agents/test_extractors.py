@@ -1,0 +1,124 @@
+"""The Dict-observation features extractor: masking, parameter counts per arm, degenerate inputs, SB3 use."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from agents.extractors import CrowdActorCriticPolicy, CrowdFeaturesExtractor, CrowdSACPolicy
+from envs.config import CrowdNavConfig
+from envs.observation import observation_space
+
+K, H = 10, 12
+
+
+def space(with_forecasts: bool, **kw: object) -> object:
+    return observation_space(CrowdNavConfig(**kw), with_forecasts)  # type: ignore[arg-type]
+
+
+def random_obs(sp: object, batch: int, seed: int = 0) -> dict[str, torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    out = {}
+    for key, sub in sp.spaces.items():  # type: ignore[attr-defined]
+        shape = (batch, *sub.shape)
+        if key == "mask":
+            out[key] = (torch.rand(shape, generator=gen) < 0.5).float()
+        else:
+            out[key] = torch.randn(shape, generator=gen) * 3
+    return out
+
+
+@pytest.mark.parametrize("pooling", ["meanmax", "attention"])
+@pytest.mark.parametrize("with_forecasts", [False, True])
+def test_absent_pedestrians_change_nothing_whatever_their_rows_hold(pooling: str, with_forecasts: bool) -> None:
+    torch.manual_seed(0)
+    sp = space(with_forecasts)
+    ext = CrowdFeaturesExtractor(sp, hidden_dim=16, pooling=pooling)  # type: ignore[arg-type]
+    obs = random_obs(sp, batch=6)
+    obs["mask"][0] = 0.0  # one observation with nobody
+    obs["mask"][1] = 1.0  # one with everybody
+    base = ext(obs)
+    absent = obs["mask"] < 0.5
+    for fill in (0.0, 1e6, -1e6, float("nan"), float("inf")):
+        poked = {k: v.clone() for k, v in obs.items()}
+        peds = poked["pedestrians"].view(6, K, 4)
+        peds[absent] = fill
+        if with_forecasts:
+            poked["forecasts"].view(6, K, H * 2)[absent] = fill
+        out = ext(poked)
+        torch.testing.assert_close(out, base, rtol=0, atol=0)
+    # and a present pedestrian does change it
+    poked = {k: v.clone() for k, v in obs.items()}
+    poked["pedestrians"].view(6, K, 4)[1, 0, 0] += 1.0
+    assert not torch.equal(ext(poked)[1], base[1])
+
+
+@pytest.mark.parametrize("pooling", ["meanmax", "attention"])
+def test_all_masked_is_finite_and_pools_to_zero(pooling: str) -> None:
+    sp = space(True)
+    ext = CrowdFeaturesExtractor(sp, hidden_dim=8, pooling=pooling)  # type: ignore[arg-type]
+    obs = random_obs(sp, batch=3)
+    obs["mask"].zero_()
+    out = ext(obs)
+    assert out.shape == (3, ext.features_dim)
+    assert torch.isfinite(out).all()
+    torch.testing.assert_close(out[:, 8:], torch.zeros(3, ext.features_dim - 8))
+    out.sum().backward()  # gradients stay finite too
+    assert all(torch.isfinite(p.grad).all() for p in ext.parameters() if p.grad is not None)
+
+
+@pytest.mark.parametrize("pooling", ["meanmax", "attention"])
+def test_same_parameters_in_every_arm_except_the_forecast_input(pooling: str) -> None:
+    hidden = 32
+    without = CrowdFeaturesExtractor(space(False), hidden_dim=hidden, pooling=pooling)  # type: ignore[arg-type]
+    with_fc = CrowdFeaturesExtractor(space(True), hidden_dim=hidden, pooling=pooling)  # type: ignore[arg-type]
+    assert without.features_dim == with_fc.features_dim
+    names_a = {n: p.shape for n, p in without.named_parameters()}
+    names_b = {n: p.shape for n, p in with_fc.named_parameters()}
+    assert names_a.keys() == names_b.keys()
+    differing = {n for n in names_a if names_a[n] != names_b[n]}
+    assert differing == {"pedestrian_encoder.0.weight"}
+    count = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
+    assert count(with_fc) - count(without) == 2 * H * hidden
+    assert with_fc.pedestrian_input_layer.in_features == 4 + 2 * H
+
+
+def test_structured_and_flat_observations_give_the_same_features() -> None:
+    torch.manual_seed(1)
+    flat, shaped = space(True), space(True, flatten_observation=False)
+    ext = CrowdFeaturesExtractor(flat, hidden_dim=8)  # type: ignore[arg-type]
+    ext_shaped = CrowdFeaturesExtractor(shaped, hidden_dim=8)  # type: ignore[arg-type]
+    ext_shaped.load_state_dict(ext.state_dict())
+    obs = random_obs(flat, batch=2)
+    obs_shaped = dict(obs)
+    obs_shaped["pedestrians"] = obs["pedestrians"].view(2, K, 4)
+    obs_shaped["forecasts"] = obs["forecasts"].view(2, K, H, 2)
+    torch.testing.assert_close(ext(obs), ext_shaped(obs_shaped))
+
+
+def test_bad_options_are_rejected() -> None:
+    with pytest.raises(ValueError, match="pooling"):
+        CrowdFeaturesExtractor(space(False), pooling="sum")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="activation"):
+        CrowdFeaturesExtractor(space(False), activation="gelu2")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("with_forecasts", [False, True])
+def test_policies_use_the_extractor_and_take_activation_names(with_forecasts: bool) -> None:
+    from gymnasium import spaces
+
+    sp = space(with_forecasts)
+    act = spaces.Box(-1, 1, (2,), np.float32)
+    ppo = CrowdActorCriticPolicy(
+        sp, act, lambda _: 3e-4, net_arch=[16], activation_fn="tanh", features_extractor_kwargs={"hidden_dim": 8}
+    )
+    assert isinstance(ppo.features_extractor, CrowdFeaturesExtractor)
+    assert ppo.activation_fn is torch.nn.Tanh
+    sac = CrowdSACPolicy(sp, act, lambda _: 3e-4, net_arch=[16], features_extractor_kwargs={"hidden_dim": 8})
+    assert isinstance(sac.actor.features_extractor, CrowdFeaturesExtractor)
+    obs = {k: v.numpy() for k, v in random_obs(sp, batch=1).items()}
+    obs = {k: v[0] for k, v in obs.items()}
+    for policy in (ppo, sac):
+        action, _ = policy.predict(obs, deterministic=True)
+        assert action.shape == (2,)
