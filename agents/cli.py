@@ -115,8 +115,19 @@ def add_agent(sub: Any) -> None:
 
 
 def add_ablation(sub: Any) -> None:
-    p = sub.add_parser("ablation", help="run the planning-aid ablation grid and summarise it")
-    p.set_defaults(func=lambda args: _not_yet("ablation"))
+    from agents.ablation import add_arguments, run_from_args
+
+    p = sub.add_parser(
+        "ablation",
+        help="run the planning-aid ablation grid (resumable cells, local pool or Ray) and summarise it",
+        description=(
+            "Forecast arms x policies x seeds x held-out splits from a grid YAML, as resumable cells "
+            "(runs/ablation/<name>/), summarised with intervals and paired tests into results/ablation/<name>/. "
+            "Same as python -m agents.ablation."
+        ),
+    )
+    add_arguments(p)
+    p.set_defaults(func=run_from_args)
 
 
 def _not_yet(name: str) -> int:

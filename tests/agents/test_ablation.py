@@ -1,0 +1,437 @@
+"""agents.ablation: grid expansion, config errors, skip/resume/stale cells, and the summary on hand-made episodes.
+
+Cells run in this process (``workers=1``) with the training and evaluation functions replaced by fakes, so
+these tests need neither SB3 training nor the ETH/UCY data; ``test_ablation_e2e.py`` runs the real ones.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+import agents.ablation as ab
+from agents.stats import holm, wilson_interval
+from crowdnav_mesrnn.config import ConfigError
+
+EPISODE_COLUMNS = ("episode", "seed", "recording", "outcome", "navigation_time_s", "path_ratio", "crowd_density")
+
+
+def _raw(tmp_path: Path, **changes: Any) -> dict[str, Any]:
+    agent_yaml = tmp_path / "ppo.yaml"
+    agent_yaml.write_text("CrowdNav-MESRNN-v0:\n  n_steps: 64\n", encoding="utf-8")
+    raw: dict[str, Any] = {
+        "name": "tiny",
+        "runs_dir": str(tmp_path / "runs"),
+        "out_dir": str(tmp_path / "results"),
+        "splits": ["zara1"],
+        "arms": ["none", "mesrnn"],
+        "seeds": [0, 1],
+        "policies": {
+            "ppo": {"kind": "ppo", "config": str(agent_yaml), "timesteps": 256, "n_envs": 1},
+            "planner": {"kind": "planner"},
+        },
+        "evaluation": {"episodes": 4, "seed": 0},
+        "comparisons": [["mesrnn", "none"]],
+        "policy_comparisons": [["ppo", "planner"]],
+    }
+    raw.update(changes)
+    return raw
+
+
+# ----------------------------------------------------------------------------- config and expansion
+
+
+def test_planning_aid_config_expands_to_the_issue_grid() -> None:
+    cfg = ab.load_config(Path(__file__).resolve().parents[2] / "configs/ablation/planning_aid.yaml")
+    cells = ab.expand(cfg)
+    train = [c for c in cells if c.kind == "train"]
+    evals = [c for c in cells if c.kind == "eval"]
+    # PPO: 2 splits x 4 main arms x 3 seeds; planner: 2 splits x (6 arms + 4 noisy oracles)
+    assert len(train) == 24
+    assert len([c for c in evals if c.policy.name == "ppo"]) == 24
+    assert len([c for c in evals if c.policy.name == "planner"]) == 20
+    assert {c.arm.label for c in train} == {"none", "cv", "mesrnn", "oracle"}
+    noisy = sorted(c.arm.noisy_oracle_ade_m for c in evals if c.arm.predictor == "noisy_oracle" and c.split == "univ")
+    assert noisy == [0.1, 0.25, 0.5, 1.0]
+    names = [c.name for c in cells]
+    assert len(set(names)) == len(names)
+    assert "train/zara1/ppo/mesrnn/seed2" in names and "eval/univ/planner/noisy_oracle-0.25" in names
+    assert ab.Cell("eval", "zara1", cfg.policy("ppo"), cfg.arm("cv"), 1).needs == "train/zara1/ppo/cv/seed1"
+
+
+def test_expansion_counts_and_noisy_sweep(tmp_path: Path) -> None:
+    raw = _raw(tmp_path, splits=["univ", "zara1"], arms=["none", "cv", "noisy_oracle"], seeds=[0, 1, 2], comparisons=[])
+    raw["noisy_oracle_ade_m"] = [0.1, 0.3, 0.6, 1.2]
+    cfg = ab.config_from_mapping(raw)
+    assert cfg.arm_labels == (
+        "none",
+        "cv",
+        "noisy_oracle-0.1",
+        "noisy_oracle-0.3",
+        "noisy_oracle-0.6",
+        "noisy_oracle-1.2",
+    )
+    assert cfg.arm("noisy_oracle-0.6").env_overrides() == {"noisy_oracle_ade_m": 0.6}
+    cells = ab.expand(cfg)
+    assert sum(c.kind == "train" for c in cells) == 2 * 6 * 3
+    assert sum(c.kind == "eval" and c.policy.name == "ppo" for c in cells) == 2 * 6 * 3
+    assert sum(c.kind == "eval" and c.policy.name == "planner" for c in cells) == 2 * 6
+    assert all(c.seed is None for c in cells if c.policy.name == "planner")
+    # a policy restricted to some arms; "noisy_oracle" names the whole sweep
+    raw["policies"]["ppo"]["arms"] = ["none", "noisy_oracle"]
+    cfg = ab.config_from_mapping(raw)
+    assert cfg.policy("ppo").arms == (
+        "none",
+        "noisy_oracle-0.1",
+        "noisy_oracle-0.3",
+        "noisy_oracle-0.6",
+        "noisy_oracle-1.2",
+    )
+    assert sum(c.kind == "train" for c in ab.expand(cfg)) == 2 * 5 * 3
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        ({"arms": ["none", "sgan"]}, ["'arms'", "'sgan'", "mesrnn"]),
+        ({"splits": ["zara3"]}, ["'splits'", "'zara3'", "univ"]),
+        ({"seeds": [0, 0]}, ["'seeds'", "distinct"]),
+        ({"arms": ["noisy_oracle"]}, ["'noisy_oracle_ade_m'", "None"]),
+        ({"comparisons": [["oracle", "none"]]}, ["'comparisons'", "'oracle'", "none, mesrnn"]),
+        ({"evaluation": {"episodes": 0}}, ["'evaluation.episodes'", "0", ">= 1"]),
+        ({"evaluation": {"episodes": 5, "sed": 1}}, ["'sed'", "episodes, seed"]),
+        ({"density_bins": [3, 1]}, ["'density_bins'", "increasing"]),
+        ({"alpha": 5}, ["'alpha'", "(0, 1)"]),
+        ({"env": {"predictor": "cv"}}, ["'env'", "predictor"]),
+        ({"colour": "red"}, ["'colour'", "valid keys", "splits"]),
+    ],
+)
+def test_bad_config_names_key_value_and_allowed(tmp_path: Path, change: dict[str, Any], words: list[str]) -> None:
+    with pytest.raises(ConfigError) as err:
+        ab.config_from_mapping(_raw(tmp_path, **change))
+    for word in words:
+        assert word in str(err.value)
+
+
+def test_bad_policy_entries(tmp_path: Path) -> None:
+    raw = _raw(tmp_path)
+    raw["policies"]["ppo"]["kind"] = "dqn"
+    with pytest.raises(ConfigError, match=r"'policies.ppo.kind'.*'dqn'.*ppo, sac, planner, straight"):
+        ab.config_from_mapping(raw)
+    raw = _raw(tmp_path)
+    raw["policies"]["planner"]["timesteps"] = 10
+    with pytest.raises(ConfigError, match=r"'policies.planner.timesteps'.*not trained"):
+        ab.config_from_mapping(raw)
+    raw = _raw(tmp_path)
+    del raw["policies"]["ppo"]["timesteps"]
+    with pytest.raises(ConfigError, match=r"'policies.ppo.timesteps'.*None"):
+        ab.config_from_mapping(raw)
+    raw = _raw(tmp_path)
+    raw["policies"]["ppo"]["arms"] = ["oracle"]
+    with pytest.raises(ConfigError, match=r"'policies.ppo.arms'.*'oracle'.*none, mesrnn"):
+        ab.config_from_mapping(raw)
+
+
+def test_only_selects_cells_and_their_training(tmp_path: Path) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    chosen = ab.select(ab.expand(cfg), "eval/zara1/ppo/mesrnn/seed1")
+    assert [c.name for c in chosen] == ["train/zara1/ppo/mesrnn/seed1", "eval/zara1/ppo/mesrnn/seed1"]
+    assert len(ab.select(ab.expand(cfg), "eval/*/planner/*, train/*/ppo/none/*")) == 2 + 2
+    with pytest.raises(ValueError, match="matches no cell"):
+        ab.select(ab.expand(cfg), "nothing*")
+
+
+# ----------------------------------------------------------------------------- running cells with fakes
+
+
+class Fakes:
+    """Stand-ins for agents.train / agents.evaluate that record their calls."""
+
+    def __init__(self) -> None:
+        self.train_calls: list[tuple[str, bool]] = []
+        self.eval_calls: list[str] = []
+        self.fail: set[str] = set()
+
+    def train(self, task: ab.CellTask, folder: Path) -> dict[str, Any]:
+        run = folder / ab.TRAIN_RUN
+        self.train_calls.append((task.cell.name, run.exists()))
+        if task.cell.name in self.fail:
+            run.mkdir(parents=True, exist_ok=True)
+            raise RuntimeError("boom")
+        assert (folder / "agent_config.yaml").read_text(encoding="utf-8").startswith("CrowdNav-MESRNN-v0")
+        run.mkdir(parents=True, exist_ok=True)
+        for which in ("best", "final"):
+            (run / f"{which}_model.zip").write_bytes(f"{task.cell.name} {len(self.train_calls)}".encode())
+        return {"run_dir": ab.TRAIN_RUN, "steps": task.cell.policy.timesteps}
+
+    def evaluate(self, task: ab.CellTask, folder: Path) -> dict[str, Any]:
+        self.eval_calls.append(task.cell.name)
+        if task.cell.policy.learned:
+            assert task.model is not None and Path(task.model).is_file()
+        rows = [
+            {"episode": i, "seed": 100 + i, "outcome": "success" if i % 2 else "collision", "navigation_time_s": 10.0}
+            for i in range(task.episodes)
+        ]
+        _write_csv(folder / "episodes.csv", rows)
+        return {"episodes": task.episodes}
+
+
+@pytest.fixture
+def fakes(monkeypatch: pytest.MonkeyPatch) -> Fakes:
+    f = Fakes()
+    monkeypatch.setattr(ab, "_run_train", f.train)
+    monkeypatch.setattr(ab, "_run_eval", f.evaluate)
+    monkeypatch.setattr(ab, "weights_fingerprint", lambda p: {"mesrnn_zara1.pt": "v1"} if p == "mesrnn" else {})
+    monkeypatch.setattr(ab, "build_forecast_caches", lambda *a, **k: [])
+    return f
+
+
+def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def _states(cfg: ab.AblationConfig) -> dict[str, str]:
+    return {st.cell.name: st.state for st in ab.plan(cfg)}
+
+
+def test_run_skips_done_cells_and_redoes_interrupted_ones(tmp_path: Path, fakes: Fakes) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    cells = ab.expand(cfg)
+    assert set(_states(cfg).values()) == {"todo"}
+    result = ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert not result["failed"] and len(result["ran"]) == len(cells) == 4 + 4 + 2
+    assert set(_states(cfg).values()) == {"done"}
+    assert all(not resumed for _, resumed in fakes.train_calls)
+    meta = json.loads((ab.cell_dir(cfg, "eval/zara1/ppo/mesrnn/seed0") / ab.CELL_JSON).read_text())
+    assert meta["weights"] == {"mesrnn_zara1.pt": "v1"} and meta["model_sha256"] and meta["episodes_per_s"] > 0
+
+    # nothing to do on a second run
+    fakes.train_calls.clear()
+    fakes.eval_calls.clear()
+    assert ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)["ran"] == []
+    assert fakes.train_calls == [] and fakes.eval_calls == []
+
+    # an interrupted training run (no DONE) resumes; an interrupted evaluation is redone from scratch
+    (ab.cell_dir(cfg, "train/zara1/ppo/none/seed1") / ab.DONE).unlink()
+    ev = ab.cell_dir(cfg, "eval/zara1/planner/none")
+    (ev / ab.DONE).unlink()
+    (ev / "leftover.tmp").write_text("x")
+    states = _states(cfg)
+    assert states["train/zara1/ppo/none/seed1"] == "partial" and states["eval/zara1/planner/none"] == "partial"
+    assert states["eval/zara1/ppo/none/seed1"] == "stale"  # its training is being redone
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert fakes.train_calls == [("train/zara1/ppo/none/seed1", True)]
+    assert sorted(fakes.eval_calls) == ["eval/zara1/planner/none", "eval/zara1/ppo/none/seed1"]
+    assert not (ev / "leftover.tmp").exists() and (ev / ab.DONE).is_file()
+    meta = json.loads((ab.cell_dir(cfg, "train/zara1/ppo/none/seed1") / ab.CELL_JSON).read_text())
+    assert len(meta["attempts"]) == 2
+
+
+def test_changed_weights_or_spec_make_cells_stale(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    monkeypatch.setattr(ab, "weights_fingerprint", lambda p: {"mesrnn_zara1.pt": "v2"} if p == "mesrnn" else {})
+    states = ab.plan(cfg)
+    stale = sorted(st.cell.name for st in states if st.state == "stale")
+    assert stale == [
+        "eval/zara1/planner/mesrnn",
+        "eval/zara1/ppo/mesrnn/seed0",
+        "eval/zara1/ppo/mesrnn/seed1",
+        "train/zara1/ppo/mesrnn/seed0",
+        "train/zara1/ppo/mesrnn/seed1",
+    ]
+    assert {st.reason for st in states if st.state == "stale"} == {"predictor weights changed"}
+    fakes.train_calls.clear()
+    fakes.eval_calls.clear()
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert sorted(fakes.train_calls) == [
+        ("train/zara1/ppo/mesrnn/seed0", False),
+        ("train/zara1/ppo/mesrnn/seed1", False),
+    ]
+    assert len(fakes.eval_calls) == 3
+    assert set(_states(cfg).values()) == {"done"}
+
+    # a different episode count makes every evaluation stale, not the training runs
+    cfg2 = ab.config_from_mapping(_raw(tmp_path, evaluation={"episodes": 6, "seed": 0}))
+    states = {st.cell.name: st for st in ab.plan(cfg2)}
+    assert states["eval/zara1/planner/none"].state == "stale"
+    assert "episodes" in states["eval/zara1/planner/none"].reason
+    assert states["train/zara1/ppo/none/seed0"].state == "done"
+
+
+def test_failed_cell_is_reported_and_its_evaluation_skipped(tmp_path: Path, fakes: Fakes) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    fakes.fail.add("train/zara1/ppo/mesrnn/seed0")
+    result = ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert list(result["failed"]) == ["train/zara1/ppo/mesrnn/seed0"]
+    assert "RuntimeError: boom" in result["failed"]["train/zara1/ppo/mesrnn/seed0"]
+    assert result["skipped"] == ["eval/zara1/ppo/mesrnn/seed0"]
+    meta = json.loads((ab.cell_dir(cfg, "train/zara1/ppo/mesrnn/seed0") / ab.CELL_JSON).read_text())
+    assert meta["status"] == "failed"
+    fakes.fail.clear()
+    fakes.train_calls.clear()
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert fakes.train_calls == [("train/zara1/ppo/mesrnn/seed0", True)]  # the partial run resumes
+
+
+def test_dry_run_lists_states_and_uses_measured_rates(tmp_path: Path, fakes: Fakes) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    lines: list[str] = []
+    ab.dry_run(cfg, ab.expand(cfg), workers=1, out=lines.append)
+    assert any(line.startswith("todo") and "train/zara1/ppo/none/seed0" in line for line in lines)
+    assert "10 cells (4 train, 6 eval): done 0, partial 0, stale 0, todo 10" in lines
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    (ab.cell_dir(cfg, "eval/zara1/ppo/none/seed1") / ab.DONE).unlink()
+    lines.clear()
+    ab.dry_run(cfg, ab.expand(cfg), workers=1, out=lines.append)
+    row = next(line for line in lines if "eval/zara1/ppo/none/seed1" in line)
+    assert row.startswith("partial") and "measured" in row
+    assert ab.measured_rates(cfg)[("train", "ppo", "mesrnn")] > 0
+
+
+# ----------------------------------------------------------------------------- the summary
+
+
+def _episode_rows(outcomes: str, times: list[float], density: list[float]) -> list[dict[str, Any]]:
+    code = {"S": "success", "C": "collision", "T": "timeout"}
+    return [
+        {
+            "episode": i,
+            "seed": 1000 + i,
+            "recording": "crowds_zara01",
+            "outcome": code[o],
+            "navigation_time_s": t,
+            "path_ratio": 1.1,
+            "crowd_density": d,
+        }
+        for i, (o, t, d) in enumerate(zip(outcomes, times, density, strict=True))
+    ]
+
+
+def _fake_done_cell(cfg: ab.AblationConfig, name: str, rows: list[dict[str, Any]]) -> None:
+    cell = next(c for c in ab.expand(cfg) if c.name == name)
+    folder = ab.cell_dir(cfg, cell)
+    _write_csv(folder / "episodes.csv", rows)
+    meta = {"spec": ab.cell_spec(cfg, cell), "weights": ab.weights_fingerprint(cell.arm.predictor), "wall_s": 2.0}
+    (folder / ab.CELL_JSON).write_text(json.dumps(meta))
+    (folder / ab.DONE).write_text("now\n")
+
+
+def test_summary_statistics_on_hand_made_episodes(tmp_path: Path, fakes: Fakes) -> None:
+    raw = _raw(tmp_path, arms=["none", "cv", "oracle"], comparisons=[["cv", "none"], ["oracle", "none"]])
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    raw["evaluation"] = {"episodes": 12, "seed": 0}
+    raw["density_bins"] = 3
+    del raw["policy_comparisons"]
+    cfg = ab.config_from_mapping(raw)
+    density = [float(v) for v in range(12)]  # terciles: [0, 3.67), [3.67, 7.33), [7.33, 11]
+    #            episode: 0123456789ab
+    none_outcomes = "SCCSCCTSCSCS"  # 5 successes
+    cv_outcomes = "SSSSCSSSCSSS"  # 10 successes
+    oracle_outcomes = "SCCSCCTSCSCS"  # identical to none: no discordant pair
+    times_none = [10.0 + i for i in range(12)]
+    times_cv = [t - (0.5 if i % 2 else 1.0) for i, t in enumerate(times_none)]
+    _fake_done_cell(cfg, "eval/zara1/planner/none", _episode_rows(none_outcomes, times_none, density))
+    _fake_done_cell(cfg, "eval/zara1/planner/cv", _episode_rows(cv_outcomes, times_cv, density))
+    _fake_done_cell(cfg, "eval/zara1/planner/oracle", _episode_rows(oracle_outcomes, times_none, density))
+    summary = ab.summarize(cfg, out=lambda s: None)
+    on_disk = json.loads((cfg.out_path() / "summary.json").read_text())
+    assert on_disk["policies"]["planner"]["arms"]["cv"]["success_rate"] == pytest.approx(10 / 12)
+    assert summary["complete"] is True
+
+    none = summary["policies"]["planner"]["arms"]["none"]
+    assert none["episodes"] == 12 and none["seeds"] == []
+    assert none["success_rate"] == pytest.approx(5 / 12)
+    assert none["success_ci"] == pytest.approx(list(wilson_interval(5, 12)))
+    assert none["collision_rate"] == pytest.approx(6 / 12) and none["timeout_rate"] == pytest.approx(1 / 12)
+    # navigation time averages the successful episodes only
+    succ = [t for t, o in zip(times_none, none_outcomes, strict=True) if o == "S"]
+    assert none["navigation_time_s_mean"] == pytest.approx(np.mean(succ))
+    assert none["forecast_ade_m_mean"] is None  # no such column: undefined, not zero
+
+    # density terciles over the 12 episodes, computed once for every arm
+    assert summary["density_bins"] == pytest.approx([0.0, 11 / 3, 22 / 3, 11.0])
+    bins = none["by_density"]
+    assert [b["episodes"] for b in bins] == [4, 4, 4]
+    assert bins[0]["success_rate"] == pytest.approx(2 / 4)  # episodes 0-3: S C C S
+
+    tests = summary["tests"]
+    assert summary["multiple_comparisons"]["family_sizes"] == {"success": 2, "navigation_time_s": 2}
+    cv_vs_none = next(t for t in tests if t["a"]["arm"] == "cv" and t["endpoint"] == "success")
+    # cv-only successes: episodes 1, 2, 5, 6, 10 (b10 = 5); none-only: none (b01 = 0)
+    assert (cv_vs_none["b10"], cv_vs_none["b01"], cv_vs_none["n"]) == (5, 0, 12)
+    p = 2 * sps.binom.cdf(0, 5, 0.5)
+    assert cv_vs_none["p_value"] == pytest.approx(p)
+    oracle_vs_none = next(t for t in tests if t["a"]["arm"] == "oracle" and t["endpoint"] == "success")
+    assert oracle_vs_none["p_value"] == 1.0 and oracle_vs_none["mdd"] is None
+    assert cv_vs_none["p_holm"] == pytest.approx(holm([p, 1.0])[0])
+    assert cv_vs_none["family_size"] == 2
+    assert cv_vs_none["mdd"] is None  # 12 pairs reach 80 % power for no difference this discordance allows
+    # Wilcoxon on the 5 episodes both finished (0, 3, 7, 9, 11), cv faster by 1.0, 0.5, 0.5, 0.5, 0.5
+    wx = next(t for t in tests if t["a"]["arm"] == "cv" and t["endpoint"] == "navigation_time_s")
+    assert wx["n"] == 5 and wx["median_difference"] == pytest.approx(-0.5)
+    assert wx["p_value"] == pytest.approx(sps.wilcoxon([-1.0, -0.5, -0.5, -0.5, -0.5]).pvalue)
+
+    md = (cfg.out_path() / "summary.md").read_text()
+    assert "2 success tests and 2 navigation-time tests" in md
+    assert "| zara1 | planner/cv | planner/none | 12 | 5 | 0 |" in md
+    for png in ("rates_by_arm.png", "rates_vs_ade.png", "rates_by_density.png"):
+        assert (cfg.out_path() / png).stat().st_size > 1000
+
+
+def test_summary_pairs_ppo_seeds_with_the_planner_and_counts_missing(tmp_path: Path, fakes: Fakes) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path, evaluation={"episodes": 3, "seed": 0}))
+    d = [1.0, 2.0, 3.0]
+    _fake_done_cell(cfg, "eval/zara1/planner/none", _episode_rows("SSS", [1, 1, 1], d))
+    _fake_done_cell(cfg, "eval/zara1/planner/mesrnn", _episode_rows("SSS", [1, 1, 1], d))
+    for seed, outcomes in ((0, "SCS"), (1, "CCS")):
+        cells = [f"train/zara1/ppo/none/seed{seed}", f"eval/zara1/ppo/none/seed{seed}"]
+        folder = ab.cell_dir(cfg, cells[0])
+        (folder / ab.TRAIN_RUN).mkdir(parents=True)
+        (folder / ab.TRAIN_RUN / "best_model.zip").write_bytes(b"m")
+        _fake_done_cell(cfg, cells[0], [{"episode": 0}])
+        _fake_done_cell(cfg, cells[1], _episode_rows(outcomes, [2, 2, 2], d))
+        meta = json.loads((ab.cell_dir(cfg, cells[1]) / ab.CELL_JSON).read_text())
+        meta["model_sha256"] = ab._file_sha256(folder / ab.TRAIN_RUN / "best_model.zip")
+        (ab.cell_dir(cfg, cells[1]) / ab.CELL_JSON).write_text(json.dumps(meta))
+    summary = ab.summarize(cfg, out=lambda s: None, plots=False)
+    ppo = summary["policies"]["ppo"]["arms"]["none"]
+    assert ppo["seeds"] == [0, 1] and ppo["episodes"] == 6 and ppo["success_rate"] == pytest.approx(3 / 6)
+    assert "mesrnn" not in summary["policies"]["ppo"]["arms"]
+    assert not summary["complete"] and "train/zara1/ppo/mesrnn/seed0" in summary["missing_cells"]
+    vs = next(t for t in summary["tests"] if t["comparison"] == "policies" and t["a"]["arm"] == "none")
+    # 6 (seed, episode) pairs against the planner's 3 episodes; PPO fails where the planner succeeds 3 times
+    assert (vs["n"], vs["b10"], vs["b01"]) == (6, 0, 3)
+    missing = [t for t in summary["tests"] if t.get("missing")]
+    assert {(t["a"]["policy"], t["a"]["arm"], t["b"]["policy"], t["b"]["arm"]) for t in missing} == {
+        ("ppo", "mesrnn", "ppo", "none"),
+        ("ppo", "mesrnn", "planner", "mesrnn"),
+    }
+    assert summary["multiple_comparisons"]["family_sizes"]["success"] == 2
+
+
+def test_json_has_no_nan(tmp_path: Path, fakes: Fakes) -> None:
+    raw = _raw(tmp_path, arms=["none"], comparisons=[])
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    del raw["policy_comparisons"]
+    cfg = ab.config_from_mapping(raw)
+    _fake_done_cell(cfg, "eval/zara1/planner/none", _episode_rows("CCCC", [1, 1, 1, 1], [1.0, 1.0, 1.0, 1.0]))
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    text = (cfg.out_path() / "summary.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    entry = json.loads(text)["policies"]["planner"]["arms"]["none"]
+    assert entry["navigation_time_s_mean"] is None and entry["success_ci"][0] == pytest.approx(0.0, abs=1e-12)
+    assert math.isclose(entry["collision_rate"], 1.0)
