@@ -90,18 +90,6 @@ LEARNED_KINDS: Final[tuple[str, ...]] = ("ppo", "sac")
 MODEL_CHOICES: Final[tuple[str, ...]] = ("best", "final")
 BACKENDS: Final[tuple[str, ...]] = ("local", "ray")
 OUTCOMES: Final[tuple[str, ...]] = ("success", "collision", "timeout")
-#: Per-episode metrics summarised with bootstrap intervals; the first two over successful episodes only.
-SUCCESS_ONLY_METRICS: Final[tuple[str, ...]] = ("navigation_time_s", "path_ratio")
-ALL_EPISODE_METRICS: Final[tuple[str, ...]] = (
-    "min_gap_m",
-    "discomfort_frequency",
-    "intrusion_ratio",
-    "mean_jerk_mps3",
-    "forecast_ade_m",
-    "forecast_fde_m",
-    "crowd_density",
-    "return",
-)
 DONE: Final[str] = "DONE"
 CELL_JSON: Final[str] = "cell.json"
 TRAIN_RUN: Final[str] = "run"
@@ -747,36 +735,40 @@ class CellTask:
     model: str | None = None
     """Evaluation of a learned policy: the model zip to evaluate."""
     model_sha256: str | None = None
+    command: str = ""
+    """The command line that reproduces the cell (recorded in a training run's ``command.txt``)."""
     agent_config: str | None = None
     """Training: the agent YAML's text (written into the cell as :data:`AGENT_CONFIG` and read from there,
     so a worker on another machine needs no copy of the driver's files)."""
+
+
+def train_overrides(cell: Cell, env: Mapping[str, Any]) -> dict[str, Any]:
+    """Overrides of ``agents.train.load_train_config`` for a training cell: the run (predictor, split,
+    seed), the budget (``n_timesteps``, ``n_envs``), the grid's and the arm's environment settings
+    (``env.<key>``), then the policy's own ``overrides``."""
+    cell_env = {**dict(env), **cell.arm.env_overrides()}
+    return {
+        "predictor": cell.arm.predictor,
+        "split": cell.split,
+        "seed": cell.seed,
+        "n_timesteps": cell.policy.timesteps,
+        "n_envs": cell.policy.n_envs,
+        **{f"env.{k}": v for k, v in sorted(cell_env.items())},
+        **dict(cell.policy.overrides),
+    }
 
 
 def _run_train(task: CellTask, folder: Path) -> dict[str, Any]:
     """Train (or resume) one learned policy into ``folder / run``; returns counts for ``cell.json``."""
     from agents.train import load_train_config, train
 
-    cell = task.cell
-    env_overrides = {**task.env, **cell.arm.env_overrides()}
-    overrides: dict[str, Any] = {
-        **dict(cell.policy.overrides),
-        "predictor": cell.arm.predictor,
-        "split": cell.split,
-        "seed": cell.seed,
-        "total_timesteps": cell.policy.timesteps,
-        "n_envs": cell.policy.n_envs,
-    }
-    if env_overrides:
-        overrides["env"] = {**dict(cell.policy.overrides.get("env", {})), **env_overrides}
-    cfg = load_train_config(folder / AGENT_CONFIG, _env_id(cell.arm.predictor), overrides)
+    cfg = load_train_config(folder / AGENT_CONFIG, None, train_overrides(task.cell, task.env))
     run = folder / TRAIN_RUN
-    result = train(cfg, run, resume=run.exists(), progress=False)
-    return {"run_dir": Path(result).resolve().relative_to(folder.resolve()).as_posix(), "steps": cell.policy.timesteps}
-
-
-def _env_id(predictor: str) -> str:
-    """The environment id an agent config is keyed by (RL Zoo layout); one id serves every arm."""
-    return "CrowdNav-MESRNN-v0"
+    result = train(cfg, run, resume=run.exists(), progress=False, command=task.command)
+    return {
+        "run_dir": Path(result).resolve().relative_to(folder.resolve()).as_posix(),
+        "steps": task.cell.policy.timesteps,
+    }
 
 
 def _run_eval(task: CellTask, folder: Path) -> dict[str, Any]:
@@ -1058,6 +1050,7 @@ def _task(cfg: AblationConfig, cell: Cell) -> CellTask:
         env=dict(cfg.env),
         model=model,
         model_sha256=model_sha,
+        command=f"python -m agents.ablation {cfg.source or '<config>'} --only {cell.name}",
         agent_config=Path(cell.policy.config).read_text(encoding="utf-8") if cell.kind == "train" else None,
     )
 
@@ -1180,54 +1173,38 @@ def _num(value: str | None) -> float:
 
 @dataclass
 class _Episodes:
-    """Evaluation episodes of one (policy, arm) pooled over cells: one entry per (split, seed, episode)."""
+    """Evaluation episodes of one (policy, arm) pooled over cells: ``rows[i]`` (an ``episodes.csv`` row) is
+    episode ``keys[i] = (split, training seed, episode index)``."""
 
     keys: list[tuple[str, int | None, int]] = field(default_factory=list)
-    outcome: list[str] = field(default_factory=list)
-    values: dict[str, list[float]] = field(default_factory=dict)
+    rows: list[Mapping[str, str]] = field(default_factory=list)
 
     def add(self, split: str, seed: int | None, rows: Sequence[Mapping[str, str]]) -> None:
         for i, row in enumerate(rows):
             self.keys.append((split, seed, int(_num(row.get("episode", str(i))))))
-            self.outcome.append(str(row.get("outcome", "")))
-            for m in (*SUCCESS_ONLY_METRICS, *ALL_EPISODE_METRICS):
-                self.values.setdefault(m, []).append(_num(row.get(m)))
+            self.rows.append(row)
 
-    def subset(self, keep: np.ndarray) -> _Episodes:
-        sub = _Episodes()
-        sub.keys = [k for k, b in zip(self.keys, keep, strict=True) if b]
-        sub.outcome = [o for o, b in zip(self.outcome, keep, strict=True) if b]
-        sub.values = {m: [v for v, b in zip(vals, keep, strict=True) if b] for m, vals in self.values.items()}
-        return sub
+    def subset(self, keep: Sequence[bool]) -> _Episodes:
+        chosen = [i for i, b in enumerate(keep) if b]
+        return _Episodes([self.keys[i] for i in chosen], [self.rows[i] for i in chosen])
+
+    def outcome(self) -> np.ndarray:
+        return np.asarray([str(r.get("outcome", "")) for r in self.rows], dtype=object)
+
+    def metric(self, name: str) -> np.ndarray:
+        return np.asarray([_num(r.get(name)) for r in self.rows], dtype=float)
 
     def __len__(self) -> int:
         return len(self.keys)
 
 
-def aggregate(episodes: _Episodes, confidence: float = 0.95) -> dict[str, Any]:
-    """Rates with Wilson intervals and metric means with bootstrap intervals.
+def aggregate(episodes: _Episodes) -> dict[str, Any]:
+    """The evaluation's own aggregates (:func:`agents.evaluate.summarise`) of the pooled episodes: rates with
+    Wilson intervals, metric means with bootstrap intervals (navigation time and path ratio over successful
+    episodes; the forecast ADE is undefined in the ``none`` arm)."""
+    from agents.evaluate import summarise
 
-    ``navigation_time_s`` and ``path_ratio`` are averaged over successful episodes; the other metrics over
-    all episodes where they are defined (``forecast_ade_m`` is undefined in the ``none`` arm).
-    """
-    from agents.stats import bootstrap_mean_ci, wilson_interval
-
-    n = len(episodes)
-    outcome = np.asarray(episodes.outcome, dtype=object)
-    out: dict[str, Any] = {"episodes": n}
-    for o in OUTCOMES:
-        k = int(np.sum(outcome == o))
-        out[f"{o}_rate"] = k / n if n else math.nan
-        out[f"{o}_ci"] = list(wilson_interval(k, n, confidence))
-    success = outcome == "success"
-    for m in (*SUCCESS_ONLY_METRICS, *ALL_EPISODE_METRICS):
-        vals = np.asarray(episodes.values.get(m, []), dtype=float)
-        if m in SUCCESS_ONLY_METRICS and vals.size:
-            vals = vals[success]
-        finite = vals[np.isfinite(vals)]
-        out[f"{m}_mean"] = float(finite.mean()) if finite.size else math.nan
-        out[f"{m}_ci"] = list(bootstrap_mean_ci(finite, confidence))
-    return out
+    return summarise(episodes.rows)
 
 
 def _collect(cfg: AblationConfig) -> tuple[dict[tuple[str, str], _Episodes], dict[str, Any]]:
@@ -1279,7 +1256,7 @@ def density_edges(cfg: AblationConfig, pooled: Mapping[tuple[str, str], _Episode
         return list(cfg.density_bins)
     per_episode: dict[tuple[str, int], float] = {}
     for eps in pooled.values():
-        for (split, _seed, ep), d in zip(eps.keys, eps.values.get("crowd_density", []), strict=False):
+        for (split, _seed, ep), d in zip(eps.keys, eps.metric("crowd_density"), strict=True):
             if math.isfinite(d):
                 per_episode.setdefault((split, ep), d)
     if not per_episode:
@@ -1303,8 +1280,8 @@ def by_density(episodes: _Episodes, edges: Sequence[float], confidence: float = 
 
     if len(edges) < 2:
         return []
-    idx = _bin_index(np.asarray(episodes.values.get("crowd_density", []), dtype=float), edges)
-    outcome = np.asarray(episodes.outcome, dtype=object)
+    idx = _bin_index(episodes.metric("crowd_density"), edges)
+    outcome = episodes.outcome()
     rows = []
     for b in range(len(edges) - 1):
         sel = idx == b
@@ -1337,10 +1314,10 @@ def _pair_up(
     pairs.sort(key=lambda p: (-1 if p[0][0] is None else p[0][0], p[0][1]))
     ia = [p[1] for p in pairs]
     ib = [p[2] for p in pairs]
-    sa = np.asarray([a.outcome[i] == "success" for i in ia], dtype=bool)
-    sb = np.asarray([b.outcome[i] == "success" for i in ib], dtype=bool)
-    ta = np.asarray([a.values["navigation_time_s"][i] for i in ia], dtype=float)
-    tb = np.asarray([b.values["navigation_time_s"][i] for i in ib], dtype=float)
+    sa = np.asarray(a.outcome()[ia] == "success", dtype=bool)
+    sb = np.asarray(b.outcome()[ib] == "success", dtype=bool)
+    ta = a.metric("navigation_time_s")[ia]
+    tb = b.metric("navigation_time_s")[ib]
     return [p[0] for p in pairs], sa, sb, ta, tb
 
 
@@ -1426,8 +1403,7 @@ def summarize(cfg: AblationConfig, out: Callable[[str], None] = print, plots: bo
                 **aggregate(eps),
             }
             entry["by_split"] = {
-                split: aggregate(eps.subset(np.asarray([k[0] == split for k in eps.keys], dtype=bool)))
-                for split in entry["splits"]
+                split: aggregate(eps.subset([k[0] == split for k in eps.keys])) for split in entry["splits"]
             }
             entry["by_density"] = by_density(eps, edges)
             arms[arm.label] = entry
@@ -1735,7 +1711,8 @@ def write_plots(summary: Mapping[str, Any], dest: Path) -> list[str]:
                 ax.set_title(f"{name}: {o}")
                 if row == 1:
                     ax.set_xlabel("crowd density (pedestrians near the path)")
-            axes[0][col].legend(fontsize=7)
+            if axes[0][col].get_legend_handles_labels()[0]:
+                axes[0][col].legend(fontsize=7)
         axes[0][0].set_ylabel("success rate")
         axes[1][0].set_ylabel("collision rate")
         fig.tight_layout()
@@ -1749,7 +1726,9 @@ def _finish(fig: Any, axes: Any, path: Path) -> str:
     import matplotlib.pyplot as plt
 
     axes[0][0].set_ylabel("rate (95 % Wilson CI)")
-    axes[0][-1].legend(fontsize=8)
+    for ax in axes[0]:
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
     fig.tight_layout()
     saved = _save(fig, path)
     plt.close(fig)
