@@ -88,15 +88,20 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     | ``robot`` [0:2] | (2,) | goal minus robot position | -50 | 50 | m |
     | ``robot`` [2:4] | (2,) | robot velocity | -v | v | m/s |
     | ``robot`` [4:6] | (2,) | cos, sin of the heading (unicycle only) | -1 | 1 | |
-    | ``robot`` [-1] | (1,) | fraction of the time limit left (``observe_time_left`` only) | 0 | 1 | |
-    | ``pedestrians`` [:, 0:2] | (K, 2) | pedestrian minus robot position, nearest first | -R | R | m |
+    | ``robot`` [+1] | (1,) | fraction of the time limit left (``observe_time_left`` only) | 0 | 1 | |
+    | ``robot`` [+1] | (1,) | age of the perceived annotation, s (``observe_perception_age`` only) | 0 | 1 | s |
+    | ``pedestrians`` [:, 0:2] | (K, 2) | pedestrian minus robot position, nearest first (*) | -R | R | m |
     | ``pedestrians`` [:, 2:4] | (K, 2) | pedestrian minus robot velocity (*) | -(s+v) | s+v | m/s |
     | ``mask`` | (K,) | 1 where the row holds a pedestrian within R | 0 | 1 | |
     | ``forecasts`` | (K, H, 2) | forecast position at t + h dt minus robot position (absent for ``none``) | -(R+sHdt) | R+sHdt | m |
 
-    (*) A pedestrian's velocity is what an observer at t can know: at an annotation time the slope of
-    the interval that ends there (0 for a pedestrian that has just appeared), never the next interval's
-    (that would give away the next annotated position); between two annotations the current slope.
+    (*) Pedestrians are perceived causally, as a tracker reporting at the recording's annotation rate:
+    at time t the latest annotation at or before t (its positions; velocities = the slope of the
+    interval ending there, 0 for a pedestrian that has just appeared; presence = annotated there and
+    less than one annotation step old), and forecasts come from that same annotation, resampled onto
+    t + h dt. Nothing annotated after t enters the observation (on ``biwi_eth``, whose 0.667 s
+    annotations fall between control steps, positions are up to 0.53 s old). The world (physics,
+    contacts, gaps, intrusion, the oracle's truth) interpolates between annotations.
 
     ## Rewards
 
@@ -317,18 +322,16 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         return None if fc is None else fc.copy()
 
     def precompute_forecasts(self, recording: str | None = None) -> int:
-        """Fill the forecast cache for every time on the ``dt_s`` grid of the recordings (all by default).
+        """Compute the forecast tables of the recordings (all by default) now rather than on first use.
 
         Returns:
-            the number of cached times (0 for sources that are not cached).
+            the number of annotation frames held (0 for sources without tables or without caching).
         """
         if not isinstance(self.forecaster, PredictorForecast) or not self.config.cache_forecasts:
             return 0
         recs = self.recordings if recording is None else [self.sampler.recording_named(recording)]
         for rec in recs:
-            replay = Replay(rec)
-            grid = self.config.dt_s * np.arange(math.floor(replay.t_end_s / self.config.dt_s + 1e-9) + 1)
-            self.forecaster.precompute(replay, grid)
+            self.forecaster.table(rec)
         return self.forecaster.cache_size
 
     def reset_timings(self) -> None:
@@ -549,18 +552,23 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         present: np.ndarray,
         robot: np.ndarray,
     ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        """Observation at ``t_s`` from replay rows 0 (now) and 1..H (the true future).
+        """Observation at ``t_s``: what the robot perceives (causal), plus the world's gap and intrusion.
 
         Args:
-            positions: ``(1 + H, N, 2)`` metres at ``t_s + h * dt_s``; present: ``(1 + H, N)``.
+            positions: ``(1 + H, N, 2)`` world (replay) metres at ``t_s + h * dt_s``; present: ``(1 + H, N)``.
             robot: ``(2,)`` robot position.
         """
         tick = time.perf_counter()
         cfg = self.config
         assert self.episode is not None and self._replay is not None
+        seen = self._replay.perceived_at(t_s)
+        rows, _ = nearest_visible(robot, seen.positions, seen.present, cfg.sensor_range_m, cfg.num_pedestrians)
+        # the world at t_s (interpolated): smallest gap and intrusion
         p_now, pres_now = positions[0], present[0]
-        rows, dists = nearest_visible(robot, p_now, pres_now, cfg.sensor_range_m, cfg.num_pedestrians)
-        gap_end = float(dists.min()) - self._r_sum if len(dists) else math.inf
+        gap_end = math.inf
+        if pres_now.any():
+            d = np.hypot(p_now[pres_now, 0] - robot[0], p_now[pres_now, 1] - robot[1])
+            gap_end = float(d.min()) - self._r_sum
         fut_p, fut_valid = positions[1:], present[1:]
         # intrusion: robot on a present pedestrian's true future path within the horizon
         intruding = False
@@ -571,7 +579,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if len(rows):
             tp = fut_p[:, rows].transpose(1, 0, 2)
             tv = fut_valid[:, rows].T
-            truth = TrueFuture(fill_forward(tp, tv, p_now[rows]), tv)
+            # a perceived pedestrian may have left the world since its annotation: hold the perceived position
+            current = np.where(pres_now[rows, None], p_now[rows], seen.positions[rows])
+            truth = TrueFuture(fill_forward(tp, tv, current), tv)
         t1 = time.perf_counter()
         self.timings["observation"] += t1 - tick
         fc = None
@@ -583,10 +593,18 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                 self._metrics.add_forecast_errors(err, truth.valid)
         t2 = time.perf_counter()
         self.timings["forecasts"] += t2 - t1
-        heading = self._heading
-        v_rows = self._replay.observed_velocity_at(t_s)[rows] if len(rows) else np.zeros((0, 2))
         time_left = 1.0 - self._n / self.episode.max_steps
-        obs = self._builder.build(robot, self._velocity, heading, self.episode.goal, p_now[rows], v_rows, fc, time_left)
+        obs = self._builder.build(
+            robot,
+            self._velocity,
+            self._heading,
+            self.episode.goal,
+            seen.positions[rows],
+            seen.velocities[rows],
+            fc,
+            time_left,
+            seen.age_s,
+        )
         self._trails.append((p_now, pres_now))
         self._last = {"rows": rows, "forecasts": fc, "positions": p_now, "present": pres_now}
         self.timings["observation"] += time.perf_counter() - t2
@@ -611,7 +629,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         last = self._last
         pres = last["present"]
         visible = np.zeros(len(pres), dtype=bool)
-        visible[last["rows"]] = True
+        visible[last["rows"]] = True  # perceived; drawn where the world has them
         trails = []
         for row in np.flatnonzero(pres).tolist():
             pts = [p[row] for p, pr in self._trails if pr[row]]

@@ -209,6 +209,29 @@ class ReplayState:
     present: np.ndarray
 
 
+@dataclass(frozen=True)
+class Perception:
+    """What the robot's tracker reports at one time: the latest annotation at or before it.
+
+    Attributes:
+        index: the annotation's index in the replay (-1 before the replay's first annotation).
+        time_s: the annotation's time, seconds.
+        age_s: time since that annotation, seconds (0 at an annotation time).
+        positions: ``(N, 2)`` metres at the annotation (meaningless where not present; a read-only view).
+        velocities: ``(N, 2)`` m/s: the slope of the interval ending at the annotation, 0 for a pedestrian
+            that was not at the previous annotation (a read-only view).
+        present: ``(N,)`` bool: annotated there, and the annotation is younger than one annotation step
+            (a track not updated for a whole step is dropped, so nobody lingers through an annotation gap).
+    """
+
+    index: int
+    time_s: float
+    age_s: float
+    positions: np.ndarray
+    velocities: np.ndarray
+    present: np.ndarray
+
+
 class Replay:
     """Continuous-time replay of a time slice of a recording.
 
@@ -263,6 +286,8 @@ class Replay:
         self.arrival_velocity = np.where(prev_valid[..., None], prev_vel, 0.0)
         # presence at an annotation (index 0) and strictly after it (index 1): (F, 2, N)
         self._presence = np.ascontiguousarray(np.stack([self.present, self.valid], axis=1))
+        for arr in (self.positions, self.present, self.arrival_velocity):
+            arr.setflags(write=False)  # perception hands out views
         self._times_list = self.times.tolist()
         self._t_lo = float(self.times[0]) - TIME_TOL_S
         self._t_hi = float(self.times[-1]) + TIME_TOL_S
@@ -303,17 +328,17 @@ class Replay:
             return self.slopes[i].copy()
         return self.annotation_velocity[i].copy()
 
-    def observed_velocity_at(self, t_s: float) -> np.ndarray:
-        """``(N, 2)`` velocities at one time as an observer at ``t_s`` can know them, m/s (0 where not present).
-
-        Strictly between two annotations: the current slope (as :meth:`velocity_at`). At an annotation: the
-        slope of the interval ending there, 0 for a pedestrian that was not at the previous annotation --
-        not the following interval's, which would give away the position at the next annotation.
-        """
-        i = max(bisect.bisect_right(self._times_list, t_s + TIME_TOL_S) - 1, 0)
-        if t_s - self._times_list[i] > TIME_TOL_S:
-            return self.slopes[i].copy()
-        return self.arrival_velocity[i].copy()
+    def perceived_at(self, t_s: float) -> Perception:
+        """The tracker's report at ``t_s``: positions, velocities and presence of the latest annotation at or before
+        ``t_s`` (causal: nothing annotated after ``t_s`` enters it; see :class:`Perception`)."""
+        i = bisect.bisect_right(self._times_list, t_s + TIME_TOL_S) - 1
+        n = self.num_pedestrians
+        if i < 0:
+            return Perception(-1, t_s, 0.0, np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n, dtype=bool))
+        tau = self._times_list[i]
+        age = t_s - tau if t_s - tau > TIME_TOL_S else 0.0
+        present = self.present[i] if age < self.step_s - TIME_TOL_S else np.zeros(n, dtype=bool)
+        return Perception(i, tau, age, self.positions[i], self.arrival_velocity[i], present)
 
     def state_at(self, times_s: np.ndarray | float) -> ReplayState:
         """Positions, velocities and presence at ``times_s`` (``(T,)`` or scalar seconds -> ``T = 1``)."""

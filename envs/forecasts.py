@@ -2,20 +2,20 @@
 the replay's true future (oracle) and the true future plus noise (noisy oracle).
 
 Learned forecasts are always out-of-sample: the recording being replayed is forecast by the
-pretrained predictor of the split whose held-out scene it is. A predictor sees the pedestrians'
-histories up to the current time, sampled from the replay every annotation step of the recording
-(``step_s``: 0.4 s, or 0.667 s for ``biwi_eth``); its forecast, on that annotation grid, is resampled
-onto the environment's grid ``t + h * dt_s`` (h = 1..H) by linear interpolation in time (beyond the
-predictor's last step the last forecast position is held).
+pretrained predictor of the split whose held-out scene it is. Forecasts are causal: at env time ``t``
+they come from the latest annotation at or before ``t`` (the one the robot perceives), with the
+pedestrians' histories of the last 8 annotation steps up to it (``step_s``: 0.4 s, or 0.667 s for
+``biwi_eth``); the forecast, on that annotation grid, is resampled onto the environment's grid
+``t + h * dt_s`` (h = 1..H) by linear interpolation in time (beyond the predictor's last step the last
+forecast position is held).
 
 With ``forecast_memory="carried"`` a learned predictor instead carries its hidden states per
 pedestrian from the pedestrian's first appearance (:class:`CarriedPredictorForecast`): an online
-forecaster fed every annotation frame of the recording in order, whose forecast at the latest
-annotation at or before the current time is resampled onto the same grid.
+forecaster fed every annotation frame of the recording in order.
 
-Replayed pedestrians ignore the robot, so forecasts depend only on (recording, time): they are
-memoised per (recording, time) and a forecast taken from the cache is identical to one computed
-online (``tests/envs/test_replay_and_forecasts.py``).
+Replayed pedestrians ignore the robot, so forecasts depend only on (predictor, recording, annotation
+frame): a recording's forecasts at all its frames form a :class:`FrameTable`, and a forecast taken from
+it is identical to one computed online (``tests/envs/test_replay_and_forecasts.py``).
 """
 
 from __future__ import annotations
@@ -180,15 +180,63 @@ class NoisyOracleForecast(ForecastSource):
         return truth.positions + self.ramp * z
 
 
+@dataclass(frozen=True)
+class FrameTable:
+    """A recording's forecasts at every one of its annotation frames (what a cache holds).
+
+    Attributes:
+        offsets: ``(F + 1,)``: the entries of frame ``i`` are ``offsets[i]:offsets[i + 1]``.
+        columns: ``(M,)`` recording columns of the pedestrians present at each frame, ascending per frame.
+        forecasts: ``(M, P, 2)`` float32 metres at ``tau_i + j * step_s`` (j = 1..P) of frame ``i``'s time ``tau_i``.
+    """
+
+    offsets: np.ndarray
+    columns: np.ndarray
+    forecasts: np.ndarray
+
+    @classmethod
+    def from_frames(cls, parts: list[tuple[np.ndarray, np.ndarray]], pred_len: int) -> FrameTable:
+        """From ``[(columns (n_i,), forecasts (n_i, P, 2)), ...]``, one per frame in order."""
+        sizes = np.array([len(c) for c, _ in parts], dtype=np.int64)
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        cols = np.concatenate([c for c, _ in parts]).astype(np.int64) if parts else np.zeros(0, np.int64)
+        fcs = (
+            np.concatenate([f for _, f in parts]).astype(np.float32)
+            if parts
+            else np.zeros((0, pred_len, 2), np.float32)
+        )
+        return cls(offsets, cols, fcs)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.offsets) - 1
+
+    def at(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(columns (n,), forecasts (n, P, 2))`` of frame ``i``."""
+        a, b = self.offsets[i], self.offsets[i + 1]
+        return self.columns[a:b], self.forecasts[a:b]
+
+
 class PredictorForecast(ForecastSource):
-    """Forecasts of a trajectory predictor (``forecast(history (8, N, 2), mask (8, N)) -> (N, 12, 2)``).
+    """Forecasts of a trajectory predictor (``forecast(history (8, N, 2), mask (8, N)) -> (N, 12, 2)``), causal.
+
+    At env time ``t`` the robot perceives the latest annotation at or before ``t`` (time ``tau``; see
+    :meth:`envs.crowds.Replay.perceived_at`), and its forecasts come from that same annotation: the predictor
+    sees the histories of the last ``obs_len`` annotation steps up to ``tau`` (sampled every ``step_s``), and its
+    forecast on the annotation grid ``tau + j * step_s`` is resampled linearly onto ``t + h * dt_s`` (the
+    interpolation shifted by ``t - tau``, non-zero between ``biwi_eth`` annotations). Nothing annotated after
+    ``tau`` enters.
+
+    Forecasts therefore depend only on (predictor, recording, annotation frame): with ``cache=True`` a
+    recording's forecasts at all its frames form a :class:`FrameTable`, computed on first use; with ``cache=False``
+    each frame is computed when an env time needs it. Both give identical forecasts.
 
     Args:
         name: source name.
         predictors: recording name -> predictor; ``default`` is used for any other recording.
         dt_s: environment step, seconds.
         horizon: H, environment steps.
-        cache: memoise per (recording, time).
+        cache: keep per-recording frame tables (and the resampled forecasts per time).
     """
 
     def __init__(
@@ -208,8 +256,11 @@ class PredictorForecast(ForecastSource):
         self.horizon = horizon
         self.use_cache = cache
         self._cache: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._tables: dict[str, tuple[Recording, FrameTable]] = {}
+        self._full: dict[str, Replay] = {}
         self._weights: dict[tuple[float, int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.calls = 0
+        """Frames forecast by the predictor so far (one per frame and table build, or per online request)."""
 
     def predictor_for(self, recording: str) -> ForecastModel:
         model = self.predictors.get(recording, self.default)
@@ -219,13 +270,68 @@ class PredictorForecast(ForecastSource):
 
     def clear_cache(self) -> None:
         self._cache.clear()
+        self._tables.clear()
 
     @property
     def cache_size(self) -> int:
-        return len(self._cache)
+        """Annotation frames held in tables."""
+        return sum(t.num_frames for _, t in self._tables.values())
+
+    # ------------------------------------------------------------------ frames
+
+    def _pred_len(self, recording: Recording) -> int:
+        return int(getattr(self.predictor_for(recording.name), "pred_len", PRED_LEN))
+
+    def compute_frame(self, recording: Recording, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(columns (n,), forecasts (n, P, 2) float32)`` at annotation frame ``i`` for the pedestrians present there,
+        from the histories of the ``obs_len`` annotation steps up to the frame's time."""
+        model = self.predictor_for(recording.name)
+        obs_len = int(getattr(model, "obs_len", OBS_LEN))
+        pred_len = self._pred_len(recording)
+        full = self._full.get(recording.name)
+        if full is None or full.recording is not recording:
+            full = self._full[recording.name] = Replay(recording)
+        tau = float(full.times[i])
+        pos, present = full.positions_at(tau - recording.step_s * np.arange(obs_len - 1, -1, -1))
+        seen = np.flatnonzero(present.any(axis=0))
+        now = present[-1, seen]
+        if not now.any():
+            return np.zeros(0, dtype=np.int64), np.zeros((0, pred_len, 2), np.float32)
+        history = pos[:, seen].astype(np.float32)
+        mask = present[:, seen]
+        history[~mask] = 0.0
+        self.calls += 1
+        pred = np.asarray(model.forecast(history, mask))
+        if pred.shape != (len(seen), pred_len, 2):
+            raise ValueError(
+                f"predictor {getattr(model, 'name', model)!r} returned shape {pred.shape}, expected {(len(seen), pred_len, 2)}"
+            )
+        return full.columns[seen[now]], np.ascontiguousarray(pred[now], dtype=np.float32)
+
+    def compute_table(self, recording: Recording) -> FrameTable:
+        """The forecasts at every annotation frame of ``recording``."""
+        parts = [self.compute_frame(recording, i) for i in range(len(recording.frames))]
+        return FrameTable.from_frames(parts, self._pred_len(recording))
+
+    def table(self, recording: Recording) -> FrameTable:
+        """The recording's :class:`FrameTable` (computed on first use and kept)."""
+        held = self._tables.get(recording.name)
+        if held is not None and held[0] is recording:
+            return held[1]
+        table = self.compute_table(recording)
+        self._tables[recording.name] = (recording, table)
+        return table
+
+    def frame_forecasts(self, recording: Recording, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(columns (n,), forecasts (n, P, 2) float32)`` at annotation frame ``i`` (from the table when caching)."""
+        if self.use_cache:
+            return self.table(recording).at(i)
+        return self.compute_frame(recording, i)
+
+    # ------------------------------------------------------------------ env times
 
     def all_forecasts(self, replay: Replay, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """Forecasts of every pedestrian present at ``t_s``.
+        """Forecasts of every pedestrian perceived at ``t_s``.
 
         Returns:
             ``(columns (M,), positions (M, H, 2))``: recording columns (ascending) and world
@@ -236,38 +342,31 @@ class PredictorForecast(ForecastSource):
             hit = self._cache.get(key)
             if hit is not None:
                 return hit
-        out = self._compute(replay, t_s)
+        out = self._resampled(replay.recording, t_s)
         if self.use_cache:
             self._cache[key] = out
         return out
 
-    def _compute(self, replay: Replay, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        model = self.predictor_for(replay.name)
-        obs_len = int(getattr(model, "obs_len", OBS_LEN))
-        pred_len = int(getattr(model, "pred_len", PRED_LEN))
-        step = replay.step_s
-        hist_t = t_s - step * np.arange(obs_len - 1, -1, -1)
-        state = replay.state_at(hist_t)
-        seen = np.flatnonzero(state.present.any(axis=0))
-        now = state.present[-1, seen]
-        if not now.any():
-            return np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2))
-        history = state.positions[:, seen].astype(np.float32)
-        mask = state.present[:, seen]
-        history[~mask] = 0.0
-        self.calls += 1
-        pred = np.asarray(model.forecast(history, mask), dtype=np.float64)
-        if pred.shape != (len(seen), pred_len, 2):
-            raise ValueError(
-                f"predictor {getattr(model, 'name', model)!r} returned shape {pred.shape}, expected {(len(seen), pred_len, 2)}"
-            )
-        wkey = (step, obs_len, pred_len)
+    def _resampled(self, rec: Recording, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        empty = (np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2)))
+        times = rec.times_s()
+        i = int(np.searchsorted(times, t_s + TIME_TOL_S, "right")) - 1
+        if i < 0 or rec.present.shape[1] == 0:
+            return empty
+        offset = float(t_s - times[i])
+        offset = offset if offset > TIME_TOL_S else 0.0
+        if offset >= rec.step_s - TIME_TOL_S:
+            return empty  # the tracker has dropped every track (an annotation gap, or after the recording)
+        cols, fc = self.frame_forecasts(rec, i)
+        if len(cols) == 0:
+            return empty
+        pred_len = fc.shape[1]
+        wkey = (float(rec.step_s), pred_len, time_key(offset))
         if wkey not in self._weights:
-            self._weights[wkey] = resample_weights(step, self.dt_s, self.horizon, pred_len)
+            self._weights[wkey] = resample_weights(float(rec.step_s), self.dt_s, self.horizon, pred_len, offset)
         j0, j1, w = self._weights[wkey]
-        full = np.concatenate([state.positions[-1, seen][:, None, :], pred], axis=1)
-        resampled = full[:, j0] * (1.0 - w)[None, :, None] + full[:, j1] * w[None, :, None]
-        return replay.columns[seen[now]], resampled[now]
+        full = np.concatenate([rec.positions[i, cols][:, None, :], fc.astype(np.float64)], axis=1)
+        return cols, full[:, j0] * (1.0 - w)[None, :, None] + full[:, j1] * w[None, :, None]
 
     def forecast(
         self, replay: Replay, t_s: float, rows: np.ndarray, truth: TrueFuture | None, rng: np.random.Generator
@@ -279,15 +378,8 @@ class PredictorForecast(ForecastSource):
         idx = np.searchsorted(cols, want)
         idx = np.minimum(idx, max(len(cols) - 1, 0))
         if len(cols) == 0 or not np.array_equal(cols[idx], want):
-            raise RuntimeError(f"forecast requested for pedestrians not present at t={t_s:.3f} s in {replay.name}")
+            raise RuntimeError(f"forecast requested for pedestrians not perceived at t={t_s:.3f} s in {replay.name}")
         return fc[idx]
-
-    def precompute(self, replay: Replay, times_s: np.ndarray) -> None:
-        """Fill the cache at ``times_s`` (no-op without caching)."""
-        if not self.use_cache:
-            return
-        for t in np.asarray(times_s, dtype=np.float64).tolist():
-            self.all_forecasts(replay, t)
 
 
 class _CarriedWalk:
@@ -339,20 +431,14 @@ class CarriedPredictorForecast(PredictorForecast):
     recording in time order from its first frame (the file's positions and presence, frames as in the file:
     the predictor's training windows also step over annotation gaps frame by frame), so each pedestrian's
     hidden states run from its first appearance. Its forecast at frame ``i`` covers ``tau + j * step_s``
-    (j = 1..pred_len, ``tau`` = the frame's time). At env time ``t`` the latest frame with ``tau <= t`` is
-    used: the file's position at ``tau`` (j = 0) and the forecast are resampled linearly onto
-    ``t + h * dt_s``, i.e. with the interpolation shifted by ``t - tau`` (non-zero on ``biwi_eth``, whose
-    0.667 s annotations fall between env times); beyond the last forecast step it is held. A pedestrian is
-    forecast when the replay has it at ``t`` (present at ``tau``, and at the next frame when ``t > tau``).
-    The forecaster only ever sees frames up to ``t``.
+    (j = 1..pred_len, ``tau`` = the frame's time) and is used, as in :class:`PredictorForecast`, at every env
+    time whose latest annotation is frame ``i``. The forecaster only ever sees frames up to ``tau``.
 
     With ``cache=True`` a recording's forecasts at all its frames are computed in one pass on first use
-    (replayed pedestrians ignore the robot) and the resampled forecasts memoised per (recording, time).
-    With ``cache=False`` (online) a forecaster per recording advances frame by frame as the env's time
-    does, restarting from the first frame when an episode goes back in time. Both feed the same frames
-    in the same order, so they give identical forecasts. Cost: every step of the forecaster runs all of
-    the recording's pedestrians as slots (absent ones masked), so one pass over a long, busy recording
-    (``students003``: 541 frames, 434 pedestrians) takes minutes with paper-size weights on one core.
+    (replayed pedestrians ignore the robot). With ``cache=False`` (online) a forecaster per recording
+    advances frame by frame as the env's time does, restarting from the first frame when an episode goes
+    back in time. Both feed the same frames in the same order, so they give identical forecasts. Each step
+    of the forecaster computes only the pedestrians present at that frame or the one before.
 
     Args: as :class:`PredictorForecast`; every predictor must have an ``online(num_slots)`` method.
     """
@@ -374,70 +460,27 @@ class CarriedPredictorForecast(PredictorForecast):
                     f"forecast_memory 'carried' needs a predictor with an online(num_slots) method (hidden states "
                     f"carried between steps); {getattr(model, 'name', model)!r} has none. Use forecast_memory 'window'."
                 )
-        self._tables: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._walks: dict[str, _CarriedWalk] = {}
-        self._shifted: dict[tuple[float, int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def clear_cache(self) -> None:
         super().clear_cache()
-        self._tables.clear()
         self._walks.clear()
 
-    def _walk(self, recording: Recording) -> _CarriedWalk:
+    def compute_frame(self, recording: Recording, i: int) -> tuple[np.ndarray, np.ndarray]:
         walk = self._walks.get(recording.name)
         if walk is None or walk.recording is not recording:
             walk = _CarriedWalk(self.predictor_for(recording.name), recording)
             self._walks[recording.name] = walk
-        return walk
+        before = walk.calls
+        out = walk.at(i)
+        self.calls += walk.calls - before
+        return out
 
-    def frame_forecasts(self, recording: Recording, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(columns (n,), forecasts (n, pred_len, 2) float32)`` at annotation frame ``i`` of ``recording`` for the
-        pedestrians present there (recording columns, ascending; metres on the annotation grid after the frame)."""
-        if not self.use_cache:
-            walk = self._walk(recording)
-            before = walk.calls
-            out = walk.at(i)
-            self.calls += walk.calls - before
-            return out
-        table = self._tables.get(recording.name)
-        if table is None:
-            walk = _CarriedWalk(self.predictor_for(recording.name), recording)
-            parts = [walk.at(k) for k in range(len(recording.frames))]
-            self.calls += walk.calls
-            sizes = np.array([len(c) for c, _ in parts], dtype=np.int64)
-            offsets = np.concatenate([[0], np.cumsum(sizes)])
-            cols = np.concatenate([c for c, _ in parts]) if parts else np.zeros(0, dtype=np.int64)
-            fcs = np.concatenate([f for _, f in parts]) if parts else np.zeros((0, walk.pred_len, 2), np.float32)
-            table = (offsets, cols, fcs)
-            self._tables[recording.name] = table
-        offsets, cols, fcs = table
-        return cols[offsets[i] : offsets[i + 1]], fcs[offsets[i] : offsets[i + 1]]
-
-    def _compute(self, replay: Replay, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        rec = replay.recording
-        empty = (np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2)))
-        times = rec.times_s()
-        i = int(np.searchsorted(times, t_s + TIME_TOL_S, "right")) - 1
-        if i < 0 or rec.present.shape[1] == 0:
-            return empty
-        offset = float(t_s - times[i])
-        on_frame = offset <= TIME_TOL_S
-        if not on_frame and i + 1 >= len(times):
-            return empty  # after the recording's last annotation nobody is replayed
-        cols, fc = self.frame_forecasts(rec, i)
-        if not on_frame:
-            keep = rec.present[i + 1, cols]
-            cols, fc = cols[keep], fc[keep]
-        if len(cols) == 0:
-            return empty
-        offset = 0.0 if on_frame else offset
-        pred_len = fc.shape[1]
-        wkey = (float(rec.step_s), pred_len, time_key(offset))
-        if wkey not in self._shifted:
-            self._shifted[wkey] = resample_weights(float(rec.step_s), self.dt_s, self.horizon, pred_len, offset)
-        j0, j1, w = self._shifted[wkey]
-        full = np.concatenate([rec.positions[i, cols][:, None, :], fc.astype(np.float64)], axis=1)
-        return cols, full[:, j0] * (1.0 - w)[None, :, None] + full[:, j1] * w[None, :, None]
+    def compute_table(self, recording: Recording) -> FrameTable:
+        walk = _CarriedWalk(self.predictor_for(recording.name), recording)
+        parts = [walk.at(k) for k in range(len(recording.frames))]
+        self.calls += walk.calls
+        return FrameTable.from_frames(parts, walk.pred_len)
 
 
 # ----------------------------------------------------------------------------- construction

@@ -20,12 +20,13 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
 
     Keys:
         ``robot``: ``(4,)`` to ``(7,)`` float32: goal offset x, y (m, clipped to ±max_goal_offset_m),
-        velocity x, y (m/s), for the unicycle cos and sin of the heading, and with ``observe_time_left``
-        the fraction of the time limit left (in [0, 1]) last.
+        velocity x, y (m/s), for the unicycle cos and sin of the heading, with ``observe_time_left``
+        the fraction of the time limit left (in [0, 1]), and with ``observe_perception_age`` the age of
+        the perceived annotation (s, in [0, 1]) last.
         ``pedestrians``: ``(K, 4)`` float32: position relative to the robot (m) and velocity relative
         to the robot's (m/s) of the K nearest pedestrians within the sensor range, nearest first;
-        zero rows where the mask is 0 (velocities as known at t: see
-        :meth:`envs.crowds.Replay.observed_velocity_at`).
+        zero rows where the mask is 0. Both as perceived at t: the latest annotation at or before t
+        (see :meth:`envs.crowds.Replay.perceived_at`).
         ``mask``: ``(K,)`` int8 MultiBinary: 1 where a row holds a pedestrian.
         ``forecasts`` (unless the predictor is ``none``): ``(K, H, 2)`` float32 forecast positions
         relative to the robot's current position (m) at ``t + h * dt_s``, h = 1..H.
@@ -35,9 +36,10 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
     g = cfg.max_goal_offset_m
     robot_hi = [g, g, v, v] + ([1.0, 1.0] if cfg.kinematics == "unicycle" else [])
     robot_lo = [-x for x in robot_hi]
-    if cfg.observe_time_left:
-        robot_lo.append(0.0)
-        robot_hi.append(1.0)
+    for flag in (cfg.observe_time_left, cfg.observe_perception_age):
+        if flag:
+            robot_lo.append(0.0)
+            robot_hi.append(1.0)
     robot_lo_arr = np.array(robot_lo, dtype=np.float32)
     robot_hi_arr = np.array(robot_hi, dtype=np.float32)
     rel_speed = cfg.max_obs_speed_mps + v
@@ -111,7 +113,8 @@ class ObservationBuilder:
         self.with_forecasts = with_forecasts
         self.unicycle = cfg.kinematics == "unicycle"
         self.time_left = cfg.observe_time_left
-        self.robot_size = 4 + 2 * self.unicycle + int(self.time_left)
+        self.age = cfg.observe_perception_age
+        self.robot_size = 4 + 2 * self.unicycle + int(self.time_left) + int(self.age)
         self.goal_clip = cfg.max_goal_offset_m
         self.speed = cfg.robot_pref_speed_mps
         self.rel_speed = cfg.max_obs_speed_mps + cfg.robot_pref_speed_mps
@@ -130,6 +133,7 @@ class ObservationBuilder:
         ped_velocities: np.ndarray,
         forecasts: np.ndarray | None,
         time_left: float = 1.0,
+        perception_age_s: float = 0.0,
     ) -> dict[str, np.ndarray]:
         """One observation.
 
@@ -142,6 +146,7 @@ class ObservationBuilder:
             ped_velocities: ``(m, 2)`` their world velocities, m/s.
             forecasts: ``(m, H, 2)`` world forecast positions, or None.
             time_left: fraction of the time limit left (used with ``observe_time_left``).
+            perception_age_s: age of the perceived annotation, s (used with ``observe_perception_age``).
         """
         m = len(ped_positions)
         robot = np.empty(self.robot_size, dtype=np.float32)
@@ -153,8 +158,12 @@ class ObservationBuilder:
         if self.unicycle:
             robot[4] = math.cos(heading)
             robot[5] = math.sin(heading)
+        extra = 4 + 2 * self.unicycle
         if self.time_left:
-            robot[-1] = min(max(time_left, 0.0), 1.0)
+            robot[extra] = min(max(time_left, 0.0), 1.0)
+            extra += 1
+        if self.age:
+            robot[extra] = min(max(perception_age_s, 0.0), 1.0)
         peds = np.zeros((self.k, 4), dtype=np.float32)
         mask = np.zeros(self.k, dtype=np.int8)
         if m:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -64,6 +65,34 @@ def tiny_learned_predictor() -> Callable[..., Any]:
     return make_tiny_learned_predictor
 
 
+def go_to_goal(obs: dict[str, np.ndarray], cfg: Any) -> np.ndarray:
+    """Straight to the goal at the preferred speed, arriving in one step when closer than a step.
+
+    Holonomic: the velocity scaled by the preferred speed. Unicycle: turn towards the goal (at most the
+    maximum turn rate over one step) and drive at the speed times the cosine of the heading error.
+    (A local scripted policy, so these tests do not depend on the agents package.)
+    """
+    offset = np.asarray(obs["robot"][:2], dtype=np.float64)
+    dist = float(np.hypot(offset[0], offset[1]))
+    if dist < 1e-9:
+        return np.zeros(2, dtype=np.float32)
+    speed = min(cfg.robot_pref_speed_mps, dist / cfg.dt_s)
+    velocity = offset / dist * speed
+    if cfg.kinematics == "holonomic":
+        return np.clip(velocity / cfg.robot_pref_speed_mps, -1.0, 1.0).astype(np.float32)
+    heading = math.atan2(float(obs["robot"][5]), float(obs["robot"][4]))
+    err = math.remainder(math.atan2(velocity[1], velocity[0]) - heading, 2 * math.pi)
+    turn = float(np.clip(err / (cfg.robot_max_turn_rate_radps * cfg.dt_s), -1.0, 1.0))
+    forward = speed / cfg.robot_pref_speed_mps * max(math.cos(err), 0.0)
+    return np.array([min(forward, 1.0), turn], dtype=np.float32)
+
+
+@pytest.fixture
+def goal_seeker() -> Callable[[dict[str, np.ndarray], Any], np.ndarray]:
+    """:func:`go_to_goal`."""
+    return go_to_goal
+
+
 def run_episode(
     env: Any, policy: Callable[[Any], Any], seed: int | None = None, options: dict | None = None
 ) -> list[tuple]:
@@ -86,8 +115,6 @@ def episode_runner() -> Callable[..., list[tuple]]:
 def run_in_lockstep(cached: Any, online: Any, options: list[dict]) -> int:
     """Drive two environments with go-to-goal through the same seeded episodes, asserting identical
     observations and forecasts at every step; returns the number of forecast rows compared."""
-    from agents.planners import go_to_goal
-
     compared = 0
     for k, opts in enumerate(options):
         a_obs, _ = cached.reset(seed=k, options=opts)

@@ -13,7 +13,6 @@ import pytest
 from envs.config import CrowdNavConfig
 from envs.crowd_nav import CrowdNavEnv
 from envs.crowds import Replay, scripted_recording, synthetic_recording
-from agents.planners import go_to_goal
 from envs.rewards import REWARD_COMPONENTS
 from envs.world import World, fault_of
 
@@ -31,13 +30,15 @@ def standing_robot(obs: Any) -> np.ndarray:
 
 
 @pytest.mark.parametrize("kinematics", ["holonomic", "unicycle"])
-def test_scripted_go_to_goal_reaches_the_goal_in_an_empty_scene(kinematics: str, episode_runner: Callable) -> None:
+def test_scripted_go_to_goal_reaches_the_goal_in_an_empty_scene(
+    kinematics: str, episode_runner: Callable, goal_seeker: Callable
+) -> None:
     env = CrowdNavEnv(predictor="none", crowd="empty", kinematics=kinematics)
     cfg = env.config
     for seed in range(3):
-        steps = episode_runner(env, lambda obs: go_to_goal(obs, cfg), seed=seed)
+        steps = episode_runner(env, lambda obs: goal_seeker(obs, cfg), seed=seed)
         _, _, terminated, truncated, info = steps[-1]
-        metrics = info["episode"]
+        metrics = info["episode_metrics"]
         assert terminated and not truncated
         assert metrics["outcome"] == "success" and info["reached_goal"]
         assert info["reward_components"]["success"] == cfg.success_reward
@@ -62,7 +63,9 @@ def test_head_on_pedestrian_into_a_standing_robot_is_a_collision_at_the_pedestri
     _, _, terminated, truncated, info = steps[-1]
     assert terminated and not truncated
     assert info["collision"] and info["collision_fault"] == "pedestrian"
-    assert info["episode"]["outcome"] == "collision" and info["episode"]["collision_fault"] == "pedestrian"
+    assert (
+        info["episode_metrics"]["outcome"] == "collision" and info["episode_metrics"]["collision_fault"] == "pedestrian"
+    )
     assert info["reward_components"]["collision"] == env.config.collision_penalty
     # contact when the centres are 0.6 m apart: (6 - 0.6) / 1.2 = 4.5 s, i.e. during the 12th step
     assert info["time_s"] == pytest.approx(4.8)
@@ -75,7 +78,7 @@ def test_robot_walking_into_a_standing_pedestrian_is_at_fault(episode_runner: Ca
     steps = episode_runner(env, lambda obs: np.array([1.0, 0.0], dtype=np.float32), seed=0,
                            options={"t0_s": 0.0, "start": (0, 0), "goal": (8, 0)})  # fmt: skip
     info = steps[-1][4]
-    assert info["collision_fault"] == "robot" and info["episode"]["outcome"] == "collision"
+    assert info["collision_fault"] == "robot" and info["episode_metrics"]["outcome"] == "collision"
 
 
 @pytest.mark.parametrize("speed", [1.5, 2.5, 3.5])
@@ -83,7 +86,7 @@ def test_fast_pedestrians_cannot_pass_through_the_robot(speed: float, episode_ru
     crowd = scripted_recording([walker((8.0, 0.1), (-speed, 0.0), 60)])
     env = CrowdNavEnv(predictor="none", crowd=crowd)
     steps = episode_runner(env, standing_robot, seed=0, options={"t0_s": 0.0, "start": (0, 0), "goal": (0, -8)})
-    assert steps[-1][4]["episode"]["outcome"] == "collision"
+    assert steps[-1][4]["episode_metrics"]["outcome"] == "collision"
 
 
 def test_near_miss_gives_discomfort_not_collision(episode_runner: Callable) -> None:
@@ -98,8 +101,8 @@ def test_near_miss_gives_discomfort_not_collision(episode_runner: Callable) -> N
     cfg = env.config
     expected = (0.1 - cfg.discomfort_dist_m) * cfg.discomfort_scale * cfg.dt_s
     assert closest["reward_components"]["discomfort"] == pytest.approx(expected, abs=1e-9)
-    assert infos[-1]["episode"]["min_gap_m"] == pytest.approx(0.1, abs=1e-9)
-    assert infos[-1]["episode"]["outcome"] == "timeout"
+    assert infos[-1]["episode_metrics"]["min_gap_m"] == pytest.approx(0.1, abs=1e-9)
+    assert infos[-1]["episode_metrics"]["outcome"] == "timeout"
 
 
 def test_episode_can_continue_after_contact(episode_runner: Callable) -> None:
@@ -110,12 +113,19 @@ def test_episode_can_continue_after_contact(episode_runner: Callable) -> None:
     # overlapping while |x| < 0.598 m, i.e. from t = 2.402 s to 3.598 s: steps 7, 8 and 9
     assert sum(in_contact) == 3
     assert all(s[4]["reward_components"]["collision"] == -20.0 for s in steps[1:] if s[4]["collision"])
-    final = steps[-1][4]["episode"]
+    final = steps[-1][4]["episode_metrics"]
     assert final["outcome"] == "timeout" and final["collisions"] == 1 and final["collision_fault"] == "pedestrian"
 
 
 def test_reward_components_sum_to_the_reward(data_dir: Path) -> None:
-    env = CrowdNavEnv(predictor="oracle", data_dir=str(data_dir), split="univ", part="test", intrusion_penalty=-0.1)
+    env = CrowdNavEnv(
+        predictor="oracle",
+        data_dir=str(data_dir),
+        split="univ",
+        part="test",
+        intrusion_penalty=-0.1,
+        time_penalty=-0.01,
+    )
     env.action_space.seed(3)
     env.reset(seed=3)
     seen: set[str] = set()
@@ -125,13 +135,14 @@ def test_reward_components_sum_to_the_reward(data_dir: Path) -> None:
         comps = info["reward_components"]
         assert tuple(comps) == REWARD_COMPONENTS
         assert reward == sum(comps.values())
+        assert comps["time"] == -0.01
         seen.update(k for k, v in comps.items() if v != 0.0)
         total += reward
         if terminated or truncated:
-            assert info["episode"]["r"] == pytest.approx(total)
+            assert info["episode_metrics"]["r"] == pytest.approx(total)
             total = 0.0
             env.reset()
-    assert {"collision", "discomfort", "progress", "intrusion"} <= seen
+    assert {"collision", "discomfort", "progress", "intrusion", "time"} <= seen
 
 
 def test_progress_is_potential_based(episode_runner: Callable) -> None:
