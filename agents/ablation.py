@@ -35,8 +35,16 @@ Backends
     does not need shared storage: the driver sends what the cell needs (an interrupted training run's folder,
     or the trained model being evaluated) with the task, the task works in a temporary folder on its node and
     returns the cell folder as a tar archive, which the driver writes into ``runs_dir``. Every node needs the
-    project installed (``pip install 'crowdnav-mesrnn[ray]'``, same version) and the ETH/UCY data at
-    ``$CROWDNAV_MESRNN_DATA``; forecast caches are built per node on first use.
+    project installed (``pip install 'crowdnav-mesrnn[ray]'``, the same version and predictor weights: a cell
+    whose node has other weights than the driver fails and says so) and the ETH/UCY data at
+    ``$CROWDNAV_MESRNN_DATA``; forecast caches are built per node on first use. On a cluster::
+
+        CROWDNAV_MESRNN_DATA=/data/eth_ucy ray start --head --port=6379   # head node
+        CROWDNAV_MESRNN_DATA=/data/eth_ucy ray start --address=HEAD:6379  # every other node
+        python -m agents.ablation configs/ablation/planning_aid.yaml --backend ray --address HEAD:6379
+
+    Without ``--address`` a local Ray instance with ``--workers`` x the largest ``n_envs`` CPUs is started
+    (no dashboard) and shut down at the end.
 
 The answer
     :func:`summarize` reads the evaluation cells and writes ``summary.json``, ``summary.md`` and plots into
@@ -804,6 +812,10 @@ def execute_cell(task: CellTask) -> dict[str, Any]:
     _single_thread()
     folder = Path(task.folder)
     folder.mkdir(parents=True, exist_ok=True)
+    here = weights_fingerprint(task.cell.arm.predictor)
+    if here != dict(task.weights):  # a Ray node with another installation than the driver's
+        error = f"predictor weights on {socket.gethostname()} differ from the driver's: {here} != {dict(task.weights)}"
+        return {"name": task.cell.name, "ok": False, "error": error, "wall_s": 0.0}
     old = _read_json(folder / CELL_JSON) or {}
     attempts = list(old.get("attempts", [])) if old.get("spec") == task.spec else []
     meta: dict[str, Any] = {
