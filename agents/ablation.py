@@ -85,7 +85,7 @@ import numpy as np
 
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
-from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text, code_version
+from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
 
 #: Forecast sources an arm may use.
 ARM_SOURCES: Final[tuple[str, ...]] = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
@@ -1243,6 +1243,7 @@ def _collect(cfg: AblationConfig) -> tuple[dict[tuple[str, str], _Episodes], dic
     first = min((w for w in map(_when, starts) if w), default=None)
     last = max((w for w in map(_when, ends) if w), default=None)
     info = {
+        "cells": [_cell_record(st) for st in statuses],
         "missing_cells": missing,
         "cell_wall_s": walls,
         "first_start": first.isoformat() if first else None,
@@ -1250,6 +1251,50 @@ def _collect(cfg: AblationConfig) -> tuple[dict[tuple[str, str], _Episodes], dic
         "span_s": (last - first).total_seconds() if first and last else None,
     }
     return pooled, info
+
+
+def _cell_record(st: CellStatus) -> dict[str, Any]:
+    """One line of ``cells.json``: a cell's state, cost and provenance."""
+    meta = st.meta or {}
+    rate = meta.get("steps_per_s") if st.cell.kind == "train" else meta.get("episodes_per_s")
+    return {
+        "cell": st.cell.name,
+        "state": st.state,
+        "wall_s": meta.get("wall_s"),
+        "steps_per_s" if st.cell.kind == "train" else "episodes_per_s": None if rate is None else round(rate, 3),
+        "code_version": meta.get("code_version"),
+        "finished": (meta.get("attempts") or [{}])[-1].get("finished"),
+        "weights_sha256": {k: v[:12] for k, v in (meta.get("weights") or {}).items()},
+        "model_sha256": (meta.get("model_sha256") or "")[:12] or None,
+    }
+
+
+#: Leading columns of the results' combined ``episodes.csv.gz`` (the cell and the episode), then every
+#: per-episode metric of :data:`agents.evaluate.METRICS`.
+ARCHIVE_KEYS: Final[tuple[str, ...]] = ("policy", "arm", "split", "seed", "episode", "outcome")
+
+
+def episodes_archive(pooled: Mapping[tuple[str, str], _Episodes]) -> bytes:
+    """Every evaluated episode in one gzipped CSV (:data:`ARCHIVE_KEYS` and the metrics, 4 decimals;
+    byte-identical for identical inputs), small enough to commit beside the summary so the tests can be
+    redone without the runs."""
+    import gzip
+
+    from agents.evaluate import METRICS
+
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow((*ARCHIVE_KEYS, *METRICS))
+    for (policy, arm), eps in sorted(pooled.items()):
+        for (split, seed, ep), row in sorted(
+            zip(eps.keys, eps.rows, strict=True), key=lambda kr: (kr[0][0], kr[0][1] or -1, kr[0][2])
+        ):
+            values = []
+            for col in METRICS:
+                x = _num(row.get(col))
+                values.append("" if not math.isfinite(x) else f"{x:.4f}".rstrip("0").rstrip("."))
+            writer.writerow([policy, arm, split, "" if seed is None else seed, ep, row.get("outcome", ""), *values])
+    return gzip.compress(buf.getvalue().encode("utf-8"), mtime=0)
 
 
 def _when(stamp: str | None) -> datetime.datetime | None:
@@ -1460,9 +1505,12 @@ def summarize(cfg: AblationConfig, out: Callable[[str], None] = print, plots: bo
     dest = cfg.out_path()
     dest.mkdir(parents=True, exist_ok=True)
     atomic_write_json(dest / "summary.json", summary)
+    atomic_write_json(dest / "cells.json", _clean(info["cells"]))
+    archive = episodes_archive(pooled)
+    atomic_write(dest / "episodes.csv.gz", lambda fh: fh.write(archive))
     figures = write_plots(summary, dest) if plots else []
     atomic_write_text(dest / "summary.md", summary_markdown(summary, cfg, figures))
-    out(f"wrote {dest / 'summary.json'}, {dest / 'summary.md'} and {len(figures)} plot(s)")
+    out(f"wrote {dest}/: summary.json, summary.md, cells.json, episodes.csv.gz and {len(figures)} plot(s)")
     return summary
 
 
@@ -1748,8 +1796,6 @@ def _finish(fig: Any, axes: Any, path: Path) -> str:
 
 
 def _save(fig: Any, path: Path) -> Path:
-    from crowdnav_mesrnn.utils import atomic_write
-
     return atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=110))
 
 

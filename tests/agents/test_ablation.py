@@ -7,6 +7,7 @@ these tests need neither SB3 training nor the ETH/UCY data; ``test_ablation_e2e.
 from __future__ import annotations
 
 import csv
+import gzip
 import json
 import math
 from pathlib import Path
@@ -384,6 +385,18 @@ def test_summary_statistics_on_hand_made_episodes(tmp_path: Path, fakes: Fakes) 
     wx = next(t for t in tests if t["a"]["arm"] == "cv" and t["endpoint"] == "navigation_time_s")
     assert wx["n"] == 5 and wx["median_difference"] == pytest.approx(-0.5)
     assert wx["p_value"] == pytest.approx(sps.wilcoxon([-1.0, -0.5, -0.5, -0.5, -0.5]).pvalue)
+
+    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:
+        archived = list(csv.DictReader(fh))
+    assert len(archived) == 36 and archived[0]["policy"] == "planner" and archived[0]["seed"] == ""
+    cv_rows = [r for r in archived if r["arm"] == "cv"]
+    assert [r["outcome"][0].upper() for r in cv_rows] == list(cv_outcomes)
+    cells = json.loads((cfg.out_path() / "cells.json").read_text())
+    assert {c["cell"]: c["state"] for c in cells} == {
+        "eval/zara1/planner/none": "done",
+        "eval/zara1/planner/cv": "done",
+        "eval/zara1/planner/oracle": "done",
+    }
 
     md = (cfg.out_path() / "summary.md").read_text()
     assert "2 success tests and 2 navigation-time tests" in md
