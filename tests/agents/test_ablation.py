@@ -448,3 +448,23 @@ def test_json_has_no_nan(tmp_path: Path, fakes: Fakes) -> None:
     entry = json.loads(text)["policies"]["planner"]["arms"]["none"]
     assert entry["navigation_time_s_mean"] is None and entry["success_ci"][0] == pytest.approx(0.0, abs=1e-12)
     assert math.isclose(entry["collision_rate"], 1.0)
+
+
+def test_forecast_cache_built_once_per_learned_source_and_split(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import envs.forecasts
+
+    calls: list[tuple[str, str | None, str]] = []
+    monkeypatch.setattr(
+        envs.forecasts,
+        "build_forecast_cache",
+        lambda predictor, split=None, part="all": calls.append((predictor, split, part)),
+        raising=False,
+    )
+    cfg = ab.config_from_mapping(
+        _raw(tmp_path, splits=["univ", "zara1"], arms=["none", "cv", "mesrnn"], comparisons=[])
+    )
+    built = ab.build_forecast_caches(cfg, ab.expand(cfg), out=lambda s: None)
+    assert built == [("mesrnn", "univ"), ("mesrnn", "zara1")]
+    assert calls == [("mesrnn", "univ", "all"), ("mesrnn", "zara1", "all")]
