@@ -1,0 +1,581 @@
+"""Evaluate a policy — a training run, an SB3 model, or a planner — on a fixed, seeded list of episodes.
+
+``python -m agents.evaluate RUN_DIR_OR_PLANNER --predictor mesrnn --split zara1 --episodes 500 --json``
+(also ``crowdnav-mesrnn agent evaluate ...``) replays the split's held-out scene (``part="test"``) over
+:func:`evaluation_seeds` — the same list for every arm and policy, so comparisons are paired — with
+deterministic actions, and by default only episodes in which a pedestrian comes within sensor range
+of the straight path (``require_pedestrians``). Per-episode metrics go to ``episodes.csv``; the summary
+(``summary.json``) gives outcome rates with 95 % Wilson intervals and metric means with bootstrap
+intervals (:mod:`agents.stats`).
+
+Speed: several environments are stepped in lockstep in this process and the policy is called once
+per step on their stacked observations (SB3's batched ``predict``; the planners score candidates for
+the whole batch at once). Each episode depends only on its seed, so the result does not depend on
+how many environments run side by side.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import pickle
+import sys
+import time
+import zlib
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+
+from agents.planners import PLANNERS, make_planner
+from agents.stats import bootstrap_mean_ci, wilson_interval
+from crowdnav_mesrnn.config import ConfigError, load_yaml
+from crowdnav_mesrnn.data.constants import SPLITS
+from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text
+from envs.config import FORECAST_SOURCES, CrowdNavConfig, config_from
+
+#: Outcomes of an episode, each reported as a rate with a Wilson interval.
+OUTCOMES: Final[tuple[str, ...]] = ("success", "collision", "timeout")
+#: Per-episode metrics averaged (with bootstrap intervals) in the summary.
+METRICS: Final[tuple[str, ...]] = (
+    "navigation_time_s",
+    "path_length_m",
+    "path_ratio",
+    "min_gap_m",
+    "discomfort_frequency",
+    "intrusion_ratio",
+    "mean_jerk_mps3",
+    "forecast_ade_m",
+    "forecast_fde_m",
+    "crowd_density",
+    "steps",
+    "return",
+)
+#: Metrics averaged over successful episodes only (a collision cuts a trip short; a timeout has no arrival time).
+SUCCESS_ONLY_METRICS: Final[tuple[str, ...]] = ("navigation_time_s", "path_length_m", "path_ratio")
+#: Columns of ``episodes.csv``, in order (the metrics before ``steps`` and ``return``, then the collision details).
+EPISODE_COLUMNS: Final[tuple[str, ...]] = (
+    *("episode", "seed", "recording", "t0_s", "outcome"),
+    *METRICS[:-2],
+    *("pedestrians_near_path", "collisions", "collision_fault", "steps", "return"),
+)
+#: Names of the models a run folder holds, for ``which=``.
+RUN_MODELS: Final[tuple[str, ...]] = ("best", "final")
+
+
+class SB3Policy:
+    """An SB3 model (and its ``VecNormalize`` statistics, if it was trained with them) behind ``predict``.
+
+    Args:
+        model: a loaded SB3 algorithm.
+        vecnormalize: the ``VecNormalize`` whose observation statistics the model was trained with, or None.
+        source: where the model came from (for messages).
+    """
+
+    def __init__(self, model: Any, vecnormalize: Any = None, source: str = "") -> None:
+        self.model = model
+        self.vecnormalize = vecnormalize
+        self.source = source
+        self.observation_space = model.observation_space
+
+    def predict(
+        self,
+        obs: Mapping[str, np.ndarray],
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        if self.vecnormalize is not None:
+            obs = self.vecnormalize.normalize_obs(dict(obs))
+        return self.model.predict(obs, state=state, episode_start=episode_start, deterministic=deterministic)
+
+
+def evaluation_seeds(split: str, episodes: int, seed: int = 0) -> list[int]:
+    """The fixed episode seeds of an evaluation: the same list for every arm and policy.
+
+    Args:
+        split: the split whose held-out scene is evaluated (each split has its own list).
+        episodes: how many.
+        seed: which list (0 is the reported one).
+
+    Returns:
+        ``episodes`` integers in ``[0, 2**31)``; the first ``n`` of a longer list equal a list of ``n``.
+    """
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; valid: {', '.join(SPLITS)}")
+    if episodes < 0:
+        raise ValueError(f"episodes must be >= 0, got {episodes!r}")
+    rng = np.random.default_rng([int(seed), zlib.crc32(split.encode())])
+    return [int(s) for s in rng.integers(0, 2**31, size=episodes)]
+
+
+# ---------------------------------------------------------------------------- loading policies
+
+
+def algo_of_model(path: str | Path) -> str:
+    """``"ppo"`` or ``"sac"``: which SB3 algorithm saved the ``.zip`` (from its policy class)."""
+    from stable_baselines3.common.policies import ActorCriticPolicy
+    from stable_baselines3.common.save_util import load_from_zip_file
+    from stable_baselines3.sac.policies import SACPolicy
+
+    data, _, _ = load_from_zip_file(path, load_data=True, device="cpu")
+    policy_class = (data or {}).get("policy_class")
+    if isinstance(policy_class, type) and issubclass(policy_class, SACPolicy):
+        return "sac"
+    if isinstance(policy_class, type) and issubclass(policy_class, ActorCriticPolicy):
+        return "ppo"
+    raise ValueError(f"{path}: not a PPO or SAC model saved by Stable-Baselines3 (policy class {policy_class!r})")
+
+
+def load_sb3(path: str | Path, algo: str | None = None) -> SB3Policy:
+    """Load an SB3 ``.zip`` (PPO or SAC, detected unless given) on the CPU, with ``<stem>_vecnormalize.pkl``
+    beside it if present."""
+    from stable_baselines3 import PPO, SAC
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no model file {path}")
+    algo = algo or algo_of_model(path)
+    cls = {"ppo": PPO, "sac": SAC}[algo]
+    model = cls.load(path, device="cpu")
+    vecnormalize = None
+    stats = path.with_name(f"{path.stem}_vecnormalize.pkl")
+    if stats.is_file():
+        with open(stats, "rb") as fh:
+            vecnormalize = pickle.load(fh)
+        vecnormalize.training = False
+        vecnormalize.norm_reward = False
+    return SB3Policy(model, vecnormalize, str(path))
+
+
+def run_folder_of(spec: str | Path) -> Path | None:
+    """The training run folder a spec names: the folder itself, or the folder of a model inside one."""
+    p = Path(spec)
+    if p.is_dir() and (p / "config.yaml").is_file():
+        return p
+    if p.is_file() and (p.parent / "config.yaml").is_file():
+        return p.parent
+    return None
+
+
+def run_settings(run_dir: str | Path) -> dict[str, Any]:
+    """The project section of a run folder's ``config.yaml`` (``algo``, ``env``, ``run``, ...)."""
+    from agents.train import PROJECT_KEY
+
+    raw = load_yaml(Path(run_dir) / "config.yaml")
+    section = raw.get(PROJECT_KEY)
+    if not isinstance(section, dict):
+        raise ConfigError(f"{run_dir}/config.yaml has no {PROJECT_KEY!r} section: not a run folder of agents.train")
+    return section
+
+
+def model_path(spec: str | Path, which: str = "best") -> Path:
+    """The ``.zip`` a spec names: the spec itself, or ``best_model.zip``/``final_model.zip`` of a run folder
+    (``best`` falls back to ``final`` when no validation ran)."""
+    if which not in RUN_MODELS:
+        raise ValueError(f"unknown model {which!r}; valid: {', '.join(RUN_MODELS)}")
+    p = Path(spec)
+    if p.is_file():
+        return p
+    if p.is_dir():
+        for name in (f"{which}_model.zip", "final_model.zip"):
+            if (p / name).is_file():
+                return p / name
+        raise FileNotFoundError(f"{p} holds neither {which}_model.zip nor final_model.zip (is the run finished?)")
+    raise FileNotFoundError(
+        f"no run folder, model file or planner named {str(spec)!r} (planners: {', '.join(PLANNERS)})"
+    )
+
+
+def load_policy(
+    spec: str | Path, env_config: CrowdNavConfig | Mapping[str, Any] | None = None, which: str = "best"
+) -> Any:
+    """A policy with SB3's ``predict``: ``"planner"``/``"straight"`` (built for ``env_config``), an SB3 ``.zip``,
+    or a run folder (its best model, see :func:`model_path`)."""
+    if str(spec) in PLANNERS:
+        return make_planner(str(spec), env_config)  # type: ignore[return-value]
+    path = model_path(spec, which)
+    run_dir = run_folder_of(path)
+    algo = run_settings(run_dir).get("algo") if run_dir is not None else None
+    return load_sb3(path, algo)
+
+
+def check_spaces(policy: Any, env: Any) -> None:
+    """Raise ``ValueError`` if an SB3 policy was trained on another observation space than ``env`` gives."""
+    space = getattr(policy, "observation_space", None)
+    if space is None:
+        return
+    want = {k: getattr(v, "shape", None) for k, v in space.spaces.items()}
+    got = {k: getattr(v, "shape", None) for k, v in env.observation_space.spaces.items()}
+    if want != got:
+        raise ValueError(
+            f"the policy was trained on observations {want} but the environment gives {got}: "
+            "evaluate with the forecast arm and env settings it was trained with (forecasts vs none, "
+            "observe_time_left, num_pedestrians, horizon_steps, kinematics)"
+        )
+
+
+# ---------------------------------------------------------------------------- running episodes
+
+
+def prepare_forecasts(env_kwargs: Mapping[str, Any], progress: bool = False) -> dict[str, Any] | None:
+    """Fill the shared on-disk forecast cache for the recordings environments of ``env_kwargs`` replay, so that no
+    worker computes forecasts (:func:`envs.forecasts.build_forecast_cache`); None when there is nothing to build
+    (no learned predictor, no disk cache, a synthetic or empty crowd, or no data with ``crowd: auto``)."""
+    from crowdnav_mesrnn.data.paths import DataNotFoundError
+    from envs import forecasts
+    from envs.config import LEARNED_SOURCES
+
+    cfg = config_from(dict(env_kwargs), {})
+    build = getattr(forecasts, "build_forecast_cache", None)
+    if build is None or cfg.predictor not in LEARNED_SOURCES or cfg.crowd not in ("auto", "replay"):
+        return None
+    if not (getattr(cfg, "cache_forecasts", True) and getattr(cfg, "forecast_disk_cache", True)):
+        return None
+    try:
+        return build(
+            cfg.predictor,
+            cfg.split,
+            cfg.part,
+            memory=cfg.forecast_memory,
+            data_dir=cfg.data_dir,
+            cache_dir=getattr(cfg, "forecast_cache_dir", None),
+            progress=progress,
+        )
+    except DataNotFoundError:
+        if cfg.crowd == "replay":
+            raise
+        return None  # the environments fall back to the synthetic crowd (and say so)
+
+
+def share_forecasts(envs: Sequence[Any]) -> None:
+    """Let in-process environments with one configuration share the first one's forecast memo (forecasts
+    depend only on the recording and time, never on the robot), so no forecast is computed twice."""
+    first = envs[0].unwrapped
+    if not getattr(first.config, "cache_forecasts", False):
+        return
+    for env in envs[1:]:
+        inner = env.unwrapped
+        if inner.config == first.config and hasattr(inner, "forecaster"):
+            inner.forecaster = first.forecaster
+
+
+def episode_row(index: int, seed: int, reset_info: Mapping[str, Any], metrics: Mapping[str, Any], ret: float) -> dict:
+    """One row of ``episodes.csv`` (see :data:`EPISODE_COLUMNS`)."""
+    row: dict[str, Any] = {"episode": index, "seed": seed}
+    row["recording"] = reset_info.get("recording")
+    row["t0_s"] = reset_info.get("t0_s")
+    for key in EPISODE_COLUMNS[4:-1]:
+        row[key] = metrics.get(key, reset_info.get(key))
+    row["return"] = float(ret)
+    return row
+
+
+StepHook = Callable[[int, Mapping[str, np.ndarray], np.ndarray, float, bool, bool], None]
+
+
+def run_episodes(
+    policy: Any,
+    envs: Sequence[Any],
+    seeds: Sequence[int],
+    on_step: StepHook | None = None,
+    progress: bool = False,
+    deterministic: bool = True,
+) -> list[dict[str, Any]]:
+    """Run one episode per seed, stepping ``envs`` in lockstep with one batched ``predict`` per step.
+
+    Args:
+        policy: anything with SB3's ``predict`` accepting batched observation dicts.
+        envs: environments of one configuration (each takes the next seed when its episode ends).
+        seeds: episode ``k`` is ``reset(seed=seeds[k])``.
+        on_step: called as ``on_step(k, obs, action, reward, terminated, truncated)`` after every step of
+            episode ``k`` (``obs`` is the observation the action was taken on).
+        progress: show a progress bar over episodes.
+        deterministic: passed to ``predict``.
+
+    Returns:
+        one row per episode, in seed order (see :func:`episode_row`).
+    """
+    n = len(seeds)
+    rows: list[dict[str, Any] | None] = [None] * n
+    active: dict[int, list[Any]] = {}  # env index -> [episode, obs, return, reset info]
+    next_k = 0
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n, unit="episode", dynamic_ncols=True)
+
+    def start(i: int) -> None:
+        nonlocal next_k
+        if next_k < n:
+            obs, info = envs[i].reset(seed=int(seeds[next_k]))
+            active[i] = [next_k, obs, 0.0, info]
+            next_k += 1
+
+    for i in range(min(len(envs), n)):
+        start(i)
+    while active:
+        idx = list(active)
+        first = active[idx[0]][1]
+        batch = {key: np.stack([active[i][1][key] for i in idx]) for key in first}
+        actions, _ = policy.predict(batch, deterministic=deterministic)
+        for j, i in enumerate(idx):
+            k, obs, ret, rinfo = active[i]
+            action = np.asarray(actions[j])
+            obs_next, reward, terminated, truncated, info = envs[i].step(action)
+            if on_step is not None:
+                on_step(k, obs, action, float(reward), bool(terminated), bool(truncated))
+            ret += float(reward)
+            if terminated or truncated:
+                rows[k] = episode_row(k, int(seeds[k]), rinfo, info["episode_metrics"], ret)
+                del active[i]
+                if bar is not None:
+                    bar.update(1)
+                start(i)
+            else:
+                active[i][1], active[i][2] = obs_next, ret
+    if bar is not None:
+        bar.close()
+    return [r for r in rows if r is not None]
+
+
+# ---------------------------------------------------------------------------- aggregates
+
+
+def _number(value: Any) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        return math.nan
+    return x
+
+
+def _json_float(x: float) -> float | None:
+    return None if not math.isfinite(x) else float(x)
+
+
+def summarise(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95, seed: int = 0) -> dict[str, Any]:
+    """Aggregates of per-episode rows.
+
+    Returns:
+        ``episodes``; for each outcome ``<outcome>_rate``, ``<outcome>_ci`` ([lo, hi], Wilson) and
+        ``<outcome>s`` (the count); for each of :data:`METRICS` ``<metric>_mean``, ``<metric>_ci``
+        (bootstrap, seeded) and ``<metric>_n`` (episodes it is defined for: all, or the successful ones
+        for :data:`SUCCESS_ONLY_METRICS`; ``None`` values such as the ``none`` arm's forecast ADE are
+        left out). Undefined means and intervals are ``None``.
+    """
+    n = len(rows)
+    out: dict[str, Any] = {"episodes": n}
+    outcomes = [str(r.get("outcome")) for r in rows]
+    for name in OUTCOMES:
+        count = sum(o == name for o in outcomes)
+        out[f"{name}_rate"] = count / n if n else None
+        out[f"{name}_ci"] = list(wilson_interval(count, n, confidence)) if n else None
+        out[f"{name}s"] = count
+    for metric in METRICS:
+        use = [r for r in rows if metric not in SUCCESS_ONLY_METRICS or r.get("outcome") == "success"]
+        values = np.array([_number(r.get(metric)) for r in use], dtype=np.float64)
+        values = values[np.isfinite(values)]
+        out[f"{metric}_n"] = len(values)
+        out[f"{metric}_mean"] = float(values.mean()) if len(values) else None
+        lo, hi = bootstrap_mean_ci(values, confidence=confidence, seed=seed) if len(values) else (math.nan, math.nan)
+        out[f"{metric}_ci"] = [_json_float(lo), _json_float(hi)] if len(values) else None
+    return out
+
+
+def episodes_csv(rows: Sequence[Mapping[str, Any]]) -> str:
+    """``episodes.csv`` text (columns :data:`EPISODE_COLUMNS`; empty cells where a metric is undefined)."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(EPISODE_COLUMNS), extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in EPISODE_COLUMNS})
+    return buf.getvalue()
+
+
+# ---------------------------------------------------------------------------- evaluate
+
+
+def evaluation_env_kwargs(
+    spec: str | Path,
+    predictor: str,
+    split: str,
+    env_overrides: Mapping[str, Any] | None = None,
+    require_pedestrians: bool = True,
+) -> dict[str, Any]:
+    """Keyword arguments of the evaluation environments: the run's own env settings (for a run folder or a
+    model inside one), then ``env_overrides``, on the split's held-out scene over its whole duration."""
+    base: dict[str, Any] = {}
+    run_dir = None if str(spec) in PLANNERS else run_folder_of(spec)
+    if run_dir is not None:
+        base = dict(run_settings(run_dir).get("env") or {})
+    kwargs = {**base, **dict(env_overrides or {})}
+    kwargs.update(predictor=predictor, split=split, part="test", episode_time="all")
+    kwargs["require_pedestrians"] = dict(env_overrides or {}).get("require_pedestrians", require_pedestrians)
+    return kwargs
+
+
+def evaluate(
+    spec: str | Path,
+    predictor: str,
+    split: str,
+    episodes: int,
+    seed: int = 0,
+    out_dir: str | Path | None = None,
+    env_overrides: Mapping[str, Any] | None = None,
+    require_pedestrians: bool = True,
+    n_envs: int = 4,
+    which: str = "best",
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Evaluate a policy on the held-out scene of ``split`` over :func:`evaluation_seeds`.
+
+    Args:
+        spec: ``"planner"``, ``"straight"``, an SB3 ``.zip``, or a run folder of :mod:`agents.train`.
+        predictor: the forecast arm of the environment.
+        split: whose held-out scene is replayed.
+        episodes: how many episodes.
+        seed: which seeded list of episodes (0 = the reported one).
+        out_dir: where to write ``episodes.csv`` and ``summary.json`` (atomically), or None.
+        env_overrides: environment settings on top of the run's own.
+        require_pedestrians: keep only episodes in which a pedestrian comes near the straight path.
+        n_envs: environments stepped in lockstep (only speed changes).
+        which: ``best`` or ``final`` model of a run folder.
+        progress: show a progress bar.
+
+    Returns:
+        the summary (see :func:`summarise`) plus ``policy``, ``predictor``, ``split``, ``seed``,
+        ``require_pedestrians``, ``env`` (the settings given to the environments) and ``seconds``.
+    """
+    from envs.crowd_nav import CrowdNavEnv
+
+    if predictor not in FORECAST_SOURCES:
+        raise ValueError(f"unknown predictor {predictor!r}; valid: {', '.join(FORECAST_SOURCES)}")
+    if n_envs < 1:
+        raise ValueError(f"n_envs must be >= 1, got {n_envs!r}")
+    started = time.perf_counter()
+    kwargs = evaluation_env_kwargs(spec, predictor, split, env_overrides, require_pedestrians)
+    config = config_from(kwargs, {})
+    policy = load_policy(spec, config, which)
+    prepare_forecasts(kwargs, progress=progress)
+    envs = [CrowdNavEnv(**kwargs) for _ in range(max(1, min(n_envs, episodes)))]
+    check_spaces(policy, envs[0])
+    share_forecasts(envs)
+    try:
+        rows = run_episodes(policy, envs, evaluation_seeds(split, episodes, seed), progress=progress)
+    finally:
+        for env in envs:
+            env.close()
+    summary = summarise(rows)
+    summary.update(
+        policy=str(spec),
+        model=None if str(spec) in PLANNERS else str(model_path(spec, which)),
+        predictor=predictor,
+        split=split,
+        seed=seed,
+        require_pedestrians=kwargs["require_pedestrians"],
+        env=kwargs,
+        seconds=round(time.perf_counter() - started, 3),
+    )
+    if out_dir is not None:
+        out = Path(out_dir)
+        atomic_write_text(out / "episodes.csv", episodes_csv(rows))
+        atomic_write_json(out / "summary.json", summary)
+    return summary
+
+
+def format_summary(summary: Mapping[str, Any]) -> str:
+    """A short human-readable table of a summary."""
+
+    def ci(key: str) -> str:
+        value = summary.get(key)
+        return "" if not value or value[0] is None else f"  [{value[0]:.3f}, {value[1]:.3f}]"
+
+    lines = [
+        f"{summary.get('policy')} on {summary.get('split')} (held-out scene), forecasts {summary.get('predictor')}, "
+        f"{summary['episodes']} episodes in {summary.get('seconds', 0):.1f} s"
+    ]
+    for name in OUTCOMES:
+        rate = summary.get(f"{name}_rate")
+        lines.append(f"  {name + ' rate':<28}{'-' if rate is None else f'{rate:.3f}'}{ci(f'{name}_ci')}")
+    for metric in METRICS:
+        mean = summary.get(f"{metric}_mean")
+        note = " (successes)" if metric in SUCCESS_ONLY_METRICS else ""
+        lines.append(f"  {metric + note:<28}{'-' if mean is None else f'{mean:.3f}'}{ci(f'{metric}_ci')}")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------- command line
+
+
+def parse_set(items: Sequence[str] | None) -> dict[str, Any]:
+    """``["key=value", ...]`` to a dict, values read as YAML (``1e-4``, ``true``, ``[64, 64]``, ``null``)."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in items or ():
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set expects key=value, got {item!r}")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
+def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("policy", help="a run folder of agents.train, an SB3 .zip, 'planner' or 'straight'")
+    p.add_argument("--predictor", default="mesrnn", choices=FORECAST_SOURCES, help="forecast arm (default: mesrnn)")
+    p.add_argument("--split", default="zara1", choices=SPLITS, help="its held-out scene is replayed (default: zara1)")
+    p.add_argument("--episodes", type=int, default=500, help="number of episodes (default: 500)")
+    p.add_argument("--seed", type=int, default=0, help="which seeded list of episodes (default: 0)")
+    p.add_argument("--out", default=None, help="folder for episodes.csv and summary.json")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument(
+        "--all-episodes",
+        action="store_true",
+        help="keep episodes in which no pedestrian comes near the path (default: require one)",
+    )
+    p.add_argument("--model", default="best", choices=RUN_MODELS, help="model of a run folder (default: best)")
+    p.add_argument("--n-envs", type=int, default=4, help="environments stepped in lockstep (default: 4)")
+    p.add_argument("--set", dest="env_set", action="append", metavar="KEY=VALUE", help="environment setting override")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    import torch
+
+    torch.set_num_threads(1)
+    summary = evaluate(
+        args.policy,
+        args.predictor,
+        args.split,
+        args.episodes,
+        seed=args.seed,
+        out_dir=args.out,
+        env_overrides=parse_set(args.env_set),
+        require_pedestrians=not args.all_episodes,
+        n_envs=args.n_envs,
+        which=args.model,
+        progress=not (args.no_progress or args.json),
+    )
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(format_summary(summary))
+        if args.out:
+            print(f"wrote {Path(args.out) / 'episodes.csv'} and {Path(args.out) / 'summary.json'}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from agents.cli import module_main
+
+    return module_main("python -m agents.evaluate", __doc__, add_evaluate_arguments, run_from_args, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,264 @@
+"""Behaviour-cloning warm start: fit an SB3 policy to a planner's actions before reinforcement learning.
+
+The teacher (the sampling planner by default) drives training-environment episodes with the same
+observation the policy gets (the same forecast arm). The policy's action mean is then fitted to the
+teacher's actions with a plain supervised loss, and optionally its value function to the teacher
+episodes' discounted Monte-Carlo returns, so RL starts from a policy that already avoids most
+collisions instead of from the standstill that the early reward favours. The whole procedure is
+deterministic given the seed.
+
+- PPO (``ActorCriticPolicy``): loss on the Gaussian's mean (``mse``: mean squared error to the
+  teacher action; ``nll``: the Gaussian's negative log-likelihood of it); ``value`` fits
+  ``predict_values``; then ``log_std`` is set to the configured value (exploration around the
+  cloned behaviour).
+- SAC: the actor's deterministic (squashed) action is fitted; ``value`` fits both critics
+  ``Q(s, a_teacher)`` to the returns and copies them to the target critics; ``log_std`` does not
+  apply (SAC's standard deviation depends on the state and is learned with its entropy target).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Final
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from agents.evaluate import run_episodes, share_forecasts
+from agents.planners import PLANNERS, make_planner
+from envs.config import config_from
+
+#: Losses of the action fit.
+ACTION_LOSSES: Final[tuple[str, ...]] = ("mse", "nll")
+
+
+@dataclass(frozen=True)
+class PretrainConfig:
+    """The ``pretrain:`` section of a training config (None there = no warm start)."""
+
+    teacher: str = "planner"
+    """``planner`` (the sampling planner) or ``straight``."""
+    teacher_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Options of the teacher (e.g. ``headings_deg``, ``margin_m`` of the sampling planner)."""
+    episodes: int = 200
+    """Teacher episodes on the training environments (part ``train``, ``episode_time="train"``)."""
+    n_envs: int = 4
+    """Environments the teacher drives in lockstep in the main process (speed only)."""
+    epochs: int = 10
+    """Passes over the teacher's transitions."""
+    batch_size: int = 256
+    """Transitions per gradient step."""
+    lr: float = 1e-3
+    """Adam learning rate of the warm start (a fresh optimiser; the algorithm's own is untouched)."""
+    loss: str = "mse"
+    """Action loss: ``mse`` on the action mean or ``nll`` (Gaussian negative log-likelihood; PPO only)."""
+    value: bool = True
+    """Also fit the value function (PPO) or critics (SAC) to discounted Monte-Carlo returns (gamma of the algorithm)."""
+    value_coef: float = 0.5
+    """Weight of the value loss (Huber) against the action loss; PPO shares the extractor between both."""
+    log_std: float | None = -1.0
+    """PPO: set the action log standard deviation to this afterwards (None keeps it)."""
+
+    def validate(self) -> PretrainConfig:
+        from crowdnav_mesrnn.config import ConfigError
+
+        if self.teacher not in PLANNERS:
+            raise ConfigError(f"unknown pretrain teacher {self.teacher!r}; valid: {', '.join(PLANNERS)}")
+        if self.loss not in ACTION_LOSSES:
+            raise ConfigError(f"unknown pretrain loss {self.loss!r}; valid: {', '.join(ACTION_LOSSES)}")
+        for key in ("episodes", "n_envs", "epochs", "batch_size"):
+            value = getattr(self, key)
+            if not isinstance(value, int) or isinstance(value, bool) or value < (0 if key == "episodes" else 1):
+                raise ConfigError(f"pretrain key {key!r} must be a positive integer, got {value!r}")
+        if not (isinstance(self.lr, int | float) and math.isfinite(self.lr) and self.lr > 0):
+            raise ConfigError(f"pretrain key 'lr' must be a positive number, got {self.lr!r}")
+        if not isinstance(self.teacher_kwargs, Mapping):
+            raise ConfigError(f"pretrain key 'teacher_kwargs' must be a mapping, got {self.teacher_kwargs!r}")
+        return self
+
+
+def teacher_seeds(seed: int, episodes: int) -> list[int]:
+    """Seeds of the teacher episodes (a stream of their own, distinct from evaluation lists)."""
+    rng = np.random.default_rng([int(seed), 0x5EED, 7])
+    return [int(s) for s in rng.integers(0, 2**31, size=episodes)]
+
+
+def discounted_returns(rewards: list[float], gamma: float) -> np.ndarray:
+    """``G_t = r_t + gamma * G_{t+1}`` with ``G`` after the last step 0 (``(T,)``)."""
+    out = np.zeros(len(rewards), dtype=np.float64)
+    acc = 0.0
+    for t in range(len(rewards) - 1, -1, -1):
+        acc = rewards[t] + gamma * acc
+        out[t] = acc
+    return out
+
+
+@dataclass
+class TeacherData:
+    """Transitions of the teacher's episodes: observations (dict of ``(N, ...)``), actions ``(N, 2)``,
+    Monte-Carlo returns ``(N,)``, and the episodes' outcomes."""
+
+    observations: dict[str, np.ndarray]
+    actions: np.ndarray
+    returns: np.ndarray
+    outcomes: list[str]
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+def collect_teacher(
+    cfg: PretrainConfig, env_kwargs: Mapping[str, Any], seed: int, gamma: float, progress: bool = False
+) -> TeacherData:
+    """Run the teacher on ``cfg.episodes`` training episodes and gather its transitions."""
+    from envs.crowd_nav import CrowdNavEnv
+
+    env_cfg = config_from(dict(env_kwargs), {})
+    teacher = make_planner(cfg.teacher, env_cfg, **dict(cfg.teacher_kwargs))
+    envs = [CrowdNavEnv(**dict(env_kwargs)) for _ in range(max(1, min(cfg.n_envs, cfg.episodes)))]
+    share_forecasts(envs)
+    per_episode: dict[int, tuple[list[dict[str, np.ndarray]], list[np.ndarray], list[float]]] = {}
+
+    def record(k: int, obs: Mapping[str, np.ndarray], action: np.ndarray, reward: float, *_: bool) -> None:
+        obs_list, act_list, rew_list = per_episode.setdefault(k, ([], [], []))
+        obs_list.append(dict(obs))
+        act_list.append(np.asarray(action, dtype=np.float32))
+        rew_list.append(reward)
+
+    try:
+        rows = run_episodes(teacher, envs, teacher_seeds(seed, cfg.episodes), on_step=record, progress=progress)
+    finally:
+        for env in envs:
+            env.close()
+    observations: list[dict[str, np.ndarray]] = []
+    actions: list[np.ndarray] = []
+    returns: list[np.ndarray] = []
+    for k in sorted(per_episode):
+        obs_list, act_list, rew_list = per_episode[k]
+        observations.extend(obs_list)
+        actions.extend(act_list)
+        returns.append(discounted_returns(rew_list, gamma))
+    if not actions:
+        raise ValueError("the teacher produced no transitions (pretrain.episodes = 0?)")
+    stacked = {key: np.stack([o[key] for o in observations]) for key in observations[0]}
+    return TeacherData(stacked, np.stack(actions), np.concatenate(returns), [str(r["outcome"]) for r in rows])
+
+
+def _action_loss(policy: Any, obs: dict[str, torch.Tensor], target: torch.Tensor, loss: str) -> torch.Tensor:
+    from stable_baselines3.common.policies import ActorCriticPolicy
+
+    if isinstance(policy, ActorCriticPolicy):
+        dist = policy.get_distribution(obs)
+        if loss == "nll":
+            return -dist.log_prob(target).mean()
+        return F.mse_loss(dist.distribution.mean, target)
+    if loss == "nll":
+        raise ValueError("pretrain loss 'nll' is for PPO policies; use 'mse' with SAC")
+    return F.mse_loss(policy.actor(obs, deterministic=True), target)
+
+
+def _value_loss(
+    policy: Any, obs: dict[str, torch.Tensor], actions: torch.Tensor, returns: torch.Tensor
+) -> torch.Tensor:
+    from stable_baselines3.common.policies import ActorCriticPolicy
+
+    if isinstance(policy, ActorCriticPolicy):
+        return F.smooth_l1_loss(policy.predict_values(obs).squeeze(-1), returns)
+    qs = policy.critic(obs, actions)
+    return sum(F.smooth_l1_loss(q.squeeze(-1), returns) for q in qs) / len(qs)
+
+
+def fit_policy(
+    model: Any, data: TeacherData, cfg: PretrainConfig, seed: int, vecnormalize: Any = None
+) -> dict[str, float]:
+    """Fit ``model.policy`` to the teacher's data (in place); returns the first and last epochs' mean losses.
+
+    With ``vecnormalize``, its observation statistics are first updated with the teacher's observations and the
+    policy is fitted on normalised observations (as it will see them in training).
+    """
+    from stable_baselines3.common.policies import ActorCriticPolicy
+
+    policy = model.policy
+    obs_np = data.observations
+    if vecnormalize is not None:
+        for key in vecnormalize.norm_obs_keys or []:
+            vecnormalize.obs_rms[key].update(obs_np[key])
+        obs_np = vecnormalize.normalize_obs(dict(obs_np))
+    device = policy.device
+    obs_all = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32, device=device) for k, v in obs_np.items()}
+    act_all = torch.as_tensor(np.clip(data.actions, -1.0, 1.0), device=device)
+    ret_all = torch.as_tensor(data.returns, dtype=torch.float32, device=device)
+    params = list(policy.parameters())
+    if not isinstance(policy, ActorCriticPolicy):  # SAC: the targets follow the critics, not the optimiser
+        target_ids = {id(p) for p in policy.critic_target.parameters()}
+        params = [p for p in params if id(p) not in target_ids]
+    optimiser = torch.optim.Adam(params, lr=cfg.lr)
+    gen = torch.Generator().manual_seed(int(seed))
+    n = len(data)
+    history: list[float] = []
+    policy.set_training_mode(True)
+    for _ in range(cfg.epochs):
+        order = torch.randperm(n, generator=gen)
+        total, batches = 0.0, 0
+        for start in range(0, n, cfg.batch_size):
+            idx = order[start : start + cfg.batch_size].to(device)
+            obs = {k: v[idx] for k, v in obs_all.items()}
+            loss = _action_loss(policy, obs, act_all[idx], cfg.loss)
+            if cfg.value:
+                loss = loss + cfg.value_coef * _value_loss(policy, obs, act_all[idx], ret_all[idx])
+            optimiser.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, 1.0)
+            optimiser.step()
+            total += float(loss.detach())
+            batches += 1
+        history.append(total / max(batches, 1))
+    policy.set_training_mode(False)
+    if isinstance(policy, ActorCriticPolicy):
+        if cfg.log_std is not None and hasattr(policy, "log_std") and isinstance(policy.log_std, torch.nn.Parameter):
+            with torch.no_grad():
+                policy.log_std.fill_(float(cfg.log_std))
+    elif cfg.value:
+        policy.critic_target.load_state_dict(policy.critic.state_dict())
+    return {"loss_first_epoch": history[0], "loss_last_epoch": history[-1]}
+
+
+def pretrain(
+    model: Any,
+    cfg: PretrainConfig,
+    env_kwargs: Mapping[str, Any],
+    seed: int,
+    gamma: float,
+    vecnormalize: Any = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Collect the teacher's episodes and fit ``model``'s policy to them (see the module docstring).
+
+    Args:
+        model: an SB3 PPO or SAC model (its policy is changed in place).
+        cfg: the warm-start settings.
+        env_kwargs: keyword arguments of the training environments.
+        seed: seeds the teacher's episodes and the minibatch order.
+        gamma: discount of the Monte-Carlo returns (the algorithm's).
+        vecnormalize: the training ``VecNormalize``, if any.
+        progress: progress bar over the teacher's episodes.
+
+    Returns:
+        statistics: teacher episodes, transitions, success rate, losses, seconds.
+    """
+    started = time.perf_counter()
+    torch.manual_seed(int(seed))
+    data = collect_teacher(cfg, env_kwargs, seed, gamma, progress=progress)
+    losses = fit_policy(model, data, cfg, seed, vecnormalize)
+    return {
+        "teacher": cfg.teacher,
+        "episodes": len(data.outcomes),
+        "transitions": len(data),
+        "teacher_success_rate": sum(o == "success" for o in data.outcomes) / max(len(data.outcomes), 1),
+        **losses,
+        "seconds": round(time.perf_counter() - started, 3),
+    }

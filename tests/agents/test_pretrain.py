@@ -1,0 +1,63 @@
+"""Behaviour-cloning warm start: the policy moves towards the teacher, deterministically, for PPO and SAC."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from agents.pretrain import PretrainConfig, collect_teacher, discounted_returns, fit_policy
+from agents.train import algorithm_kwargs, load_train_config, make_vec_env, policy_class
+
+ENV = {"predictor": "cv", "crowd": "synthetic", "part": "train", "episode_time": "train", "observe_time_left": True}
+
+
+def tiny_model(algo: str, config_of: Any, tiny: Any) -> Any:
+    from stable_baselines3 import PPO, SAC
+
+    cfg = load_train_config(config_of(algo), None, tiny(algo, "cv", vec_env="dummy"))
+    venv = make_vec_env(cfg)
+    cls = {"ppo": PPO, "sac": SAC}[algo]
+    return cls(policy_class(cfg.policy), venv, seed=0, device="cpu", **algorithm_kwargs(cfg))
+
+
+def action_error(model: Any, data: Any) -> float:
+    actions, _ = model.predict(data.observations, deterministic=True)
+    return float(np.mean((actions - np.clip(data.actions, -1, 1)) ** 2))
+
+
+def test_discounted_returns() -> None:
+    np.testing.assert_allclose(discounted_returns([1.0, 0.0, 2.0], 0.5), [1.5, 1.0, 2.0])
+
+
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_pretraining_brings_the_policy_closer_to_the_teacher(algo: str, config_of: Any, tiny: Any) -> None:
+    torch.manual_seed(0)
+    cfg = PretrainConfig(episodes=8, epochs=15, batch_size=64, lr=3e-3)
+    data = collect_teacher(cfg, ENV, seed=0, gamma=0.99)
+    assert 100 <= len(data) <= 1000 and data.actions.shape == (len(data), 2)
+    model = tiny_model(algo, config_of, tiny)
+    before = action_error(model, data)
+    stats = fit_policy(model, data, cfg, seed=0)
+    after = action_error(model, data)
+    assert after < 0.5 * before, (before, after)
+    assert stats["loss_last_epoch"] < stats["loss_first_epoch"]
+    if algo == "ppo":
+        assert torch.allclose(model.policy.log_std, torch.full_like(model.policy.log_std, -1.0))
+    else:  # the target critics follow the fitted critics
+        for p, q in zip(model.policy.critic.parameters(), model.policy.critic_target.parameters(), strict=True):
+            assert torch.equal(p, q)
+
+
+def test_pretraining_is_deterministic_given_the_seed(config_of: Any, tiny: Any) -> None:
+    cfg = PretrainConfig(episodes=3, epochs=2, batch_size=32)
+    params = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        data = collect_teacher(cfg, ENV, seed=5, gamma=0.99)
+        model = tiny_model("ppo", config_of, tiny)
+        fit_policy(model, data, cfg, seed=5)
+        params.append(torch.cat([p.detach().flatten() for p in model.policy.parameters()]))
+    assert torch.equal(params[0], params[1])

@@ -1,0 +1,186 @@
+"""Training configs (RL Zoo layout, overrides, validation) and short real PPO/SAC runs per forecast arm."""
+
+from __future__ import annotations
+
+import csv
+import inspect
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from agents.train import (
+    ENV_ID_OF,
+    PROJECT_KEY,
+    ZOO_KEYS,
+    LinearSchedule,
+    algorithm_kwargs,
+    load_train_config,
+    policy_class,
+    train,
+)
+from crowdnav_mesrnn.config import ConfigError
+
+ARMS = ("none", "cv", "mesrnn", "oracle")
+REPO = Path(__file__).resolve().parents[2]
+PPO_YAML = REPO / "configs" / "agent" / "ppo.yaml"
+SAC_YAML = REPO / "configs" / "agent" / "sac.yaml"
+RUN_FILES = (
+    "config.yaml",
+    "command.txt",
+    "version.txt",
+    "progress.csv",
+    "evaluations.csv",
+    "best_model.zip",
+    "final_model.zip",
+    "DONE",
+)
+
+
+@pytest.mark.parametrize("path", [PPO_YAML, SAC_YAML])
+def test_config_files_are_rl_zoo_entries_per_env_id(path: Path) -> None:
+    """What RL Zoo does with an entry: drop its own keys and pass the rest to the algorithm's constructor."""
+    from stable_baselines3 import PPO, SAC
+
+    raw = yaml.safe_load(path.read_text())
+    algo = raw[PROJECT_KEY]["algo"]
+    params = inspect.signature({"ppo": PPO, "sac": SAC}[algo].__init__).parameters
+    for env_id in set(ENV_ID_OF.values()):
+        entry = dict(raw[env_id])
+        assert entry == raw["CrowdNav-MESRNN-v0"]  # every arm the same hyperparameters
+        assert isinstance(entry["policy_kwargs"], dict)  # plain data (RL Zoo would eval a string)
+        assert policy_class(entry["policy"]).__module__ == "agents.extractors"
+        for key in ZOO_KEYS:
+            entry.pop(key, None)
+        assert set(entry) <= set(params), set(entry) - set(params)
+
+
+def test_overrides_go_to_the_entry_or_the_project_section() -> None:
+    cfg = load_train_config(
+        PPO_YAML,
+        None,
+        {
+            "predictor": "cv",
+            "split": "univ",
+            "seed": 3,
+            "learning_rate": "lin_1e-3",
+            "env.time_penalty": -0.01,
+            "eval.episodes": 7,
+            "policy_kwargs.net_arch": [32],
+            "pretrain.episodes": 5,
+        },
+    )
+    assert (cfg.algo, cfg.env_id, cfg.predictor, cfg.split, cfg.seed) == ("ppo", "CrowdNav-CV-v0", "cv", "univ", 3)
+    assert cfg.env["time_penalty"] == -0.01 and cfg.env["observe_time_left"] is True
+    assert cfg.eval.episodes == 7 and cfg.policy_kwargs["net_arch"] == [32]
+    assert cfg.policy_kwargs["features_extractor_kwargs"]["hidden_dim"] == 64  # siblings kept
+    assert cfg.pretrain is not None and cfg.pretrain.episodes == 5 and cfg.pretrain.teacher == "planner"
+    kwargs = algorithm_kwargs(cfg)
+    assert isinstance(kwargs["learning_rate"], LinearSchedule) and kwargs["learning_rate"](0.5) == 5e-4
+    assert cfg.env_kwargs("val") == {
+        **cfg.env,
+        "predictor": "cv",
+        "split": "univ",
+        "part": "train",
+        "episode_time": "val",
+    }
+    # a second load is unaffected (the YAML aliases are copied, not shared)
+    assert load_train_config(PPO_YAML).policy_kwargs["net_arch"] == {"pi": [64, 64], "vf": [64, 64]}
+    assert load_train_config(PPO_YAML, None, {"predictor": "srnn"}).env_id == "CrowdNav-MESRNN-v0"
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"learning_rat": 1e-3}, "learning_rat"),
+        ({"env.colision_penalty": -1}, "colision_penalty"),
+        ({"env.predictor": "cv"}, "set by the run"),
+        ({"env.time_penalty": "x"}, "time_penalty"),
+        ({"eval.episode": 3}, "episode"),
+        ({"pretrain.teacher": "ppo"}, "teacher"),
+        ({"policy_kwargs": "dict(net_arch=[64])"}, "eval"),
+        ({"n_timesteps": -5}, "n_timesteps"),
+        ({"predictor": "lstm"}, "predictor"),
+        ({"vec_env": "ray"}, "vec_env"),
+        ({"frame_stack": 4}, "frame_stack"),
+    ],
+)
+def test_bad_configs_name_the_key(overrides: dict, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        load_train_config(PPO_YAML, None, overrides)
+
+
+def test_missing_entry_lists_the_entries(tmp_path: Path) -> None:
+    path = tmp_path / "x.yaml"
+    path.write_text("CrowdNav-CV-v0: {n_timesteps: 10, policy: MultiInputPolicy}\ncrowdnav_mesrnn: {algo: ppo}\n")
+    with pytest.raises(ConfigError, match="CrowdNav-CV-v0"):
+        load_train_config(path)
+    assert load_train_config(path, None, {"predictor": "cv"}).policy == "MultiInputPolicy"
+
+
+def _check_run_folder(run: Path, steps: int, predictor: str) -> None:
+    for name in RUN_FILES:
+        assert (run / name).is_file(), name
+    assert json.loads((run / "DONE").read_text())["steps"] == steps
+    saved = yaml.safe_load((run / "config.yaml").read_text())
+    assert saved[PROJECT_KEY]["run"]["predictor"] == predictor
+    assert saved[PROJECT_KEY]["run"]["env_resolved"]["episode_time"] == "train"
+    if predictor == "mesrnn":
+        weights = saved[PROJECT_KEY]["run"]["predictor_weights_sha256"]
+        assert weights and all(len(v) == 64 for v in weights.values())
+    with open(run / "progress.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    logged = [float(r["time/total_timesteps"]) for r in rows if r.get("time/total_timesteps")]
+    assert logged == sorted(logged) and logged[-1] <= steps
+    latest = json.loads((run / "checkpoints" / "latest.json").read_text())
+    assert latest["steps"] == steps
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+@pytest.mark.parametrize("predictor", ARMS)
+def test_short_run_writes_a_complete_folder_and_resumes(tmp_path: Path, algo: str, predictor: str, tiny: Any) -> None:
+    path = PPO_YAML if algo == "ppo" else SAC_YAML
+    run = tmp_path / "run"
+    cfg = load_train_config(path, None, tiny(algo, predictor, steps=128))
+    assert train(cfg, run, progress=False, command="pytest") == run
+    _check_run_folder(run, 128, predictor)
+    evaluations = (run / "evaluations.csv").read_text().splitlines()
+    assert len(evaluations) == 1 + 2  # validations at 64 and 128 steps
+
+    more = load_train_config(path, None, tiny(algo, predictor, steps=192))
+    train(more, run, resume=True, progress=False, command="pytest --resume")
+    _check_run_folder(run, 192, predictor)
+    assert "resumed from step_0000000128" in (run / "command.txt").read_text()
+    with open(run / "evaluations.csv", newline="") as fh:
+        assert [int(r["step"]) for r in csv.DictReader(fh)] == [64, 128, 192]
+
+
+def test_a_finished_or_foreign_folder_is_not_overwritten(tiny_ppo_run: Path, tmp_path: Path, tiny: Any) -> None:
+    cfg = load_train_config(PPO_YAML, None, tiny("ppo", "none"))
+    with pytest.raises(ConfigError, match="finished"):
+        train(cfg, tiny_ppo_run, progress=False)
+    assert train(cfg, tiny_ppo_run, resume=True, progress=False) == tiny_ppo_run  # nothing left to do
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(ConfigError, match="not empty"):
+        train(cfg, tmp_path / "other", progress=False)
+    other = load_train_config(PPO_YAML, None, tiny("ppo", "none", steps=256, learning_rate=1e-3))
+    with pytest.raises(ConfigError, match="learning_rate"):
+        train(other, tiny_ppo_run, resume=True, progress=False)
+
+
+def test_command_line_trains_and_resumes(tmp_path: Path, tiny: Any) -> None:
+    from agents.train import main
+
+    run = tmp_path / "cli"
+    sets = [f"--set={k}={json.dumps(v)}" for k, v in tiny("ppo", "cv", steps=64).items() if k != "predictor"]
+    args = ["--config", str(PPO_YAML), "--predictor", "cv", "--seed", "1", "--out", str(run), "--no-progress"]
+    assert main([*args, *sets]) == 0
+    assert (run / "DONE").is_file()
+    assert "--predictor cv" in (run / "command.txt").read_text()
+    assert main(["--out", str(run), "--resume", "--timesteps", "128", "--no-progress"]) == 0
+    assert json.loads((run / "DONE").read_text())["steps"] == 128
+    assert main(["--config", str(PPO_YAML), "--set", "learning_rat=1"]) == 2
