@@ -112,7 +112,14 @@ class CrowdNavConfig:
 
     # ----------------------------------------------------------------- forecasts
     cache_forecasts: bool = True
-    """Memoise forecasts per (recording, time); identical to the online path (replayed pedestrians ignore the robot)."""
+    """Keep forecasts per recording (chunks of annotation frames, computed in batched passes) instead of computing
+    each when needed; identical to the online path (replayed pedestrians ignore the robot)."""
+    forecast_disk_cache: bool = True
+    """Share learned forecasts between processes through files in ``forecast_cache_dir`` (with
+    ``cache_forecasts``): computed once per (weights, recording, settings), loaded by every later process."""
+    forecast_cache_dir: str | None = None
+    """Folder of the shared forecast cache; default: ``$CROWDNAV_MESRNN_CACHE``, else
+    ``~/.cache/crowdnav-mesrnn/forecasts``."""
     forecast_memory: str = "window"
     """How a learned predictor remembers the past. ``window`` (the evaluated protocol, as in training and
     ADE/FDE): at every time a fresh rollout from the last 8 annotation steps (3.2 s; 5.3 s on ``biwi_eth``).

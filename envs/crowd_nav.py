@@ -26,6 +26,7 @@ from envs.crowds import (
     empty_recording,
     synthetic_recording,
 )
+from envs.forecast_cache import ForecastStore, cache_root
 from envs.forecasts import (
     ForecastModel,
     ForecastSource,
@@ -208,6 +209,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             cfg.cache_forecasts,
             cfg.noisy_oracle_ade_m,
             cfg.forecast_memory,
+            ForecastStore(cache_root(cfg.forecast_cache_dir)) if cfg.forecast_disk_cache else None,
         )
         self.predictor_name = self.forecaster.name
         self.with_forecasts = self.forecaster.active
@@ -330,9 +332,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if not isinstance(self.forecaster, PredictorForecast) or not self.config.cache_forecasts:
             return 0
         recs = self.recordings if recording is None else [self.sampler.recording_named(recording)]
-        for rec in recs:
-            self.forecaster.table(rec)
-        return self.forecaster.cache_size
+        return sum(self.forecaster.table(rec) for rec in recs)
 
     def reset_timings(self) -> None:
         self.timings = dict.fromkeys(TIMING_KEYS, 0.0)

@@ -31,6 +31,16 @@ from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, SPLIT_TEST_RECORDI
 from crowdnav_mesrnn.data.recordings import Recording
 from envs.config import FORECAST_MEMORIES, LEARNED_SOURCES
 from envs.crowds import TIME_TOL_S, Replay
+from envs.forecast_cache import (
+    CHUNK_FRAMES,
+    ForecastStore,
+    FrameTable,
+    TableKey,
+    chunk_frames,
+    num_chunks,
+    predictor_fingerprint,
+    recording_fingerprint,
+)
 
 
 class PredictorUnavailableError(FileNotFoundError):
@@ -180,43 +190,6 @@ class NoisyOracleForecast(ForecastSource):
         return truth.positions + self.ramp * z
 
 
-@dataclass(frozen=True)
-class FrameTable:
-    """A recording's forecasts at every one of its annotation frames (what a cache holds).
-
-    Attributes:
-        offsets: ``(F + 1,)``: the entries of frame ``i`` are ``offsets[i]:offsets[i + 1]``.
-        columns: ``(M,)`` recording columns of the pedestrians present at each frame, ascending per frame.
-        forecasts: ``(M, P, 2)`` float32 metres at ``tau_i + j * step_s`` (j = 1..P) of frame ``i``'s time ``tau_i``.
-    """
-
-    offsets: np.ndarray
-    columns: np.ndarray
-    forecasts: np.ndarray
-
-    @classmethod
-    def from_frames(cls, parts: list[tuple[np.ndarray, np.ndarray]], pred_len: int) -> FrameTable:
-        """From ``[(columns (n_i,), forecasts (n_i, P, 2)), ...]``, one per frame in order."""
-        sizes = np.array([len(c) for c, _ in parts], dtype=np.int64)
-        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-        cols = np.concatenate([c for c, _ in parts]).astype(np.int64) if parts else np.zeros(0, np.int64)
-        fcs = (
-            np.concatenate([f for _, f in parts]).astype(np.float32)
-            if parts
-            else np.zeros((0, pred_len, 2), np.float32)
-        )
-        return cls(offsets, cols, fcs)
-
-    @property
-    def num_frames(self) -> int:
-        return len(self.offsets) - 1
-
-    def at(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(columns (n,), forecasts (n, P, 2))`` of frame ``i``."""
-        a, b = self.offsets[i], self.offsets[i + 1]
-        return self.columns[a:b], self.forecasts[a:b]
-
-
 class PredictorForecast(ForecastSource):
     """Forecasts of a trajectory predictor (``forecast(history (8, N, 2), mask (8, N)) -> (N, 12, 2)``), causal.
 
@@ -227,16 +200,25 @@ class PredictorForecast(ForecastSource):
     interpolation shifted by ``t - tau``, non-zero between ``biwi_eth`` annotations). Nothing annotated after
     ``tau`` enters.
 
-    Forecasts therefore depend only on (predictor, recording, annotation frame): with ``cache=True`` a
-    recording's forecasts at all its frames form a :class:`FrameTable`, computed on first use; with ``cache=False``
-    each frame is computed when an env time needs it. Both give identical forecasts.
+    Forecasts therefore depend only on (predictor, recording, annotation frame). With ``cache=True`` they are
+    kept per chunk of :data:`~envs.forecast_cache.CHUNK_FRAMES` frames (:class:`FrameTable`): a chunk is loaded
+    from the shared disk cache (``store``) or computed in one batched pass (the pedestrians of all its frames
+    at once, padded and masked, for predictors with ``predict_batch``) and written there. With ``cache=False``
+    each frame is computed alone when an env time needs it (the reference path). Both give identical forecasts.
 
     Args:
         name: source name.
         predictors: recording name -> predictor; ``default`` is used for any other recording.
         dt_s: environment step, seconds.
         horizon: H, environment steps.
-        cache: keep per-recording frame tables (and the resampled forecasts per time).
+        cache: keep the forecasts (per chunk of frames, and resampled per time).
+        store: the shared disk cache (None: memory only). Predictors without weights to hash
+            (:func:`~envs.forecast_cache.predictor_fingerprint`) are kept in memory only.
+
+    Attributes:
+        calls: frames forecast by the predictor in this process (each once when caching).
+        chunks_loaded: chunks read from the disk cache.
+        chunks_computed: chunks computed here.
     """
 
     def __init__(
@@ -247,6 +229,7 @@ class PredictorForecast(ForecastSource):
         dt_s: float,
         horizon: int,
         cache: bool = True,
+        store: ForecastStore | None = None,
     ) -> None:
         self.name = name
         self.memory = "window"
@@ -255,12 +238,15 @@ class PredictorForecast(ForecastSource):
         self.dt_s = dt_s
         self.horizon = horizon
         self.use_cache = cache
+        self.store = store if cache else None
         self._cache: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
-        self._tables: dict[str, tuple[Recording, FrameTable]] = {}
+        self._chunks: dict[tuple[str, int], FrameTable] = {}
+        self._keys: dict[str, tuple[Recording, TableKey | None]] = {}
         self._full: dict[str, Replay] = {}
         self._weights: dict[tuple[float, int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.calls = 0
-        """Frames forecast by the predictor so far (one per frame and table build, or per online request)."""
+        self.chunks_loaded = 0
+        self.chunks_computed = 0
 
     def predictor_for(self, recording: str) -> ForecastModel:
         model = self.predictors.get(recording, self.default)
@@ -269,63 +255,157 @@ class PredictorForecast(ForecastSource):
         return model
 
     def clear_cache(self) -> None:
+        """Forget what is held in memory (the disk cache stays)."""
         self._cache.clear()
-        self._tables.clear()
+        self._chunks.clear()
+        self._keys.clear()
 
     @property
     def cache_size(self) -> int:
-        """Annotation frames held in tables."""
-        return sum(t.num_frames for _, t in self._tables.values())
+        """Annotation frames held in memory."""
+        return sum(t.num_frames for t in self._chunks.values())
 
     # ------------------------------------------------------------------ frames
 
-    def _pred_len(self, recording: Recording) -> int:
-        return int(getattr(self.predictor_for(recording.name), "pred_len", PRED_LEN))
-
-    def compute_frame(self, recording: Recording, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(columns (n,), forecasts (n, P, 2) float32)`` at annotation frame ``i`` for the pedestrians present there,
-        from the histories of the ``obs_len`` annotation steps up to the frame's time."""
+    def _model_sizes(self, recording: Recording) -> tuple[ForecastModel, int, int]:
         model = self.predictor_for(recording.name)
-        obs_len = int(getattr(model, "obs_len", OBS_LEN))
-        pred_len = self._pred_len(recording)
+        return model, int(getattr(model, "obs_len", OBS_LEN)), int(getattr(model, "pred_len", PRED_LEN))
+
+    def _full_replay(self, recording: Recording) -> Replay:
         full = self._full.get(recording.name)
         if full is None or full.recording is not recording:
             full = self._full[recording.name] = Replay(recording)
-        tau = float(full.times[i])
-        pos, present = full.positions_at(tau - recording.step_s * np.arange(obs_len - 1, -1, -1))
-        seen = np.flatnonzero(present.any(axis=0))
-        now = present[-1, seen]
+        return full
+
+    def _histories(
+        self, recording: Recording, frames: range, obs_len: int
+    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Per frame: ``(seen columns, history (obs_len, n, 2) float32, mask (obs_len, n), present now (n,))``
+        from the ``obs_len`` annotation steps up to the frame's time (absent entries are 0)."""
+        full = self._full_replay(recording)
+        back = recording.step_s * np.arange(obs_len - 1, -1, -1)
+        times = (full.times[frames.start : frames.stop, None] - back[None, :]).reshape(-1)
+        pos, present = full.positions_at(times)
+        out = []
+        for k in range(len(frames)):
+            rows = slice(k * obs_len, (k + 1) * obs_len)
+            seen = np.flatnonzero(present[rows].any(axis=0))
+            mask = present[rows][:, seen]
+            history = pos[rows][:, seen].astype(np.float32)
+            history[~mask] = 0.0
+            out.append((full.columns[seen], history, mask, mask[-1]))
+        return out
+
+    def _checked(self, model: ForecastModel, pred: np.ndarray, n: int, pred_len: int) -> np.ndarray:
+        if pred.shape != (n, pred_len, 2):
+            raise ValueError(
+                f"predictor {getattr(model, 'name', model)!r} returned shape {pred.shape}, expected {(n, pred_len, 2)}"
+            )
+        return pred
+
+    def compute_frame(self, recording: Recording, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(columns (n,), forecasts (n, P, 2) float32)`` at annotation frame ``i`` for the pedestrians present there,
+        from the histories of the ``obs_len`` annotation steps up to the frame's time (one predictor call)."""
+        model, obs_len, pred_len = self._model_sizes(recording)
+        [(cols, history, mask, now)] = self._histories(recording, range(i, i + 1), obs_len)
         if not now.any():
             return np.zeros(0, dtype=np.int64), np.zeros((0, pred_len, 2), np.float32)
-        history = pos[:, seen].astype(np.float32)
-        mask = present[:, seen]
-        history[~mask] = 0.0
         self.calls += 1
-        pred = np.asarray(model.forecast(history, mask))
-        if pred.shape != (len(seen), pred_len, 2):
-            raise ValueError(
-                f"predictor {getattr(model, 'name', model)!r} returned shape {pred.shape}, expected {(len(seen), pred_len, 2)}"
-            )
-        return full.columns[seen[now]], np.ascontiguousarray(pred[now], dtype=np.float32)
+        pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(cols), pred_len)
+        return cols[now], np.ascontiguousarray(pred[now], dtype=np.float32)
 
-    def compute_table(self, recording: Recording) -> FrameTable:
-        """The forecasts at every annotation frame of ``recording``."""
-        parts = [self.compute_frame(recording, i) for i in range(len(recording.frames))]
-        return FrameTable.from_frames(parts, self._pred_len(recording))
+    def compute_chunks(self, recording: Recording, chunk: int) -> dict[int, FrameTable]:
+        """Compute chunk ``chunk`` of ``recording`` (a window source needs no other): ``{chunk: table}``.
 
-    def table(self, recording: Recording) -> FrameTable:
-        """The recording's :class:`FrameTable` (computed on first use and kept)."""
-        held = self._tables.get(recording.name)
+        One batched predictor call for all its frames when the predictor has ``predict_batch`` (histories padded
+        to the largest frame and masked, so each frame's pedestrians only see each other); else one call per frame.
+        """
+        model, obs_len, pred_len = self._model_sizes(recording)
+        frames = chunk_frames(recording, chunk)
+        hist = self._histories(recording, frames, obs_len)
+        live = [k for k, h in enumerate(hist) if h[3].any()]
+        preds: dict[int, np.ndarray] = {}
+        batch = getattr(model, "predict_batch", None)
+        if callable(batch) and live:
+            import torch
+
+            width = max(len(hist[k][0]) for k in live)
+            positions = np.zeros((len(live), obs_len, width, 2), np.float32)
+            masks = np.zeros((len(live), obs_len, width), bool)
+            for b, k in enumerate(live):
+                n = len(hist[k][0])
+                positions[b, :, :n], masks[b, :, :n] = hist[k][1], hist[k][2]
+            out = batch(torch.from_numpy(positions), torch.from_numpy(masks)).permute(0, 2, 1, 3).numpy()
+            for b, k in enumerate(live):
+                preds[k] = self._checked(model, out[b, : len(hist[k][0])], len(hist[k][0]), pred_len)
+        else:
+            for k in live:
+                _, history, mask, _ = hist[k]
+                preds[k] = self._checked(model, np.asarray(model.forecast(history, mask)), len(history[0]), pred_len)
+        self.calls += len(live)
+        parts = []
+        for k, (cols, _, _, now) in enumerate(hist):
+            if k in preds:
+                parts.append((cols[now], np.ascontiguousarray(preds[k][now], dtype=np.float32)))
+            else:
+                parts.append((np.zeros(0, dtype=np.int64), np.zeros((0, pred_len, 2), np.float32)))
+        return {chunk: FrameTable.from_frames(parts, pred_len)}
+
+    def table_key(self, recording: Recording) -> TableKey | None:
+        """The disk-cache key of ``recording``'s forecasts (None without a store or weights to hash)."""
+        held = self._keys.get(recording.name)
         if held is not None and held[0] is recording:
             return held[1]
-        table = self.compute_table(recording)
-        self._tables[recording.name] = (recording, table)
-        return table
+        if held is not None:  # another recording under the same name: forget the old one's forecasts
+            self._chunks = {k: v for k, v in self._chunks.items() if k[0] != recording.name}
+            self._cache = {k: v for k, v in self._cache.items() if k[0] != recording.name}
+        key = None
+        if self.store is not None:
+            model, obs_len, pred_len = self._model_sizes(recording)
+            digest = predictor_fingerprint(model)
+            if digest is not None:
+                name = str(getattr(model, "name", self.name))
+                key = TableKey(
+                    name, digest, recording.name, recording_fingerprint(recording), self.memory, obs_len, pred_len
+                )
+        self._keys[recording.name] = (recording, key)
+        return key
+
+    def chunk(self, recording: Recording, chunk: int) -> FrameTable:
+        """Chunk ``chunk`` of the recording's forecasts: from memory, else from the disk cache, else computed (and
+        written to the disk cache; other processes wait for it rather than computing it too)."""
+        key = self.table_key(recording)  # also resets what is held when the recording object changed
+        hit = self._chunks.get((recording.name, chunk))
+        if hit is not None:
+            return hit
+        if key is None or self.store is None:
+            tables = self.compute_chunks(recording, chunk)
+            self.chunks_computed += len(tables)
+        else:
+            with self.store.locked(key, chunk):
+                loaded = self.store.load(key, chunk, recording)
+                if loaded is not None:
+                    tables = {chunk: loaded}
+                    self.chunks_loaded += 1
+                else:
+                    tables = self.compute_chunks(recording, chunk)
+                    self.chunks_computed += len(tables)
+                    for c, table in tables.items():
+                        self.store.save(key, c, table)
+        for c, table in tables.items():
+            self._chunks[(recording.name, c)] = table
+        return tables[chunk]
+
+    def table(self, recording: Recording) -> int:
+        """Make every chunk of the recording available (load or compute); returns the number of frames."""
+        for c in range(num_chunks(recording)):
+            self.chunk(recording, c)
+        return len(recording.frames)
 
     def frame_forecasts(self, recording: Recording, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(columns (n,), forecasts (n, P, 2) float32)`` at annotation frame ``i`` (from the table when caching)."""
+        """``(columns (n,), forecasts (n, P, 2) float32)`` at annotation frame ``i`` (from the chunk when caching)."""
         if self.use_cache:
-            return self.table(recording).at(i)
+            return self.chunk(recording, i // CHUNK_FRAMES).at(i % CHUNK_FRAMES)
         return self.compute_frame(recording, i)
 
     # ------------------------------------------------------------------ env times
@@ -435,7 +515,8 @@ class CarriedPredictorForecast(PredictorForecast):
     time whose latest annotation is frame ``i``. The forecaster only ever sees frames up to ``tau``.
 
     With ``cache=True`` a recording's forecasts at all its frames are computed in one pass on first use
-    (replayed pedestrians ignore the robot). With ``cache=False`` (online) a forecaster per recording
+    (replayed pedestrians ignore the robot), and shared through the disk cache like window forecasts.
+    With ``cache=False`` (online) a forecaster per recording
     advances frame by frame as the env's time does, restarting from the first frame when an episode goes
     back in time. Both feed the same frames in the same order, so they give identical forecasts. Each step
     of the forecaster computes only the pedestrians present at that frame or the one before.
@@ -451,8 +532,9 @@ class CarriedPredictorForecast(PredictorForecast):
         dt_s: float,
         horizon: int,
         cache: bool = True,
+        store: ForecastStore | None = None,
     ) -> None:
-        super().__init__(name, predictors, default, dt_s, horizon, cache)
+        super().__init__(name, predictors, default, dt_s, horizon, cache, store)
         self.memory = "carried"
         for model in [*predictors.values(), *([default] if default is not None else [])]:
             if not callable(getattr(model, "online", None)):
@@ -476,11 +558,15 @@ class CarriedPredictorForecast(PredictorForecast):
         self.calls += walk.calls - before
         return out
 
-    def compute_table(self, recording: Recording) -> FrameTable:
+    def compute_chunks(self, recording: Recording, chunk: int) -> dict[int, FrameTable]:
+        """Every chunk of the recording, in one pass of an online forecaster from its first frame (hidden states
+        cannot start in the middle)."""
         walk = _CarriedWalk(self.predictor_for(recording.name), recording)
-        parts = [walk.at(k) for k in range(len(recording.frames))]
+        out = {}
+        for c in range(num_chunks(recording)):
+            out[c] = FrameTable.from_frames([walk.at(k) for k in chunk_frames(recording, c)], walk.pred_len)
         self.calls += walk.calls
-        return FrameTable.from_frames(parts, walk.pred_len)
+        return out
 
 
 # ----------------------------------------------------------------------------- construction
@@ -525,6 +611,7 @@ def make_forecast_source(
     cache: bool,
     noisy_oracle_ade_m: float,
     memory: str = "window",
+    store: ForecastStore | None = None,
 ) -> ForecastSource:
     """The forecast source for a set of recordings.
 
@@ -535,10 +622,11 @@ def make_forecast_source(
             part (synthetic, scripted crowds).
         dt_s: environment step, seconds.
         horizon: H.
-        cache: memoise forecasts per (recording, time).
+        cache: keep forecasts (per chunk of annotation frames, and resampled per time).
         noisy_oracle_ade_m: target ADE of ``noisy_oracle``.
         memory: ``window`` or ``carried`` (see :attr:`envs.config.CrowdNavConfig.forecast_memory`); ignored by
             ``none``, ``cv``, ``oracle`` and ``noisy_oracle``.
+        store: the shared disk cache for predictors with weights (None: memory only).
 
     Raises:
         ConfigError: ``carried`` with a predictor object (or loaded predictor) without ``online(num_slots)``.
@@ -551,7 +639,7 @@ def make_forecast_source(
             raise TypeError(
                 f"predictor must be a name or an object with a forecast(history, mask) method, got {predictor!r}"
             )
-        return learned_cls(str(getattr(predictor, "name", "custom")), {}, predictor, dt_s, horizon, cache)
+        return learned_cls(str(getattr(predictor, "name", "custom")), {}, predictor, dt_s, horizon, cache, store)
     if predictor == "none":
         return NoForecast()
     if predictor == "oracle":
@@ -571,5 +659,101 @@ def make_forecast_source(
                 default = load_learned(predictor, default_split, rec)
             else:
                 per_recording[rec] = load_learned(predictor, split, rec)
-        return learned_cls(predictor, per_recording, default, dt_s, horizon, cache)
+        return learned_cls(predictor, per_recording, default, dt_s, horizon, cache, store)
     raise ValueError(f"unknown predictor {predictor!r}")
+
+
+# ----------------------------------------------------------------------------- the shared cache, filled ahead
+
+#: Parts accepted by :func:`build_forecast_cache`.
+CACHE_PARTS: Final[tuple[str, ...]] = ("train", "test", "all")
+
+
+def cache_recordings(split: str | None = None, part: str = "all") -> tuple[str, ...]:
+    """Recordings whose forecasts an env of ``split``/``part`` may need: ``part="all"`` = train and test;
+    ``split=None`` = every replayable recording (the five scenes' held-out recordings)."""
+    from envs.config import episode_recordings
+
+    if part not in CACHE_PARTS:
+        raise ValueError(f"unknown part {part!r}; valid: {', '.join(CACHE_PARTS)}")
+    if split is None:
+        return tuple(r for recs in SPLIT_TEST_RECORDINGS.values() for r in recs)
+    if split not in SPLIT_TEST_RECORDINGS:
+        raise ValueError(f"unknown split {split!r}; valid: {', '.join(SPLIT_TEST_RECORDINGS)}")
+    parts = ("train", "test") if part == "all" else (part,)
+    return tuple(r for p in parts for r in episode_recordings(split, p))
+
+
+def build_forecast_cache(
+    predictor: str,
+    split: str | None = None,
+    part: str = "all",
+    *,
+    memory: str = "window",
+    data_dir: str | None = None,
+    cache_dir: str | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Fill the shared disk cache with a learned predictor's forecasts for the recordings an env of ``split``/``part``
+    replays (every replayable recording when ``split`` is None), each by its out-of-sample predictor.
+
+    Chunks already on disk are checked and kept; missing, unreadable or stale ones are computed (batched) and
+    written. Call it before starting vectorised environments or grid workers, so none of them computes forecasts.
+
+    Args:
+        predictor: ``mesrnn``, ``srnn`` or ``vlstm``.
+        split: leave-one-out split (None: all recordings).
+        part: ``train``, ``test`` or ``all``.
+        memory: ``window`` or ``carried`` (see ``forecast_memory``).
+        data_dir: ETH/UCY folder (default: the usual search).
+        cache_dir: cache folder (default: ``$CROWDNAV_MESRNN_CACHE`` or ``~/.cache/crowdnav-mesrnn/forecasts``).
+        progress: show a progress bar (tqdm) over chunks.
+
+    Returns:
+        ``{"predictor", "memory", "cache_dir", "recordings", "chunks", "loaded", "computed", "seconds"}``.
+    """
+    import time
+
+    from crowdnav_mesrnn.data.recordings import load_recording
+    from envs.forecast_cache import cache_root
+
+    if predictor not in LEARNED_SOURCES:
+        raise ValueError(
+            f"unknown predictor {predictor!r} for the forecast cache; valid: {', '.join(LEARNED_SOURCES)} "
+            "(none, cv, oracle and noisy_oracle need no cache)"
+        )
+    if memory not in FORECAST_MEMORIES:
+        raise ValueError(f"unknown forecast memory {memory!r}; valid: {', '.join(FORECAST_MEMORIES)}")
+    started = time.perf_counter()
+    names = cache_recordings(split, part)
+    recordings = [load_recording(n, "all_data", data_dir) for n in names]
+    root = cache_root(cache_dir)
+    default_split = split if split is not None else "zara1"
+    source = make_forecast_source(
+        predictor, list(names), default_split, 0.4, 12, True, 0.0, memory, ForecastStore(root)
+    )
+    assert isinstance(source, PredictorForecast)
+    total = sum(num_chunks(r) for r in recordings)
+    bar: Any = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc=f"{predictor} forecasts", unit="chunk")
+    for rec in recordings:
+        for c in range(num_chunks(rec)):
+            source.chunk(rec, c)
+            if bar is not None:
+                bar.set_postfix_str(rec.name, refresh=False)
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    return {
+        "predictor": predictor,
+        "memory": memory,
+        "cache_dir": str(root),
+        "recordings": list(names),
+        "chunks": total,
+        "loaded": source.chunks_loaded,
+        "computed": source.chunks_computed,
+        "seconds": round(time.perf_counter() - started, 2),
+    }

@@ -3,11 +3,23 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+
+
+@pytest.fixture(scope="session", autouse=True)
+def forecast_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """Every env test writes its forecast cache into a fresh temporary folder (never ``~/.cache``)."""
+    from envs.forecast_cache import CACHE_ENV_VAR
+
+    path = tmp_path_factory.mktemp("forecast-cache")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(CACHE_ENV_VAR, str(path))
+        yield path
 
 
 class FakeLearnedPredictor:
@@ -112,9 +124,10 @@ def episode_runner() -> Callable[..., list[tuple]]:
     return run_episode
 
 
-def run_in_lockstep(cached: Any, online: Any, options: list[dict]) -> int:
+def run_in_lockstep(cached: Any, online: Any, options: list[dict], atol: float = 0.0) -> int:
     """Drive two environments with go-to-goal through the same seeded episodes, asserting identical
-    observations and forecasts at every step; returns the number of forecast rows compared."""
+    observations and forecasts at every step (forecasts to ``atol`` metres: batched and single predictor
+    calls may round float32 differently); returns the number of forecast rows compared."""
     compared = 0
     for k, opts in enumerate(options):
         a_obs, _ = cached.reset(seed=k, options=opts)
@@ -122,11 +135,14 @@ def run_in_lockstep(cached: Any, online: Any, options: list[dict]) -> int:
         done = False
         while not done:
             for key in b_obs:
-                np.testing.assert_array_equal(a_obs[key], b_obs[key])
+                if key == "forecasts" and atol:
+                    np.testing.assert_allclose(a_obs[key], b_obs[key], rtol=0, atol=atol)
+                else:
+                    np.testing.assert_array_equal(a_obs[key], b_obs[key])
             fa, fb = cached.last_forecasts, online.last_forecasts
             assert (fa is None) == (fb is None)
             if fa is not None:
-                np.testing.assert_array_equal(fa, fb)
+                np.testing.assert_allclose(fa, fb, rtol=0, atol=atol)
                 compared += len(fa)
             a_obs, _, term, trunc, _ = cached.step(go_to_goal(a_obs, cached.config))
             b_obs, *_ = online.step(go_to_goal(b_obs, online.config))

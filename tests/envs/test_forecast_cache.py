@@ -1,0 +1,190 @@
+"""The shared on-disk forecast cache: identical to online forecasts, keyed by weights and recording, corrupt or
+stale files rebuilt, shared between processes, filled ahead by ``crowdnav-mesrnn forecasts build``."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import warnings
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crowdnav_mesrnn.cli import main
+from crowdnav_mesrnn.data import load_recording
+from crowdnav_mesrnn.data.recordings import Recording
+from envs.crowd_nav import CrowdNavEnv
+from envs.forecast_cache import CACHE_ENV_VAR, CacheWarning, num_chunks
+from envs.forecasts import PredictorForecast
+
+REPO = Path(__file__).resolve().parents[2]
+EPISODES = [{"t0_s": t0, "start": (1.0, 1.0), "goal": (7.0, 3.0), "time_limit_s": 6.0} for t0 in (14.0, 40.0)]
+
+
+def prefix(data_dir: Path, name: str, frames: int) -> Recording:
+    rec = load_recording(name, data_dir=data_dir)
+    cols = np.flatnonzero(rec.present[:frames].any(axis=0))
+    rows = slice(0, frames)
+    return replace(
+        rec, frames=rec.frames[rows], ped_ids=rec.ped_ids[cols], positions=rec.positions[rows][:, cols],
+        present=rec.present[rows][:, cols],
+    )  # fmt: skip
+
+
+def source(env: CrowdNavEnv) -> PredictorForecast:
+    assert isinstance(env.forecaster, PredictorForecast)
+    return env.forecaster
+
+
+def files(root: Path) -> list[Path]:
+    return sorted(root.glob("*/*.npz"))
+
+
+@pytest.mark.parametrize("memory", ["window", "carried"])
+def test_disk_cache_equals_online_forecasts_and_is_reused(
+    data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable, lockstep: Callable, memory: str
+) -> None:
+    rec = prefix(data_dir, "students003", 150)  # 3 chunks of 64 frames
+    common = {"crowd": rec, "forecast_memory": memory, "forecast_cache_dir": str(tmp_path)}
+    cached = CrowdNavEnv(predictor=tiny_learned_predictor(), **common)
+    online = CrowdNavEnv(predictor=tiny_learned_predictor(), cache_forecasts=False, **common)
+    # batched (cached) and single (online) calls agree to float32 rounding; carried ones are the same calls
+    atol = 1e-5 if memory == "window" else 0.0
+    assert lockstep(cached, online, EPISODES, atol) > 20
+    assert source(cached).chunks_computed > 0 and len(files(tmp_path)) == source(cached).chunks_computed
+    assert not files(tmp_path / "none")
+    # a new predictor object with the same weights (as in another process) loads everything, computes nothing
+    fresh = CrowdNavEnv(predictor=tiny_learned_predictor(), **common)
+    assert lockstep(fresh, cached, EPISODES) > 20  # bit for bit what was computed
+    assert source(fresh).calls == 0 and source(fresh).chunks_loaded > 0 and source(fresh).chunks_computed == 0
+
+
+def test_weights_and_recording_are_part_of_the_key(
+    data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable
+) -> None:
+    rec = prefix(data_dir, "students003", 150)
+    first = CrowdNavEnv(predictor=tiny_learned_predictor(seed=0), crowd=rec, forecast_cache_dir=str(tmp_path))
+    first.precompute_forecasts()
+    assert source(first).chunks_computed == num_chunks(rec) == 3
+    other_weights = CrowdNavEnv(predictor=tiny_learned_predictor(seed=1), crowd=rec, forecast_cache_dir=str(tmp_path))
+    other_weights.precompute_forecasts()
+    assert source(other_weights).chunks_computed == 3 and source(other_weights).chunks_loaded == 0
+    a, b = source(first).chunk(rec, 1), source(other_weights).chunk(rec, 1)
+    np.testing.assert_array_equal(a.columns, b.columns)
+    assert np.abs(a.forecasts - b.forecasts).max() > 1e-3
+    positions = rec.positions.copy()
+    positions[100] += 0.1
+    moved = replace(rec, positions=positions)
+    env = CrowdNavEnv(predictor=tiny_learned_predictor(seed=0), crowd=moved, forecast_cache_dir=str(tmp_path))
+    env.precompute_forecasts()
+    assert source(env).chunks_computed == 3
+    assert len(files(tmp_path)) == 9
+
+
+def test_corrupt_and_stale_files_are_rebuilt_with_a_warning(
+    data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable
+) -> None:
+    rec = prefix(data_dir, "students003", 150)
+
+    def make() -> CrowdNavEnv:
+        return CrowdNavEnv(predictor=tiny_learned_predictor(), crowd=rec, forecast_cache_dir=str(tmp_path))
+
+    built = make()
+    built.precompute_forecasts()
+    good = {c: source(built).chunk(rec, c) for c in range(3)}
+    paths = files(tmp_path)
+    assert len(paths) == 3
+    paths[2].write_bytes(b"not an npz file")  # corrupt
+    store, key = source(built).store, source(built).table_key(rec)
+    assert store is not None and key is not None
+    stale_key = replace(key, pred_len=11)
+    store.save(stale_key, 1, good[1])  # stale: another key under this file's name...
+    os.replace(store.path(stale_key, 1), paths[1])
+    store.save(key, 0, good[1])  # ...and another chunk's forecasts: inconsistent with the recording
+    fresh = make()
+    with pytest.warns(CacheWarning) as caught:
+        fresh.precompute_forecasts()
+    text = " ".join(str(w.message) for w in caught)
+    assert "unreadable" in text and "stale (stored key differs in pred_len)" in text and "inconsistent" in text
+    assert source(fresh).chunks_computed == 3
+    for c in range(3):
+        np.testing.assert_array_equal(source(fresh).chunk(rec, c).forecasts, good[c].forecasts)
+    again = make()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again.precompute_forecasts()
+    assert source(again).chunks_loaded == 3 and source(again).calls == 0
+
+
+SHARED = """
+import json, numpy as np, torch
+torch.set_num_threads(1)
+from envs.crowd_nav import CrowdNavEnv
+from envs.crowds import scripted_recording
+rng = np.random.default_rng(0)
+paths = [np.cumsum(rng.normal(0.0, 0.3, (200, 2)), axis=0) + 3.0 * k for k in range(6)]
+env = CrowdNavEnv(predictor="mesrnn", crowd=scripted_recording(paths, name="shared"))
+env.precompute_forecasts()
+f = env.forecaster
+print(json.dumps({"calls": f.calls, "computed": f.chunks_computed, "loaded": f.chunks_loaded}))
+"""
+
+
+def test_processes_share_the_cache(tmp_path: Path) -> None:
+    env = {**os.environ, CACHE_ENV_VAR: str(tmp_path)}
+
+    def start() -> subprocess.Popen[str]:
+        cmd = [sys.executable, "-c", SHARED]
+        return subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    procs = [start(), start()]  # started together: the per-chunk lock lets one compute and the other load
+    results = []
+    for proc in procs:
+        out, err = proc.communicate(timeout=300)
+        assert proc.returncode == 0, err
+        results.append(json.loads(out.strip().splitlines()[-1]))
+    assert sum(r["computed"] for r in results) == 4 and sum(r["loaded"] for r in results) == 4
+    third = start()
+    out, err = third.communicate(timeout=300)
+    assert third.returncode == 0, err
+    assert json.loads(out.strip().splitlines()[-1]) == {"calls": 0, "computed": 0, "loaded": 4}
+
+
+def test_build_command_fills_the_cache_for_envs(
+    data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["forecasts", "build", "--predictor", "vlstm", "--split", "eth", "--part", "test"]
+    assert main([*args, "--cache-dir", str(tmp_path), "--no-progress", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    chunks = num_chunks(load_recording("biwi_eth", data_dir=data_dir))
+    assert summary["recordings"] == ["biwi_eth"] and summary["computed"] == summary["chunks"] == chunks
+    assert main(["forecasts", "info", "--cache-dir", str(tmp_path), "--json"]) == 0
+    [entry] = json.loads(capsys.readouterr().out)["entries"]
+    assert entry["source"] == "vlstm-window" and entry["recording"] == "biwi_eth" and entry["chunks"] == chunks
+    env = CrowdNavEnv(
+        predictor="vlstm", split="eth", part="test", data_dir=str(data_dir), forecast_cache_dir=str(tmp_path)
+    )
+    env.reset(seed=0)
+    for _ in range(20):
+        env.step(np.zeros(2, dtype=np.float32))
+    assert source(env).calls == 0 and source(env).chunks_loaded > 0
+    assert main([*args, "--cache-dir", str(tmp_path), "--no-progress"]) == 0
+    assert f"{chunks} already cached, 0 computed" in capsys.readouterr().out
+
+
+def test_disk_cache_can_be_switched_off(data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable) -> None:
+    rec = prefix(data_dir, "students003", 70)
+    env = CrowdNavEnv(
+        predictor=tiny_learned_predictor(), crowd=rec, forecast_cache_dir=str(tmp_path), forecast_disk_cache=False
+    )
+    env.precompute_forecasts()
+    assert source(env).chunks_computed == 2 and not files(tmp_path)
+    # predictors without weights to hash (constant velocity) are never written either
+    cv = CrowdNavEnv(predictor="cv", crowd=rec, forecast_cache_dir=str(tmp_path))
+    cv.precompute_forecasts()
+    assert source(cv).chunks_computed == 2 and not files(tmp_path)
