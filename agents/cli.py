@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from pathlib import Path
+from typing import Any, Final
 
 from crowdnav_mesrnn.data.constants import SPLITS
 
@@ -45,40 +47,64 @@ def _fmt(value: Any) -> str:
     return "-" if value is None else str(value)
 
 
+#: The shipped policy: PPO with MESRNN forecasts trained on the zara1 split's training scenes by ``agent train``
+#: (exported with ``agent export``; its environment settings in the ``.yaml`` beside it).
+SHIPPED_POLICY: Final[Path] = Path(__file__).resolve().parent / "pretrained" / "ppo_mesrnn_zara1.zip"
+#: The split whose training scenes the shipped policy was trained on (its held-out scene is the only one it may cross).
+SHIPPED_SPLIT: Final[str] = "zara1"
+
+
+def _demo_policy(args: argparse.Namespace) -> tuple[str, str | None]:
+    """The policy spec of the demo and a note saying why it is not the shipped policy (or None)."""
+    if args.policy is not None:
+        return args.policy, None
+    if args.split != SHIPPED_SPLIT:
+        return "planner", (
+            f"the shipped PPO policy was trained on the {SHIPPED_SPLIT} split's training scenes, which include the "
+            f"{args.split} held-out scene: the sampling planner crosses it instead"
+        )
+    if not SHIPPED_POLICY.is_file():
+        return "planner", f"no shipped PPO policy in this installation ({SHIPPED_POLICY}): the sampling planner drives"
+    return str(SHIPPED_POLICY), None
+
+
 def _demo(args: argparse.Namespace) -> int:
-    from agents.planners import SamplingPlanner
+    from agents.evaluate import check_spaces, evaluation_env_kwargs, load_policy, run_settings
+    from agents.planners import PLANNERS
     from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, data_available
     from envs.crowd_nav import CrowdNavEnv
     from envs.forecasts import PredictorUnavailableError
     from envs.rendering import save_gif
 
     started = time.perf_counter()
+    spec, note = _demo_policy(args)
+    if note:
+        print(f"note: {note}", file=sys.stderr)
     crowd = "synthetic" if args.synthetic else "replay"
     if crowd == "replay" and not data_available(args.data_dir):
         print(f"warning: no ETH/UCY data found; the demo uses the synthetic crowd. {HOW_TO_GET_DATA}", file=sys.stderr)
         crowd = "synthetic"
-    predictor = args.predictor or "mesrnn"
-    kwargs: dict[str, Any] = {
-        "split": args.split,
-        "part": "test",
-        "crowd": crowd,
-        "data_dir": args.data_dir,
-        "render_mode": None if args.no_gif else "rgb_array",
-    }
+    trained_on = run_settings(spec).get("run", {}).get("predictor") if spec not in PLANNERS else None
+    predictor = args.predictor or trained_on or "mesrnn"
+    overrides = {"crowd": crowd, "data_dir": args.data_dir}
+    render_mode = None if args.no_gif else "rgb_array"
+    kwargs = evaluation_env_kwargs(spec, predictor, args.split, overrides, require_pedestrians=True)
     try:
-        env = CrowdNavEnv(predictor=predictor, **kwargs)
+        env = CrowdNavEnv(render_mode=render_mode, **kwargs)
     except PredictorUnavailableError as exc:
         if args.predictor is not None:
             raise
         print(f"warning: {exc}\nwarning: falling back to constant-velocity ('cv') forecasts.", file=sys.stderr)
-        predictor = "cv"
-        env = CrowdNavEnv(predictor=predictor, **kwargs)
+        kwargs["predictor"] = "cv"
+        env = CrowdNavEnv(render_mode=render_mode, **kwargs)
+    policy = load_policy(spec, env.config)
+    check_spaces(policy, env)
+    name = spec if spec in PLANNERS else f"{spec} (trained with {trained_on or 'unknown'} forecasts)"
 
-    policy = SamplingPlanner(env.config)
     obs, info = env.reset(seed=args.seed)
     scene = f"{info['recording']} ({info['crowd']})"
     print(
-        f"demo: split {args.split}, scene {scene}, forecasts {env.predictor_name}, seed {args.seed}, "
+        f"demo: policy {name}, split {args.split}, scene {scene}, forecasts {env.predictor_name}, seed {args.seed}, "
         f"start {[round(v, 2) for v in info['start']]} -> goal {[round(v, 2) for v in info['goal']]}, "
         f"t0 {info['t0_s']:.1f} s, time limit {info['time_limit_s']:.1f} s"
     )
@@ -86,14 +112,16 @@ def _demo(args: argparse.Namespace) -> int:
     done = False
     step_info: dict[str, Any] = {}
     while not done:
-        obs, _, terminated, truncated, step_info = env.step(policy(obs))
+        action, _ = policy.predict(obs, deterministic=True)
+        obs, _, terminated, truncated, step_info = env.step(action)
         if not args.no_gif:
             frames.append(env.render())
         done = terminated or truncated
-    metrics = step_info["episode"]
+    metrics = step_info["episode_metrics"]
     env.close()
     if args.json:
-        print(json.dumps({"scene": info["recording"], "predictor": env.predictor_name, **metrics}, indent=2))
+        record = {"scene": info["recording"], "predictor": env.predictor_name, "policy": str(spec), **metrics}
+        print(json.dumps(record, indent=2))
     else:
         width = max(len(k) for k in metrics)
         for key, value in metrics.items():
@@ -108,19 +136,26 @@ def _demo(args: argparse.Namespace) -> int:
 def add_demo(sub: Any) -> None:
     p = sub.add_parser(
         "demo",
-        help="a scripted robot crosses a held-out ETH/UCY scene with forecasts; prints metrics, writes a GIF",
+        help="a policy crosses a held-out ETH/UCY scene with forecasts; prints metrics, writes a GIF",
         description=(
-            "A scripted robot (straight to the goal, slowing or swerving for forecast conflicts) crosses the "
-            "held-out scene of a split with MESRNN forecasts (constant velocity, with a warning, when the "
-            "pretrained weights are missing), or the synthetic crowd when no ETH/UCY data is found."
+            "A policy crosses the held-out scene of a split with MESRNN forecasts and the episode is written as a GIF "
+            "with the forecasts drawn. The default policy is the shipped PPO policy (trained by this project's "
+            "'agent train' on the zara1 split's training scenes) when it is installed and the split is zara1, else the "
+            "sampling planner. Without ETH/UCY data the synthetic crowd is crossed instead (and the demo says so); "
+            "without the MESRNN weights, constant-velocity forecasts (with a warning)."
         ),
+    )
+    p.add_argument(
+        "--policy",
+        default=None,
+        help="planner, straight, or a trained model (.zip or run folder); default: the shipped PPO policy",
     )
     p.add_argument("--split", default="zara1", choices=SPLITS, help="its held-out scene is crossed (default: zara1)")
     p.add_argument(
         "--predictor",
         default=None,
         choices=_PREDICTORS,
-        help="forecast source (default: mesrnn, falling back to cv when its weights are missing)",
+        help="forecast source (default: the policy's own, else mesrnn; cv when the MESRNN weights are missing)",
     )
     p.add_argument("--seed", type=int, default=0, help="episode seed (default: 0)")
     p.add_argument("--out", default="demo.gif", help="GIF path (default: demo.gif)")
@@ -131,9 +166,45 @@ def add_demo(sub: Any) -> None:
     p.set_defaults(func=_demo)
 
 
+def _export(args: argparse.Namespace) -> int:
+    from agents.evaluate import export_policy
+
+    dest = export_policy(args.run, args.dest, args.model)
+    print(f"wrote {dest} and {dest.with_suffix('.yaml')} ({dest.stat().st_size / 1e6:.2f} MB)")
+    return 0
+
+
 def add_agent(sub: Any) -> None:
+    from agents.evaluate import RUN_MODELS, add_evaluate_arguments
+    from agents.evaluate import run_from_args as evaluate_from_args
+    from agents.train import add_train_arguments
+    from agents.train import run_from_args as train_from_args
+
     p = sub.add_parser("agent", help="train and evaluate navigation policies (PPO, SAC, planners)")
-    p.set_defaults(func=lambda args: _not_yet("agent"))
+    asub = p.add_subparsers(dest="agent_cmd", required=True, metavar="ACTION")
+    t = asub.add_parser(
+        "train",
+        help="train PPO/SAC from a YAML config into a run folder (same as python -m agents.train)",
+        description="Train a policy from a YAML config (RL Zoo layout) into a run folder; see agents/train.py.",
+    )
+    add_train_arguments(t)
+    t.set_defaults(func=lambda args: train_from_args(args, shlex.join(["crowdnav-mesrnn", *sys.argv[1:]])))
+    e = asub.add_parser(
+        "evaluate",
+        help="evaluate a run, a model or a planner on a held-out scene (same as python -m agents.evaluate)",
+        description="Evaluate a policy on the held-out scene of a split over the fixed, seeded list of episodes.",
+    )
+    add_evaluate_arguments(e)
+    e.set_defaults(func=evaluate_from_args)
+    x = asub.add_parser(
+        "export",
+        help="copy a run's model with its config, to evaluate or ship the file alone",
+        description="Copy RUN's best (or final) model to DEST.zip with its config as DEST.yaml.",
+    )
+    x.add_argument("run", help="a run folder of agents.train")
+    x.add_argument("dest", help="destination .zip (e.g. agents/pretrained/ppo_mesrnn_zara1.zip)")
+    x.add_argument("--model", default="best", choices=RUN_MODELS, help="best or final model (default: best)")
+    x.set_defaults(func=_export)
 
 
 def add_ablation(sub: Any) -> None:
@@ -150,8 +221,3 @@ def add_ablation(sub: Any) -> None:
     )
     add_arguments(p)
     p.set_defaults(func=run_from_args)
-
-
-def _not_yet(name: str) -> int:
-    print(f"crowdnav-mesrnn {name}: not implemented yet", file=sys.stderr)
-    return 2

@@ -35,7 +35,7 @@ from agents.planners import PLANNERS, make_planner
 from agents.stats import bootstrap_mean_ci, wilson_interval
 from crowdnav_mesrnn.config import ConfigError, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
-from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text
+from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text
 from envs.config import FORECAST_SOURCES, CrowdNavConfig, config_from
 
 #: Outcomes of an episode, each reported as a rate with a Wilson interval.
@@ -152,25 +152,53 @@ def load_sb3(path: str | Path, algo: str | None = None) -> SB3Policy:
     return SB3Policy(model, vecnormalize, str(path))
 
 
-def run_folder_of(spec: str | Path) -> Path | None:
-    """The training run folder a spec names: the folder itself, or the folder of a model inside one."""
+def config_of(spec: str | Path) -> Path | None:
+    """The training config that goes with a policy spec: a run folder's ``config.yaml``, for a model file
+    ``<stem>.yaml`` beside it (an exported policy, see :func:`export_policy`) or its folder's ``config.yaml``;
+    None for planners and bare models."""
     p = Path(spec)
-    if p.is_dir() and (p / "config.yaml").is_file():
-        return p
-    if p.is_file() and (p.parent / "config.yaml").is_file():
-        return p.parent
+    if str(spec) in PLANNERS:
+        return None
+    if p.is_dir():
+        return p / "config.yaml" if (p / "config.yaml").is_file() else None
+    for candidate in (p.with_suffix(".yaml"), p.parent / "config.yaml"):
+        if p.is_file() and candidate.is_file():
+            return candidate
     return None
 
 
-def run_settings(run_dir: str | Path) -> dict[str, Any]:
-    """The project section of a run folder's ``config.yaml`` (``algo``, ``env``, ``run``, ...)."""
+def run_settings(spec: str | Path) -> dict[str, Any]:
+    """The project section (``algo``, ``env``, ``run``, ...) of the training config of a policy spec; empty when
+    there is none (planners, bare models)."""
     from agents.train import PROJECT_KEY
 
-    raw = load_yaml(Path(run_dir) / "config.yaml")
-    section = raw.get(PROJECT_KEY)
+    path = config_of(spec)
+    if path is None:
+        return {}
+    section = load_yaml(path).get(PROJECT_KEY)
     if not isinstance(section, dict):
-        raise ConfigError(f"{run_dir}/config.yaml has no {PROJECT_KEY!r} section: not a run folder of agents.train")
+        raise ConfigError(f"{path} has no {PROJECT_KEY!r} section: not a config written by agents.train")
     return section
+
+
+def export_policy(run_dir: str | Path, dest: str | Path, which: str = "best") -> Path:
+    """Copy a run's model to ``dest`` (``.zip``) with its config as ``<stem>.yaml`` (and normalisation statistics
+    as ``<stem>_vecnormalize.pkl``), so the file alone can be evaluated or shipped."""
+    import shutil
+
+    src = model_path(run_dir, which)
+    dest = Path(dest)
+    if dest.suffix != ".zip":
+        raise ValueError(f"the exported policy must be a .zip path, got {dest}")
+    config = config_of(src)
+    if config is None:
+        raise FileNotFoundError(f"{run_dir} holds no config.yaml: not a run folder of agents.train")
+    atomic_write(dest, lambda fh: fh.write(src.read_bytes()))
+    atomic_write_text(dest.with_suffix(".yaml"), config.read_text())
+    stats = src.with_name(f"{src.stem}_vecnormalize.pkl")
+    if stats.is_file():
+        shutil.copyfile(stats, dest.with_name(f"{dest.stem}_vecnormalize.pkl"))
+    return dest
 
 
 def model_path(spec: str | Path, which: str = "best") -> Path:
@@ -199,9 +227,7 @@ def load_policy(
     if str(spec) in PLANNERS:
         return make_planner(str(spec), env_config)  # type: ignore[return-value]
     path = model_path(spec, which)
-    run_dir = run_folder_of(path)
-    algo = run_settings(run_dir).get("algo") if run_dir is not None else None
-    return load_sb3(path, algo)
+    return load_sb3(path, run_settings(path).get("algo"))
 
 
 def check_spaces(policy: Any, env: Any) -> None:
@@ -408,13 +434,9 @@ def evaluation_env_kwargs(
     env_overrides: Mapping[str, Any] | None = None,
     require_pedestrians: bool = True,
 ) -> dict[str, Any]:
-    """Keyword arguments of the evaluation environments: the run's own env settings (for a run folder or a
-    model inside one), then ``env_overrides``, on the split's held-out scene over its whole duration."""
-    base: dict[str, Any] = {}
-    run_dir = None if str(spec) in PLANNERS else run_folder_of(spec)
-    if run_dir is not None:
-        base = dict(run_settings(run_dir).get("env") or {})
-    kwargs = {**base, **dict(env_overrides or {})}
+    """Keyword arguments of the evaluation environments: the policy's own env settings (see :func:`config_of`),
+    then ``env_overrides``, on the split's held-out scene over its whole duration."""
+    kwargs = {**dict(run_settings(spec).get("env") or {}), **dict(env_overrides or {})}
     kwargs.update(predictor=predictor, split=split, part="test", episode_time="all")
     kwargs["require_pedestrians"] = dict(env_overrides or {}).get("require_pedestrians", require_pedestrians)
     return kwargs
