@@ -91,9 +91,9 @@ def predictor_fingerprint(model: Any) -> str | None:
         ]
         h.update(repr((head, getattr(net, "cfg", None))).encode())
         for name, tensor in sorted(net.state_dict().items()):
-            arr = tensor.detach().cpu().contiguous().numpy()
+            arr = np.ascontiguousarray(tensor.detach().cpu().numpy())
             h.update(f"{name}:{arr.dtype}:{arr.shape}".encode())
-            h.update(arr.tobytes())
+            h.update(memoryview(arr).cast("B"))
         for name, value in sorted(vars(norm).items()):
             h.update(f"{name}:".encode())
             h.update(np.asarray(value, dtype=np.float64).tobytes())
@@ -108,12 +108,11 @@ def recording_fingerprint(recording: Recording) -> str:
     """SHA-256 of a recording's content: step, frames, ids, presence and the positions where present."""
     h = hashlib.sha256()
     h.update(repr(float(recording.step_s)).encode())
-    for arr in (recording.frames, recording.ped_ids, recording.present):
+    present = np.ascontiguousarray(recording.present, dtype=bool)
+    for arr in (recording.frames, recording.ped_ids, np.packbits(present), recording.positions[present]):
         a = np.ascontiguousarray(arr)
-        h.update(f"{a.dtype}:{a.shape}".encode())
-        h.update(a.tobytes())
-    pos = np.where(recording.present[..., None], recording.positions, 0.0).astype(np.float64)
-    h.update(np.ascontiguousarray(pos).tobytes())
+        h.update(f"{a.dtype}:{a.shape}:{present.shape}".encode())
+        h.update(memoryview(a).cast("B"))
     return h.hexdigest()
 
 
@@ -215,26 +214,27 @@ class ForecastStore:
             finally:
                 fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
-    def load(self, key: TableKey, chunk: int, recording: Recording) -> FrameTable | None:
+    def load(self, key: TableKey, chunk: int, recording: Recording, quiet: bool = False) -> FrameTable | None:
         """The chunk, or None when it is missing; an unreadable or stale file gives a :class:`CacheWarning`
-        and None (the caller rebuilds and overwrites it)."""
+        (unless ``quiet``) and None (the caller rebuilds and overwrites it)."""
         path = self.path(key, chunk)
         if not path.is_file():
             return None
+        warn = (lambda path, problem: None) if quiet else self._warn
         try:
             with np.load(path, allow_pickle=False) as data:
                 meta = json.loads(str(data["meta"]))
                 out = FrameTable(data["offsets"], data["columns"], data["forecasts"])
         except Exception as exc:  # any unreadable file is rebuilt the same way
-            self._warn(path, f"unreadable ({type(exc).__name__}: {exc})")
+            warn(path, f"unreadable ({type(exc).__name__}: {exc})")
             return None
         if meta != key.meta():
             changed = sorted(k for k in set(meta) | set(key.meta()) if meta.get(k) != key.meta().get(k))
-            self._warn(path, f"stale (stored key differs in {', '.join(changed)})")
+            warn(path, f"stale (stored key differs in {', '.join(changed)})")
             return None
         problem = check_chunk(out, recording, chunk, key.pred_len)
         if problem is not None:
-            self._warn(path, problem)
+            warn(path, problem)
             return None
         return out
 

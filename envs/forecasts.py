@@ -20,6 +20,7 @@ it is identical to one computed online (``tests/envs/test_replay_and_forecasts.p
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 from typing import Any, Final, Protocol
@@ -243,6 +244,7 @@ class PredictorForecast(ForecastSource):
         self._chunks: dict[tuple[str, int], FrameTable] = {}
         self._keys: dict[str, tuple[Recording, TableKey | None]] = {}
         self._full: dict[str, Replay] = {}
+        self._times: dict[str, tuple[Recording, list[float]]] = {}
         self._weights: dict[tuple[float, int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.calls = 0
         self.chunks_loaded = 0
@@ -382,16 +384,18 @@ class PredictorForecast(ForecastSource):
             tables = self.compute_chunks(recording, chunk)
             self.chunks_computed += len(tables)
         else:
-            with self.store.locked(key, chunk):
-                loaded = self.store.load(key, chunk, recording)
-                if loaded is not None:
-                    tables = {chunk: loaded}
-                    self.chunks_loaded += 1
-                else:
-                    tables = self.compute_chunks(recording, chunk)
-                    self.chunks_computed += len(tables)
-                    for c, table in tables.items():
-                        self.store.save(key, c, table)
+            loaded = self.store.load(key, chunk, recording, quiet=True)  # files appear atomically: read unlocked
+            if loaded is None:
+                with self.store.locked(key, chunk):  # whoever holds the lock computes; the others then load
+                    loaded = self.store.load(key, chunk, recording)
+                    if loaded is None:
+                        tables = self.compute_chunks(recording, chunk)
+                        self.chunks_computed += len(tables)
+                        for c, table in tables.items():
+                            self.store.save(key, c, table)
+            if loaded is not None:
+                tables = {chunk: loaded}
+                self.chunks_loaded += 1
         for c, table in tables.items():
             self._chunks[(recording.name, c)] = table
         return tables[chunk]
@@ -429,11 +433,13 @@ class PredictorForecast(ForecastSource):
 
     def _resampled(self, rec: Recording, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         empty = (np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2)))
-        times = rec.times_s()
-        i = int(np.searchsorted(times, t_s + TIME_TOL_S, "right")) - 1
+        times = self._times.get(rec.name)
+        if times is None or times[0] is not rec:
+            times = self._times[rec.name] = (rec, rec.times_s().tolist())
+        i = bisect.bisect_right(times[1], t_s + TIME_TOL_S) - 1
         if i < 0 or rec.present.shape[1] == 0:
             return empty
-        offset = float(t_s - times[i])
+        offset = t_s - times[1][i]
         offset = offset if offset > TIME_TOL_S else 0.0
         if offset >= rec.step_s - TIME_TOL_S:
             return empty  # the tracker has dropped every track (an annotation gap, or after the recording)
