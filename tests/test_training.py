@@ -116,3 +116,15 @@ def test_cli_train_eval_export(tmp_path: Path, data_dir: Path, capsys: pytest.Ca
     assert dest.stat().st_size < (out / "last.pt").stat().st_size
     with pytest.raises(ValueError, match="not 'zara1'"):
         export_checkpoint(out / "best.pt", "srnn", "zara1", dest=tmp_path / "x.pt")
+
+
+def test_bf16_precision_trains_and_bad_precision_is_rejected(tmp_path: Path, data_dir: Path) -> None:
+    m, t = load_configs(
+        "mesrnn",
+        overrides={**TINY, "split": "zara1", "epochs": 1, "precision": "bf16", "data_dir": str(data_dir)},
+    )
+    res = Trainer(m, t, tmp_path / "bf").fit(progress=False, log=lambda *_: None)
+    assert res["history"][0]["train_loss"] > 0 and res["best_val_ade_m"] < 10
+    assert load_predictor(tmp_path / "bf" / "best.pt").net.decoder.weight.dtype == torch.float32
+    with pytest.raises(ConfigError, match="precision must be one of fp32, bf16"):
+        load_configs("mesrnn", overrides={"precision": "fp16"})

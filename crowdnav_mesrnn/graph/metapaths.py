@@ -54,44 +54,53 @@ def metapath_features_step(
     Returns:
         ``{type: (..., N, 2)}`` summed features; zero for absent pedestrians.
     """
+    dt = p_t.dtype
+    w = tuple(m.to(dt).unsqueeze(-1) for m in (m_t, m_tm1, m_tm2))
+    feats, _ = stacked_features_step(p_t, p_tm1, p_tm2, w[0], w[1], w[2], types)
+    return dict(zip(types, feats.unbind(0), strict=True))
+
+
+def stacked_features_step(
+    p_t: torch.Tensor,
+    p_tm1: torch.Tensor,
+    p_tm2: torch.Tensor,
+    w_t: torch.Tensor,
+    w_tm1: torch.Tensor,
+    w_tm2: torch.Tensor,
+    types: tuple[str, ...] = METAPATH_TYPES,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`metapath_features_step` with presence as float ``(..., N, 1)`` weights (0 or 1), stacked.
+
+    Returns:
+        ``(len(types), ..., N, 2)`` features in the order of ``types`` and the velocity
+        ``T = (p_t − p_{t−1})`` of pedestrians present at both steps, ``(..., N, 2)`` (0 otherwise).
+    """
     unknown = set(types) - set(METAPATH_TYPES)
     if unknown:
         raise ValueError(f"unknown meta-path types {sorted(unknown)}; valid: {', '.join(METAPATH_TYPES)}")
-    dt = p_t.dtype
-    mt, mt1, mt2 = m_t.to(dt).unsqueeze(-1), m_tm1.to(dt).unsqueeze(-1), m_tm2.to(dt).unsqueeze(-1)
-    # Zero absent positions so that masked products never see stale or padding values.
-    p_t, p_tm1, p_tm2 = p_t * mt, p_tm1 * mt1, p_tm2 * mt2
-    out: dict[str, torch.Tensor] = {}
-    need_t = {"T", "ST", "TS", "TT"} & set(types)
-    need_s_now = {"S", "SS", "ST"} & set(types)
-    vel = (p_t - p_tm1) * mt * mt1 if need_t else None
-    if need_s_now:
-        d, w = _pairwise(p_t, m_t)  # d: (..., N, N, 2), w: (..., N, N)
-        wd = d * w.unsqueeze(-1)  # j-present differences p_i − p_j
+    # Zero absent positions so that masked products never see stale or padding values (0/1 products are exact).
+    p_t, p_tm1 = p_t * w_t, p_tm1 * w_tm1
+    vel = (p_t - p_tm1) * (w_t * w_tm1)
+    out: dict[str, torch.Tensor] = {"T": vel}
+    if {"S", "SS", "ST"} & set(types):
+        d = p_t.unsqueeze(-2) - p_t.unsqueeze(-3)  # (..., i, j, 2): p_i − p_j
+        wd = d * w_t.unsqueeze(-3)  # j-present differences (i's own presence is applied last)
         if "S" in types or "SS" in types:
-            s_raw = wd.sum(-2)  # (..., N, 2): Σ_j (p_i − p_j) over present j (i's own presence ignored)
-        if "S" in types:
-            out["S"] = s_raw * mt
-        if "SS" in types:
-            # Σ_{k≠i,j present} (p_j − p_k) = S'_j − (p_j − p_i) = S'_j + D_ij, for present i.
-            inner = s_raw.unsqueeze(-3) + d  # (..., i, j, 2): S'_j + D_ij
-            out["SS"] = (wd * inner).sum(-2) * mt
+            s_raw = wd.sum(-2)  # (..., N, 2): Σ_j (p_i − p_j) over present j
+            out["S"] = s_raw * w_t
+            if "SS" in types:
+                # Σ_{k≠i,j present} (p_j − p_k) = S'_j − (p_j − p_i) = S'_j + D_ij, for present i.
+                out["SS"] = (wd * (s_raw.unsqueeze(-3) + d)).sum(-2) * w_t
         if "ST" in types:
-            assert vel is not None
-            out["ST"] = (wd * vel.unsqueeze(-3)).sum(-2) * mt
-    if "T" in types:
-        assert vel is not None
-        out["T"] = vel
+            out["ST"] = (wd * vel.unsqueeze(-3)).sum(-2) * w_t
     if "TS" in types:
-        assert vel is not None
-        d1, w1 = _pairwise(p_tm1, m_tm1)
-        s_prev = (d1 * w1.unsqueeze(-1)).sum(-2)
+        s_prev = ((p_tm1.unsqueeze(-2) - p_tm1.unsqueeze(-3)) * w_tm1.unsqueeze(-3)).sum(-2)
         out["TS"] = vel * s_prev
     if "TT" in types:
-        assert vel is not None
-        vel_prev = (p_tm1 - p_tm2) * mt1 * mt2
-        out["TT"] = vel * vel_prev
-    return {k: out[k] for k in types}
+        out["TT"] = vel * ((p_tm1 - p_tm2 * w_tm2) * (w_tm1 * w_tm2))
+    if not types:
+        return vel.new_zeros(0, *vel.shape), vel
+    return torch.stack([out[k] for k in types]), vel
 
 
 def metapath_features(

@@ -130,18 +130,21 @@ class OnlineForecaster:
         idx = torch.nonzero(self.mask[0][0]).flatten()
         if len(idx) == 0:
             return out
-        state = self._gather(idx)
         roll = self.mask[0][:, idx]
-        preds = [self.next_pred[:, idx]]
-        p_prev, p_prev2 = self.pos[0][:, idx], self.pos[1][:, idx]
-        m_prev, m_prev2 = roll, self.mask[1][:, idx]
-        for _ in range(self.p.pred_len - 1):
-            p_t = preds[-1]
-            nxt, state = net.step((p_t, p_prev, p_prev2), (roll, m_prev, m_prev2), state)
-            preds.append(nxt)
-            p_prev2, p_prev = p_prev, p_t
-            m_prev2, m_prev = m_prev, roll
-        sub = self.p.norm.denormalise(torch.cat(preds, 0)).permute(1, 0, 2).numpy().astype(np.float32)
+        first = self.next_pred[:, idx]
+        none_p, none_m = first.new_zeros(0, *first.shape), torch.zeros(0, *roll.shape, dtype=torch.bool)
+        rest, _, _ = net.scan(
+            none_p,
+            none_m,
+            (self.pos[0][:, idx], self.pos[1][:, idx]),
+            (roll, self.mask[1][:, idx]),
+            self._gather(idx),
+            free_steps=self.p.pred_len - 1,
+            roll_mask=roll,
+            first_pred=first,
+        )
+        preds = torch.cat([first, rest[:, 0]], 0)  # (pred_len, n, 2)
+        sub = self.p.norm.denormalise(preds).permute(1, 0, 2).numpy().astype(np.float32)
         out[idx.numpy()] = sub
         return out
 

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import torch
 from torch import nn
 
 from crowdnav_mesrnn.config import ConfigError, replace_checked
-from crowdnav_mesrnn.graph.metapaths import metapath_features_step
+from crowdnav_mesrnn.graph.metapaths import stacked_features_step
 
 MODEL_TYPES: dict[str, tuple[str, ...]] = {
     "mesrnn": ("S", "T", "SS", "ST", "TS", "TT"),
@@ -87,10 +88,37 @@ class ModelConfig:
         return out
 
 
+def _gate_scale(hidden: int, like: torch.Tensor) -> torch.Tensor:
+    """``(4 hidden,)`` column multipliers for LSTM gates ``[i, f, g, o]``: 2 on the cell candidate ``g``.
+
+    With the candidate's pre-activation doubled, one sigmoid serves all four gates:
+    ``tanh(z) = 2 σ(2z) − 1``. Scaling weights by 2 is exact in floating point.
+    """
+    scale = torch.ones(4 * hidden, dtype=like.dtype, device=like.device)
+    scale[2 * hidden : 3 * hidden] = 2.0
+    return scale
+
+
+def tanh_from_doubled(z2: torch.Tensor) -> torch.Tensor:
+    """``tanh(z)`` given ``z2 = 2 z``, as ``2 σ(2z) − 1``: the same function through the sigmoid kernel,
+    which is several times faster than ``torch.tanh`` on this project's CPUs (docs/results/speed.md)."""
+    return torch.sigmoid(z2).mul(2.0).sub_(1.0)
+
+
+def lstm_pointwise(gates: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The LSTM update from pre-activations ``(..., 4H)`` ordered ``[i, f, g, o]`` whose ``g`` block is
+    already doubled (see :func:`_gate_scale`); returns ``(h, c)``, each ``(..., H)``."""
+    s = torch.sigmoid(gates)
+    i, f, g, o = s.chunk(4, dim=-1)
+    c_new = torch.addcmul(f * c, i, g.mul(2.0).sub_(1.0))
+    return o * tanh_from_doubled(c_new * 2.0), c_new
+
+
 class GroupedLSTMCell(nn.Module):
     """``K`` independent LSTM cells (one per meta-path type) evaluated with batched matmuls.
 
-    Input ``x: (K, R, in)``, state ``(h, c): (K, R, hidden)``.
+    Input ``x: (K, R, in)``, state ``(h, c): (K, R, hidden)``. :class:`StructuralRNN` reads the weights
+    directly (one batched matmul for all types per step); :meth:`forward` is the plain definition.
     """
 
     def __init__(self, groups: int, input_size: int, hidden_size: int) -> None:
@@ -108,8 +136,77 @@ class GroupedLSTMCell(nn.Module):
         return h_new, c_new
 
 
+class _LiveRows:
+    """Hidden states split into the rows computed at the current step and the frozen rest.
+
+    Rows absent at a step keep their state, so only present rows are computed: their states are
+    gathered from the full state when the set of present rows changes (and scattered back first);
+    while the set stays the same (e.g. the whole rollout) they stay gathered. When every row is
+    present no index operation is done at all.
+    """
+
+    def __init__(self, state: dict[str, torch.Tensor], decode: Any) -> None:
+        self.full = dict(state)
+        self.decode = decode
+        self.rows: torch.Tensor | None = None
+        self.all = False
+        self.sub: dict[str, torch.Tensor] = {}
+        self.frozen_offsets: torch.Tensor | None = None
+
+    @staticmethod
+    def _dim(key: str) -> int:
+        return 1 if key.startswith("edge") else 0
+
+    def select(self, rows: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """States of ``rows`` (``None``: every row)."""
+        if self.sub:
+            if rows is None and self.all:
+                return self.sub
+            if rows is not None and self.rows is not None and rows.shape == self.rows.shape:
+                if torch.equal(rows, self.rows):
+                    return self.sub
+        self.flush()
+        self.all = rows is None
+        self.rows = rows
+        if rows is None:
+            self.sub = dict(self.full)
+        else:
+            self.sub = {k: v.index_select(self._dim(k), rows) for k, v in self.full.items()}
+        return self.sub
+
+    def flush(self) -> None:
+        """Write the live rows back into the full state."""
+        if not self.sub:
+            return
+        if self.all:
+            self.full = dict(self.sub)
+        else:
+            assert self.rows is not None
+            for k, v in self.sub.items():
+                self.full[k] = self.full[k].index_copy(self._dim(k), self.rows, v)
+        self.sub, self.rows, self.all, self.frozen_offsets = {}, None, False, None
+
+    def offsets(self, live: torch.Tensor) -> torch.Tensor:
+        """``(R, 2)`` decoder offsets of every row from the live rows' ``live (P, 2)``; frozen rows
+        are decoded from their kept state (once per set of live rows)."""
+        if self.all:
+            return live
+        if self.frozen_offsets is None:
+            self.frozen_offsets = self.decode(self.full["node_h"])
+        assert self.rows is not None
+        return self.frozen_offsets.index_copy(0, self.rows, live)
+
+
 class StructuralRNN(nn.Module):
-    """The structural RNN over a spatio-temporal graph; positions in normalised units."""
+    """The structural RNN over a spatio-temporal graph; positions in normalised units.
+
+    Implementation notes (the arithmetic is that of the module docstring; only its order changes):
+    the gate inputs of every step whose inputs are known (all observed steps; all steps with teacher
+    forcing) are computed in one batched pass before the recurrence — meta-path features, embeddings
+    and the input half of every LSTM — so the loop over steps only does the recurrent matmuls (one
+    batched matmul for all edge types, one for the node) and the pointwise updates; only pedestrians
+    present at a step are computed; ``tanh`` is evaluated as ``2 σ(2z) − 1``.
+    """
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
@@ -131,6 +228,7 @@ class StructuralRNN(nn.Module):
         if cfg.offset == "cv_residual":
             nn.init.zeros_(self.decoder.weight)
             nn.init.zeros_(self.decoder.bias)
+        self._prepared: tuple[tuple[int, ...], dict[str, torch.Tensor]] | None = None
 
     # ------------------------------------------------------------------ state
     def init_state(self, rows: int, device: torch.device | None = None) -> dict[str, torch.Tensor]:
@@ -144,21 +242,66 @@ class StructuralRNN(nn.Module):
             "edge_c": torch.zeros(k, rows, cfg.edge_hidden, device=dev),
         }
 
-    def _features(self, p: tuple[torch.Tensor, ...], m: tuple[torch.Tensor, ...]) -> torch.Tensor | None:
-        """``(K, B*N, 2)`` edge features at one step from positions/masks at t, t−1, t−2 (each ``(B, N, ·)``)."""
-        if not self.types:
-            return None
-        feats = metapath_features_step(p[0], p[1], p[2], m[0], m[1], m[2], self.types)
+    # ---------------------------------------------------------------- weights
+    def _weights(self) -> dict[str, torch.Tensor]:
+        """The parameters rearranged for the fast path (input/recurrent halves, doubled ``tanh`` inputs).
+
+        Differentiable functions of the parameters; cached while gradients are off and no parameter changed.
+        """
+        caching = not torch.is_grad_enabled()
+        if caching:
+            key = tuple(v for p in self.parameters() for v in (p.data_ptr(), p._version))
+            if self._prepared is not None and self._prepared[0] == key:
+                return self._prepared[1]
+        cfg, k = self.cfg, len(self.types)
+        cell = self.node_cell
+        gs = _gate_scale(cfg.node_hidden, cell.weight_ih)[:, None]
+        w_ih, w_hh = cell.weight_ih * gs, cell.weight_hh * gs
+        ne = cfg.node_embed
+        out = {
+            "node_embed_w": (self.node_embed.weight * 2.0).t(),
+            "node_embed_b": self.node_embed.bias * 2.0,
+            "node_x_w": w_ih[:, :ne].t(),
+            "node_b": (cell.bias_ih + cell.bias_hh) * gs[:, 0],
+            "node_rec_w": torch.cat([w_ih[:, ne:], w_hh], dim=1).t(),
+        }
+        if k:
+            gse = _gate_scale(cfg.edge_hidden, self.edge_cell.weight)
+            w = self.edge_cell.weight * gse
+            out |= {
+                "edge_embed_w": self.edge_embed_w * 2.0,
+                "edge_embed_b": self.edge_embed_b * 2.0,
+                "edge_x_w": w[:, : cfg.edge_embed],
+                "edge_h_w": w[:, cfg.edge_embed :],
+                "edge_b": self.edge_cell.bias * gse,
+            }
+        if caching:
+            out = {name: v.contiguous() for name, v in out.items()}
+            self._prepared = (key, out)
+        return out
+
+    # --------------------------------------------------------------- features
+    def _features(
+        self, p: tuple[torch.Tensor, ...], m: tuple[torch.Tensor, ...]
+    ) -> tuple[torch.Tensor | None, torch.Tensor]:
+        """Scaled edge features ``(K, ..., N, 2)`` (``None`` without edge types) and the velocity
+        ``(..., N, 2)``, from positions/masks at t, t−1, t−2 (each ``(..., N, ·)``)."""
+        dt = p[0].dtype
+        w = [x.to(dt).unsqueeze(-1) for x in m]  # (..., N, 1)
+        feats, vel = stacked_features_step(p[0], p[1], p[2], w[0], w[1], w[2], self.types)
+        k = len(self.types)
+        if not k:
+            return None, vel
         if self.cfg.aggregate == "mean":
-            n_t = m[0].sum(-1, keepdim=True).unsqueeze(-1).to(p[0].dtype)  # (B, 1, 1)
-            n_prev = m[1].sum(-1, keepdim=True).unsqueeze(-1).to(p[0].dtype)
+            n_t = w[0].sum(-2, keepdim=True)  # (..., 1, 1)
             nb = (n_t - 1).clamp(min=1)
-            scale = {"S": nb, "ST": nb, "SS": nb * (n_t - 2).clamp(min=1), "TS": (n_prev - 1).clamp(min=1)}
-            feats = {k: v / scale[k] if k in scale else v for k, v in feats.items()}
-        stacked = torch.stack([feats[t] for t in self.types], dim=0)  # (K, B, N, 2)
+            div = {"S": nb, "ST": nb, "SS": nb * (n_t - 2).clamp(min=1)}
+            if "TS" in self.types:
+                div["TS"] = (w[1].sum(-2, keepdim=True) - 1).clamp(min=1)
+            feats = torch.stack([f / div[t] if t in div else f for t, f in zip(self.types, feats, strict=True)])
         if self.cfg.feature_scale != 1.0:
-            stacked = stacked * self.cfg.feature_scale
-        return stacked.flatten(1, 2) * self.edge_scale[: len(self.types)]
+            feats = feats * self.cfg.feature_scale
+        return feats * self.edge_scale[:k].reshape(k, *([1] * (feats.dim() - 2)), 2), vel
 
     @torch.no_grad()
     def fit_input_scales(self, positions: torch.Tensor, mask: torch.Tensor) -> None:
@@ -171,12 +314,10 @@ class StructuralRNN(nn.Module):
         m1 = torch.cat([torch.zeros_like(m[:, :1]), m[:, :-1]], 1)
         p2 = torch.cat([torch.zeros_like(positions[:, :2]), positions[:, :-2]], 1)
         m2 = torch.cat([torch.zeros_like(m[:, :2]), m[:, :-2]], 1)
-        flat = lambda x: x.flatten(0, 1)  # noqa: E731 - (B*T, N, ...)
-        pres = flat(m)
         if self.types:
-            feats = self._features((flat(positions), flat(p1), flat(p2)), (pres, flat(m1), flat(m2)))
+            feats, _ = self._features((positions, p1, p2), (m, m1, m2))
             assert feats is not None
-            sel = feats[:, pres.reshape(-1)]  # (K, present rows, 2)
+            sel = feats.reshape(len(self.types), -1, 2)[:, m.reshape(-1)]  # (K, present rows, 2)
             rms = sel.pow(2).mean(1, keepdim=True).sqrt().clamp(min=1e-6)
             self.edge_scale[: len(self.types)] = 1.0 / rms
         if self.cfg.node_input == "velocity":
@@ -185,6 +326,151 @@ class StructuralRNN(nn.Module):
         else:
             vel = positions[m]
         self.node_scale.copy_(1.0 / vel.pow(2).mean(0).sqrt().clamp(min=1e-6))
+
+    # --------------------------------------------------------------- the step
+    def _gate_inputs(
+        self,
+        w: dict[str, torch.Tensor],
+        p: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        m: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        rows: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """Input halves of the node and edge gates for ``rows`` of the flattened ``(..., N)`` grid
+        (``None``: all), from positions/masks at t, t−1, t−2 (each ``(..., N, ·)``).
+
+        Returns ``node (P, 4 node_hidden)``, ``edge (K, P, 4 edge_hidden)`` or ``None``, and the
+        velocity ``(..., N, 2)``.
+        """
+        feats, vel = self._features(p, m)
+        node_in = (vel if self.cfg.node_input == "velocity" else p[0]).reshape(-1, 2)
+        if rows is not None:
+            node_in = node_in.index_select(0, rows)
+        x = tanh_from_doubled(torch.addmm(w["node_embed_b"], node_in * self.node_scale, w["node_embed_w"]))
+        node = torch.addmm(w["node_b"], self.drop(x), w["node_x_w"])
+        if feats is None:
+            return node, None, vel
+        f = feats.reshape(len(self.types), -1, 2)
+        if rows is not None:
+            f = f.index_select(1, rows)
+        e = tanh_from_doubled(torch.baddbmm(w["edge_embed_b"], f, w["edge_embed_w"]))
+        return node, torch.baddbmm(w["edge_b"], self.drop(e), w["edge_x_w"]), vel
+
+    def _decode(self, h: torch.Tensor) -> torch.Tensor:
+        """``(P, 2)`` offsets; always float32 (under bf16 autocast too: they are added to positions)."""
+        if torch.is_autocast_enabled("cpu"):
+            with torch.autocast("cpu", enabled=False):
+                return torch.tanh(nn.functional.linear(h.float(), self.decoder.weight, self.decoder.bias))
+        return torch.tanh(nn.functional.linear(h, self.decoder.weight, self.decoder.bias))
+
+    def _recurrent(
+        self,
+        w: dict[str, torch.Tensor],
+        node_x: torch.Tensor,
+        edge_x: torch.Tensor | None,
+        sub: dict[str, torch.Tensor],
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """Recurrent half of one step for ``P`` rows: new states and decoder offsets ``(P, 2)``."""
+        new: dict[str, torch.Tensor] = {}
+        if edge_x is not None:
+            gates = torch.baddbmm(edge_x, sub["edge_h"], w["edge_h_w"])  # all edge types in one matmul
+            new["edge_h"], new["edge_c"] = lstm_pointwise(gates, sub["edge_c"])
+            z = torch.cat([*new["edge_h"].unbind(0), sub["node_h"]], dim=1)
+        else:
+            z = sub["node_h"]
+        new["node_h"], new["node_c"] = lstm_pointwise(torch.addmm(node_x, z, w["node_rec_w"]), sub["node_c"])
+        return new, self._decode(new["node_h"])
+
+    def _advance(
+        self,
+        w: dict[str, torch.Tensor],
+        live: _LiveRows,
+        rows: torch.Tensor | None,
+        node_x: torch.Tensor,
+        edge_x: torch.Tensor | None,
+    ) -> torch.Tensor:
+        """Recurrent half of one step for ``rows``; returns every row's decoder offset ``(R, 2)``."""
+        sub = live.select(rows)
+        new, offsets = self._recurrent(w, node_x, edge_x, sub)
+        sub.update(new)
+        return live.offsets(offsets)
+
+    def scan(
+        self,
+        known_p: torch.Tensor,
+        known_m: torch.Tensor,
+        history_p: tuple[torch.Tensor, torch.Tensor],
+        history_m: tuple[torch.Tensor, torch.Tensor],
+        state: dict[str, torch.Tensor],
+        free_steps: int = 0,
+        roll_mask: torch.Tensor | None = None,
+        first_pred: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """Run ``L`` steps with given inputs, then ``free_steps`` steps fed with the model's own predictions.
+
+        Args:
+            known_p: ``(L, B, N, 2)`` normalised inputs (0 where absent); ``L`` may be 0.
+            known_m: ``(L, B, N)`` bool presence.
+            history_p: positions at the two steps before the first one, ``(t−1, t−2)``, each ``(B, N, 2)``.
+            history_m: their presence, each ``(B, N)`` bool.
+            state: hidden states of the ``B*N`` rows (see :meth:`init_state`).
+            free_steps: steps after the known ones; their input is the previous prediction for the
+                pedestrians of ``roll_mask`` (the others are absent).
+            roll_mask: ``(B, N)`` bool, who is rolled out (needed when ``free_steps > 0``).
+            first_pred: ``(B, N, 2)`` the prediction fed to the first free step when ``L == 0``.
+
+        Returns:
+            ``(L + free_steps, B, N, 2)`` predictions of the next positions, the presence used at each
+            step ``(L + free_steps, B, N)``, and the new state (rows absent at a step keep theirs).
+        """
+        n_known, b, n = known_m.shape
+        r = b * n
+        w = self._weights()
+        live = _LiveRows(state, self._decode)
+        residual = self.cfg.offset == "cv_residual"
+        preds: list[torch.Tensor] = []
+        used: list[torch.Tensor] = []
+        h_p, h_m = history_p, history_m
+        if n_known:
+            p_all = torch.cat([h_p[1][None], h_p[0][None], known_p], 0)
+            m_all = torch.cat([h_m[1][None], h_m[0][None], known_m], 0)
+            p3 = (p_all[2:], p_all[1:-1], p_all[:-2])
+            m3 = (m_all[2:], m_all[1:-1], m_all[:-2])
+            idx = torch.nonzero(known_m.reshape(-1)).flatten()
+            counts = known_m.reshape(n_known, r).sum(1).tolist()
+            node_x, edge_x, vel = self._gate_inputs(w, p3, m3, None if len(idx) == n_known * r else idx)
+            # split, not slices: the backward of a split is one concatenation, that of L slices L zero-filled copies
+            node_xs = node_x.split(counts)
+            edge_xs = [None] * n_known if edge_x is None else edge_x.split(counts, dim=1)
+            rows_all = idx.split(counts)
+            for t, count in enumerate(counts):
+                rows = None if count == r else rows_all[t] - t * r
+                offset = self._advance(w, live, rows, node_xs[t], edge_xs[t]).view(b, n, 2)
+                preds.append(known_p[t] + offset + vel[t] if residual else known_p[t] + offset)
+                used.append(known_m[t])
+            h_p = (known_p[-1], known_p[-2] if n_known > 1 else h_p[0])
+            h_m = (known_m[-1], known_m[-2] if n_known > 1 else h_m[0])
+        if free_steps:
+            if roll_mask is None:
+                raise ValueError("free steps need roll_mask")
+            roll = roll_mask.bool()
+            rows_idx = torch.nonzero(roll.reshape(-1)).flatten()
+            rows = None if len(rows_idx) == r else rows_idx
+            prev = preds[-1] if preds else first_pred
+            if prev is None:
+                raise ValueError("free steps after no known step need first_pred")
+            zeros = prev.new_zeros(())
+            for _ in range(free_steps):
+                p_t = torch.where(roll.unsqueeze(-1), prev, zeros)
+                node_x, edge_x, vel = self._gate_inputs(w, (p_t, *h_p), (roll, *h_m), rows)
+                offset = self._advance(w, live, rows, node_x, edge_x).view(b, n, 2)
+                prev = p_t + offset + vel if residual else p_t + offset
+                preds.append(prev)
+                used.append(roll)
+                h_p, h_m = (p_t, h_p[0]), (roll, h_m[0])
+        live.flush()
+        if not preds:
+            return known_p.new_zeros(0, b, n, 2), known_m.new_zeros(0, b, n), live.full
+        return torch.stack(preds), torch.stack(used), live.full
 
     def step(
         self,
@@ -202,29 +488,8 @@ class StructuralRNN(nn.Module):
         Returns:
             ``(B, N, 2)`` predicted positions at ``t+1`` and the new state (rows absent at ``t`` keep theirs).
         """
-        b, n, _ = p[0].shape
-        present = m[0].reshape(b * n, 1)
-        vel = (p[0] - p[1]) * (m[0] & m[1]).unsqueeze(-1).to(p[0].dtype)
-        if self.cfg.node_input == "velocity":
-            node_in = vel
-        else:
-            node_in = p[0]
-        x_node = self.drop(torch.tanh(self.node_embed(node_in.reshape(b * n, 2) * self.node_scale)))
-        edge = self._features(p, m)
-        new = dict(state)
-        if edge is not None:
-            e = self.drop(torch.tanh(torch.baddbmm(self.edge_embed_b, edge, self.edge_embed_w)))
-            eh, ec = self.edge_cell(e, state["edge_h"], state["edge_c"])
-            new["edge_h"] = torch.where(present.unsqueeze(0), eh, state["edge_h"])
-            new["edge_c"] = torch.where(present.unsqueeze(0), ec, state["edge_c"])
-            x_node = torch.cat([x_node, new["edge_h"].permute(1, 0, 2).reshape(b * n, -1)], dim=-1)
-        nh, nc = self.node_cell(x_node, (state["node_h"], state["node_c"]))
-        new["node_h"] = torch.where(present, nh, state["node_h"])
-        new["node_c"] = torch.where(present, nc, state["node_c"])
-        offset = torch.tanh(self.decoder(new["node_h"])).reshape(b, n, 2)
-        if self.cfg.offset == "cv_residual":
-            offset = offset + vel
-        return p[0] + offset, new
+        pred, _, new = self.scan(p[0][None], m[0][None].bool(), (p[1], p[2]), (m[1], m[2]), state)
+        return pred[0], new
 
     def forward(
         self, positions: torch.Tensor, mask: torch.Tensor, obs_len: int, teacher_forcing: bool = True
@@ -244,27 +509,23 @@ class StructuralRNN(nn.Module):
             ``pred: (B, T−1, N, 2)`` where ``pred[:, t]`` is the prediction of step ``t+1``, and the
             input mask ``(B, T−1, N)`` used at each step.
         """
-        b, t_len, n, _ = positions.shape
-        state = self.init_state(b * n, positions.device)
+        steps = positions.shape[1] - 1
+        known = steps if teacher_forcing else min(obs_len, steps)
+        pred, used = self._run(positions[:, :known], mask[:, :known], steps - known, mask[:, obs_len - 1])
+        return pred, used
+
+    def _run(
+        self, positions: torch.Tensor, mask: torch.Tensor, free_steps: int, roll_mask: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """From a zero state: ``(B, L, N, 2)`` known inputs then ``free_steps``; ``(B, L + free, N, ·)`` out."""
+        b, _, n, _ = positions.shape
+        m = mask.bool().transpose(0, 1)
+        p = torch.where(m.unsqueeze(-1), positions.transpose(0, 1), positions.new_zeros(()))
         zeros_p = positions.new_zeros(b, n, 2)
         zeros_m = torch.zeros(b, n, dtype=torch.bool, device=positions.device)
-        hist_p = [zeros_p, zeros_p]
-        hist_m = [zeros_m, zeros_m]
-        roll_mask = mask[:, obs_len - 1]
-        preds, used = [], []
-        pred = zeros_p
-        for t in range(t_len - 1):
-            if t < obs_len or teacher_forcing:
-                p_t, m_t = positions[:, t], mask[:, t]
-            else:
-                p_t, m_t = pred, roll_mask
-            p_t = torch.where(m_t.unsqueeze(-1), p_t, zeros_p)
-            pred, state = self.step((p_t, hist_p[0], hist_p[1]), (m_t, hist_m[0], hist_m[1]), state)
-            preds.append(pred)
-            used.append(m_t)
-            hist_p = [p_t, hist_p[0]]
-            hist_m = [m_t, hist_m[0]]
-        return torch.stack(preds, dim=1), torch.stack(used, dim=1)
+        state = self.init_state(b * n, positions.device)
+        pred, used, _ = self.scan(p, m, (zeros_p, zeros_p), (zeros_m, zeros_m), state, free_steps, roll_mask.bool())
+        return pred.transpose(0, 1), used.transpose(0, 1)
 
     def rollout(self, obs_positions: torch.Tensor, obs_mask: torch.Tensor, pred_len: int) -> torch.Tensor:
         """Autoregressive forecast from observed steps only.
@@ -277,10 +538,6 @@ class StructuralRNN(nn.Module):
         Returns:
             ``(B, pred_len, N, 2)`` normalised; meaningful for pedestrians present at the last observed step.
         """
-        b, obs_len, n, _ = obs_positions.shape
-        pad_p = obs_positions.new_zeros(b, pred_len, n, 2)
-        pad_m = torch.zeros(b, pred_len, n, dtype=torch.bool, device=obs_mask.device)
-        pred, _ = self.forward(
-            torch.cat([obs_positions, pad_p], 1), torch.cat([obs_mask.bool(), pad_m], 1), obs_len, teacher_forcing=False
-        )
+        obs_len = obs_positions.shape[1]
+        pred, _ = self._run(obs_positions, obs_mask, pred_len - 1, obs_mask[:, obs_len - 1])
         return pred[:, obs_len - 1 :]
