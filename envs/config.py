@@ -16,6 +16,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
+import numpy as np
+
 from crowdnav_mesrnn.config import ConfigError, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import RECORDINGS, SPLIT_TEST_RECORDINGS, SPLITS
 
@@ -177,7 +179,8 @@ class CrowdNavConfig:
         return self.horizon_steps * self.dt_s
 
     def validate(self) -> CrowdNavConfig:
-        """Raise :class:`ConfigError` naming the key and listing valid values; return self."""
+        """Check the type, finiteness and range of every value; raise :class:`ConfigError` naming the key, the
+        value and what is allowed (valid values are listed for choices). Returns self."""
         _one_of("split", self.split, SPLITS)
         _one_of("part", self.part, EPISODE_PARTS)
         _one_of("crowd", self.crowd, CROWDS)
@@ -185,30 +188,37 @@ class CrowdNavConfig:
         _one_of("kinematics", self.kinematics, KINEMATICS)
         _one_of("forecast_memory", self.forecast_memory, FORECAST_MEMORIES)
         _one_of("episode_time", self.episode_time, EPISODE_TIMES)
-        allowed = episode_recordings(self.split, self.part)
-        resolve_scenes(self.scenes, allowed, self.split, self.part)
-        for key in (
-            "robot_radius_m",
-            "robot_pref_speed_mps",
-            "robot_max_turn_rate_radps",
-            "pedestrian_radius_m",
-            "dt_s",
-            "physics_dt_s",
-            "time_limit_factor",
-            "goal_tolerance_m",
-            "sensor_range_m",
-            "max_obs_speed_mps",
-            "max_goal_offset_m",
-            "synthetic_duration_s",
-            "render_px_per_m",
-        ):
+        if not (isinstance(self.scenes, tuple) and all(isinstance(x, str) for x in self.scenes)):
+            raise ConfigError(f"config key 'scenes' must be a list of recording or scene names, got {self.scenes!r}")
+        resolve_scenes(self.scenes, episode_recordings(self.split, self.part), self.split, self.part)
+        for key in ("data_dir", "forecast_cache_dir"):
             value = getattr(self, key)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"config key {key!r} must be a positive number, got {value!r}")
-        for key in ("num_pedestrians", "horizon_steps", "render_trail_steps"):
+            if value is not None and not (isinstance(value, str | os.PathLike) and str(value)):
+                raise ConfigError(f"config key {key!r} must be a folder path or null, got {value!r}")
+        for key in _FLAGS:
+            if not isinstance(getattr(self, key), bool | np.bool_):
+                raise ConfigError(f"config key {key!r} must be true or false, got {getattr(self, key)!r}")
+        for key, (lo, hi, lo_open, hi_open) in _NUMBERS.items():
+            _number(key, getattr(self, key), lo, hi, lo_open, hi_open)
+        for key, lo in _INTEGERS.items():
             value = getattr(self, key)
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-                raise ConfigError(f"config key {key!r} must be an integer >= 1, got {value!r}")
+            if not (isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_) and value >= lo):
+                raise ConfigError(f"config key {key!r} must be an integer >= {lo}, got {value!r}")
+        dist = _pair("start_goal_distance_m", self.start_goal_distance_m, "(min, max) metres")
+        if not 0 < dist[0] <= dist[1]:
+            raise ConfigError(
+                f"config key 'start_goal_distance_m' must be (min, max) with 0 < min <= max, got {self.start_goal_distance_m!r}"
+            )
+        area = _pair("synthetic_area_m", self.synthetic_area_m, "(width, height) metres")
+        if min(area) < 4:
+            raise ConfigError(
+                f"config key 'synthetic_area_m' must be (width, height) of at least 4 m, got {self.synthetic_area_m!r}"
+            )
+        size = _pair("render_size_px", self.render_size_px, "(width, height) pixels")
+        if min(size) < 16 or not all(float(v).is_integer() for v in size):
+            raise ConfigError(
+                f"config key 'render_size_px' must be (width, height) integers >= 16 px, got {self.render_size_px!r}"
+            )
         substep_s = self.dt_s / self.substeps
         closing_m = (1.5 + self.robot_pref_speed_mps) * substep_s
         if closing_m > self.robot_radius_m + self.pedestrian_radius_m:
@@ -217,35 +227,87 @@ class CrowdNavConfig:
                 f"{closing_m:.2f} m per substep, more than the sum of radii "
                 f"{self.robot_radius_m + self.pedestrian_radius_m:.2f} m (contacts could be missed)"
             )
-        lo_hi = self.start_goal_distance_m
-        if len(lo_hi) != 2 or not 0 < lo_hi[0] <= lo_hi[1]:
-            raise ConfigError(
-                f"config key 'start_goal_distance_m' must be (min, max) with 0 < min <= max, got {lo_hi!r}"
-            )
-        for key in ("start_clearance_m", "noisy_oracle_ade_m", "discomfort_dist_m", "synthetic_arrival_rate_per_s"):
-            value = getattr(self, key)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise ConfigError(f"config key {key!r} must be a number >= 0, got {value!r}")
-        if not (isinstance(self.val_fraction, int | float) and 0 < self.val_fraction < 1):
-            raise ConfigError(f"config key 'val_fraction' must be a number in (0, 1), got {self.val_fraction!r}")
-        if not (isinstance(self.time_penalty, int | float) and math.isfinite(self.time_penalty)):
-            raise ConfigError(f"config key 'time_penalty' must be a finite number, got {self.time_penalty!r}")
-        if not 0 < self.progress_gamma <= 1:
-            raise ConfigError(f"config key 'progress_gamma' must be in (0, 1], got {self.progress_gamma!r}")
-        if len(self.synthetic_area_m) != 2 or min(self.synthetic_area_m) < 4:
-            raise ConfigError(
-                f"config key 'synthetic_area_m' must be (width, height) of at least 4 m, got {self.synthetic_area_m!r}"
-            )
-        if len(self.render_size_px) != 2 or min(self.render_size_px) < 16:
-            raise ConfigError(
-                f"config key 'render_size_px' must be (width, height) >= 16 px, got {self.render_size_px!r}"
-            )
         return self
 
 
+#: Boolean keys.
+_FLAGS: Final[tuple[str, ...]] = (
+    "terminate_on_collision",
+    "require_pedestrians",
+    "observe_time_left",
+    "observe_perception_age",
+    "flatten_observation",
+    "cache_forecasts",
+    "forecast_disk_cache",
+)
+#: Integer keys -> smallest allowed value.
+_INTEGERS: Final[dict[str, int]] = {
+    "num_pedestrians": 1,
+    "horizon_steps": 1,
+    "render_trail_steps": 1,
+    "synthetic_seed": 0,
+}
+#: Real keys -> (low, high, low open, high open); None = unbounded. Every one must also be finite.
+_NUMBERS: Final[dict[str, tuple[float | None, float | None, bool, bool]]] = {
+    "robot_radius_m": (0.0, None, True, False),
+    "robot_pref_speed_mps": (0.0, None, True, False),
+    "robot_max_turn_rate_radps": (0.0, None, True, False),
+    "pedestrian_radius_m": (0.0, None, True, False),
+    "dt_s": (0.0, None, True, False),
+    "physics_dt_s": (0.0, None, True, False),
+    "start_clearance_m": (0.0, None, False, False),
+    "time_limit_factor": (0.0, None, True, False),
+    "goal_tolerance_m": (0.0, None, True, False),
+    "val_fraction": (0.0, 1.0, True, True),
+    "sensor_range_m": (0.0, None, True, False),
+    "max_obs_speed_mps": (0.0, None, True, False),
+    "max_goal_offset_m": (0.0, None, True, False),
+    "noisy_oracle_ade_m": (0.0, None, False, False),
+    "success_reward": (None, None, False, False),
+    "collision_penalty": (None, None, False, False),
+    "discomfort_dist_m": (0.0, None, False, False),
+    "discomfort_scale": (0.0, None, False, False),
+    "progress_weight": (None, None, False, False),
+    "progress_gamma": (0.0, 1.0, True, False),
+    "intrusion_penalty": (None, None, False, False),
+    "time_penalty": (None, None, False, False),
+    "synthetic_duration_s": (0.0, None, True, False),
+    "synthetic_arrival_rate_per_s": (0.0, None, False, False),
+    "render_px_per_m": (0.0, None, True, False),
+}
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool | np.bool_)
+
+
+def _number(key: str, value: Any, lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> None:
+    """Raise unless ``value`` is a finite real number in the interval."""
+    if lo is None and hi is None:
+        what = "a finite number"
+    elif hi is None:
+        what = f"a number {'>' if lo_open else '>='} {lo:g}"
+    else:
+        what = f"a number in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    ok = _is_real(value) and math.isfinite(value)
+    if ok and lo is not None:
+        ok = value > lo if lo_open else value >= lo
+    if ok and hi is not None:
+        ok = value < hi if hi_open else value <= hi
+    if not ok:
+        raise ConfigError(f"config key {key!r} must be {what}, got {value!r}")
+
+
 def _one_of(key: str, value: Any, valid: tuple[str, ...]) -> None:
-    if value not in valid:
+    if not isinstance(value, str) or value not in valid:
         raise ConfigError(f"unknown {key} {value!r}; valid: {', '.join(valid)}")
+
+
+def _pair(key: str, value: Any, what: str) -> tuple[float, float]:
+    """Two finite real numbers, or :class:`ConfigError`."""
+    if not (isinstance(value, tuple) and len(value) == 2 and all(_is_real(v) and math.isfinite(v) for v in value)):
+        raise ConfigError(f"config key {key!r} must be {what}: two finite numbers, got {value!r}")
+    return float(value[0]), float(value[1])
 
 
 def episode_recordings(split: str, part: str) -> tuple[str, ...]:

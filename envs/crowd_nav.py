@@ -18,7 +18,7 @@ from crowdnav_mesrnn.config import ConfigError, check_keys
 from crowdnav_mesrnn.data.constants import OBS_LEN
 from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, DataNotFoundError
 from crowdnav_mesrnn.data.recordings import Recording, load_recording
-from envs.config import CrowdNavConfig, config_from, episode_recordings, resolve_scenes
+from envs.config import FORECAST_SOURCES, CrowdNavConfig, config_from, episode_recordings, resolve_scenes
 from envs.crowds import (
     Episode,
     EpisodeSampler,
@@ -39,9 +39,52 @@ from envs.observation import ObservationBuilder, nearest_visible, observation_sp
 from envs.rewards import EpisodeMetrics, reward_components, total_reward
 from envs.world import World
 
+#: Default of ``CrowdNavEnv(predictor=...)``: the config's ``predictor`` (an explicit None is an error).
+_CONFIGURED: Final[Any] = object()
 #: Keys accepted in ``reset(options=...)``.
 RESET_OPTIONS: Final[tuple[str, ...]] = ("recording", "t0_s", "start", "goal", "time_limit_s")
 TIMING_KEYS: Final[tuple[str, ...]] = ("replay", "physics", "forecasts", "observation", "reward", "reset")
+
+
+def reset_options(options: Any, goal_tolerance_m: float) -> dict[str, Any]:
+    """``reset(options=...)`` checked: a mapping with keys among :data:`RESET_OPTIONS`, each of the right type,
+    finite and in range; ``ValueError`` (``ConfigError`` for unknown keys) naming the option, the value and what
+    is allowed. Whether ``recording`` exists and ``t0_s`` lies inside it is checked when the episode is drawn."""
+    if options is None:
+        return {}
+    if not isinstance(options, Mapping):
+        raise ValueError(f"reset options must be a mapping with keys among {', '.join(RESET_OPTIONS)}, got {options!r}")
+    opts = dict(options)
+    check_keys(opts, RESET_OPTIONS, "reset option")
+    if "recording" in opts and not isinstance(opts["recording"], str):
+        raise ValueError(f"reset option 'recording' must be a recording name, got {opts['recording']!r}")
+    for key, positive in (("t0_s", False), ("time_limit_s", True)):
+        if key in opts:
+            value = opts[key]
+            real = isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool | np.bool_)
+            if not (real and math.isfinite(value) and (value > 0 if positive else value >= 0)):
+                raise ValueError(
+                    f"reset option {key!r} must be a finite number of seconds {'> 0' if positive else '>= 0'}, "
+                    f"got {value!r}"
+                )
+            opts[key] = float(value)
+    for key in ("start", "goal"):
+        if key in opts:
+            try:
+                arr = np.asarray(opts[key], dtype=np.float64)
+            except (TypeError, ValueError):
+                arr = np.zeros(0)
+            if arr.shape != (2,) or not np.all(np.isfinite(arr)):
+                raise ValueError(f"reset option {key!r} must be 2 finite numbers (metres), got {opts[key]!r}")
+            opts[key] = arr
+    if "start" in opts and "goal" in opts:
+        dist = float(np.linalg.norm(opts["goal"] - opts["start"]))
+        if dist <= goal_tolerance_m:
+            raise ValueError(
+                f"reset options 'start' {opts['start'].tolist()} and 'goal' {opts['goal'].tolist()} are {dist:.3g} m "
+                f"apart: they must be more than goal_tolerance_m = {goal_tolerance_m} m apart"
+            )
+    return opts
 
 
 class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
@@ -173,15 +216,21 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self,
         render_mode: str | None = None,
         config: Mapping[str, Any] | str | os.PathLike[str] | None = None,
-        predictor: str | ForecastModel | None = None,
+        predictor: Any = _CONFIGURED,
         crowd: str | Recording | None = None,
         **kwargs: Any,
     ) -> None:
         overrides = dict(kwargs)
         predictor_obj: ForecastModel | None = None
+        if predictor is None:
+            raise ConfigError(
+                "predictor=None is not a forecast source: pass 'none' for no forecasts, one of "
+                f"{', '.join(FORECAST_SOURCES)}, or a predictor object (gymnasium.make(id) without predictor= uses "
+                "the id's source; CrowdNavEnv() without it uses the config's)"
+            )
         if isinstance(predictor, str):
             overrides["predictor"] = predictor
-        elif predictor is not None:
+        elif predictor is not _CONFIGURED:
             predictor_obj = predictor
         crowd_obj: Recording | None = None
         if isinstance(crowd, str):
@@ -354,14 +403,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                 self._forecast_rng = np.random.default_rng(int(self.np_random.integers(2**63)))
         t_start = time.perf_counter()
         cfg = self.config
-        opts = dict(options or {})
-        check_keys(opts, RESET_OPTIONS, "reset option")
-        for key in ("start", "goal"):
-            if key in opts:
-                arr = np.asarray(opts[key], dtype=np.float64)
-                if arr.shape != (2,) or not np.all(np.isfinite(arr)):
-                    raise ValueError(f"reset option {key!r} must be 2 finite numbers (metres), got {opts[key]!r}")
-                opts[key] = arr
+        opts = reset_options(options, cfg.goal_tolerance_m)
         ep = self.sampler.sample(self.np_random, **opts)
         self.episode = ep
         history_s = (OBS_LEN - 1) * ep.recording.step_s

@@ -518,6 +518,10 @@ class EpisodeSampler:
             rec = self.recordings[int(rng.choice(len(self.recordings), p=self.weights))]
         times = rec.times_s()
         lo, hi = self.extents[rec.name]
+        if t0_s is not None and not 0.0 <= t0_s < float(times[-1]):
+            raise ValueError(
+                f"reset option 't0_s' = {t0_s!r} lies outside the recording {rec.name!r}: valid [0, {times[-1]:.2f}) s"
+            )
         if t0_s is not None and self.episode_time != "all":
             window_lo, window_hi = self.time_window(rec)
             if not window_lo - TIME_TOL_S <= t0_s < window_hi:

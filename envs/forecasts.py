@@ -30,7 +30,7 @@ import numpy as np
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, SPLIT_TEST_RECORDINGS
 from crowdnav_mesrnn.data.recordings import Recording
-from envs.config import FORECAST_MEMORIES, LEARNED_SOURCES
+from envs.config import FORECAST_MEMORIES, FORECAST_SOURCES, LEARNED_SOURCES
 from envs.crowds import TIME_TOL_S, Replay
 from envs.forecast_cache import (
     CHUNK_FRAMES,
@@ -642,8 +642,9 @@ def make_forecast_source(
     learned_cls = CarriedPredictorForecast if memory == "carried" else PredictorForecast
     if not isinstance(predictor, str):
         if not callable(getattr(predictor, "forecast", None)):
-            raise TypeError(
-                f"predictor must be a name or an object with a forecast(history, mask) method, got {predictor!r}"
+            raise ConfigError(
+                f"predictor must be one of {', '.join(FORECAST_SOURCES)} or an object with a forecast(history, mask) "
+                f"method, got {predictor!r}"
             )
         return learned_cls(str(getattr(predictor, "name", "custom")), {}, predictor, dt_s, horizon, cache, store)
     if predictor == "none":

@@ -209,7 +209,7 @@ def test_step_before_reset_and_after_the_end_raise() -> None:
             {"split": "zara1", "part": "test", "scenes": ("hotel",)},
             r"unknown scene 'hotel'.*valid: crowds_zara01, zara1",
         ),
-        ({"dt_s": -0.4}, r"'dt_s' must be a positive number"),
+        ({"dt_s": -0.4}, r"'dt_s' must be a number > 0, got -0.4"),
         ({"physics_dt_s": 0.4}, r"'physics_dt_s' = 0.4 is too long"),
         ({"terminate_on_collision": "no"}, r"must be true or false"),
     ],
