@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
 import time
@@ -13,6 +14,7 @@ from typing import Any, Final
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from gymnasium.error import DependencyNotInstalled
 
 from crowdnav_mesrnn.config import ConfigError, check_keys
 from crowdnav_mesrnn.data.constants import OBS_LEN
@@ -36,6 +38,7 @@ from envs.forecasts import (
     make_forecast_source,
 )
 from envs.observation import ObservationBuilder, nearest_visible, observation_space
+from envs.rendering import HUMAN_NEEDS_PYGAME
 from envs.rewards import EpisodeMetrics, reward_components, total_reward
 from envs.world import World
 
@@ -245,8 +248,13 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             raise ValueError(
                 f"unknown render_mode {render_mode!r}; valid: None, {', '.join(self.metadata['render_modes'])}"
             )
+        with_pygame = importlib.util.find_spec("pygame") is not None
+        if render_mode == "human" and not with_pygame:
+            raise DependencyNotInstalled(HUMAN_NEEDS_PYGAME)
         self.render_mode = render_mode
-        self.metadata = {**self.metadata, "render_fps": 1.0 / cfg.dt_s}
+        # without pygame only rgb_array is offered (drawn with Pillow), so checkers do not try a window
+        modes = self.metadata["render_modes"] if with_pygame else ["rgb_array"]
+        self.metadata = {**self.metadata, "render_fps": 1.0 / cfg.dt_s, "render_modes": modes}
 
         self.recordings, self.crowd_kind = self._resolve_crowd(crowd_obj)
         self.forecaster: ForecastSource = make_forecast_source(

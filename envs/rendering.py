@@ -1,4 +1,5 @@
-"""Rendering with pygame (imported only here, only when rendering) and GIF export with Pillow.
+"""Rendering with Pillow (``rgb_array``: no pygame needed), a pygame window for ``human`` mode (the ``render``
+extra, imported only then), and GIF export with Pillow.
 
 Save an episode as a GIF::
 
@@ -38,6 +39,9 @@ FORECAST = (240, 140, 20)
 TRUTH = (120, 120, 120)
 SENSOR = (225, 225, 240)
 TEXT = (30, 30, 30)
+HUMAN_NEEDS_PYGAME = (
+    'render_mode="human" needs pygame: pip install "crowdnav-mesrnn[render]" (render_mode="rgb_array" works without it)'
+)
 
 
 @dataclass
@@ -78,36 +82,43 @@ class Scene:
 
 
 class Renderer:
-    """Draws scenes at a fixed scale (``px_per_m``) onto a ``size_px`` surface.
+    """Draws scenes at a fixed scale (``px_per_m``) onto a ``size_px`` image with Pillow.
 
     Args:
         size_px: ``(width, height)`` pixels.
         px_per_m: pixels per metre.
-        mode: ``"rgb_array"`` (returns ``(height, width, 3)`` uint8 frames) or ``"human"`` (a window).
+        mode: ``"rgb_array"`` (returns ``(height, width, 3)`` uint8 frames) or ``"human"`` (a pygame window).
         fps: frames per second of the human window.
+
+    Raises:
+        gymnasium.error.DependencyNotInstalled: ``human`` mode without pygame (the ``render`` extra).
     """
 
     def __init__(self, size_px: tuple[int, int], px_per_m: float, mode: str, fps: float) -> None:
-        import pygame  # only when rendering
+        from PIL import ImageFont
 
-        self.pygame = pygame
         self.size = (int(size_px[0]), int(size_px[1]))
         self.scale = float(px_per_m)
         self.mode = mode
         self.fps = fps
         self.window: Any = None
         self.clock: Any = None
-        self.font: Any = None
+        self.pygame: Any = None
         if mode == "human":
+            try:
+                import pygame
+            except ImportError as exc:
+                from gymnasium.error import DependencyNotInstalled
+
+                raise DependencyNotInstalled(HUMAN_NEEDS_PYGAME) from exc
+            self.pygame = pygame
             pygame.display.init()
             self.window = pygame.display.set_mode(self.size)
             pygame.display.set_caption("CrowdNav-MESRNN")
             self.clock = pygame.time.Clock()
-        self.surface = pygame.Surface(self.size)
         try:
-            pygame.font.init()
-            self.font = pygame.font.Font(None, 20)
-        except Exception:  # fonts are optional decoration
+            self.font: Any = ImageFont.load_default()
+        except OSError:  # fonts are optional decoration
             self.font = None
 
     def to_px(self, p: np.ndarray, center: np.ndarray) -> tuple[int, int]:
@@ -117,27 +128,37 @@ class Renderer:
 
     def draw(self, scene: Scene) -> np.ndarray | None:
         """Draw a frame: ``(H, W, 3)`` uint8 in ``rgb_array`` mode, None in ``human`` mode."""
-        pg = self.pygame
-        surf = self.surface
+        from PIL import Image, ImageDraw
+
+        image = Image.new("RGB", self.size, BACKGROUND)
+        pen = ImageDraw.Draw(image)
         c = scene.center
-        surf.fill(BACKGROUND)
+        width, height = self.size
+
+        def disk(p: np.ndarray, radius_m: float, colour: tuple[int, int, int], outline: int = 0) -> None:
+            x, y = self.to_px(p, c)
+            r = max(1, round(radius_m * self.scale))
+            if outline:
+                pen.ellipse((x - r, y - r, x + r, y + r), outline=colour, width=outline)
+            else:
+                pen.ellipse((x - r, y - r, x + r, y + r), fill=colour)
+
         # 1 m grid
-        half_w, half_h = self.size[0] / 2 / self.scale, self.size[1] / 2 / self.scale
+        half_w, half_h = width / 2 / self.scale, height / 2 / self.scale
         for gx in range(int(np.floor(c[0] - half_w)), int(np.ceil(c[0] + half_w)) + 1):
             x = self.to_px(np.array([gx, c[1]]), c)[0]
-            pg.draw.line(surf, GRID, (x, 0), (x, self.size[1]))
+            pen.line((x, 0, x, height), fill=GRID)
         for gy in range(int(np.floor(c[1] - half_h)), int(np.ceil(c[1] + half_h)) + 1):
             y = self.to_px(np.array([c[0], gy]), c)[1]
-            pg.draw.line(surf, GRID, (0, y), (self.size[0], y))
-        r_px = lambda r: max(1, round(r * self.scale))  # noqa: E731
-        pg.draw.circle(surf, SENSOR, self.to_px(scene.robot, c), r_px(scene.sensor_range_m), width=1)
-        pg.draw.circle(surf, GOAL, self.to_px(scene.goal, c), r_px(scene.goal_tolerance_m), width=2)
+            pen.line((0, y, width, y), fill=GRID)
+        disk(scene.robot, scene.sensor_range_m, SENSOR, outline=1)
+        disk(scene.goal, scene.goal_tolerance_m, GOAL, outline=2)
         gx, gy = self.to_px(scene.goal, c)
-        pg.draw.line(surf, GOAL, (gx - 6, gy - 6), (gx + 6, gy + 6), 2)
-        pg.draw.line(surf, GOAL, (gx - 6, gy + 6), (gx + 6, gy - 6), 2)
+        pen.line((gx - 6, gy - 6, gx + 6, gy + 6), fill=GOAL, width=2)
+        pen.line((gx - 6, gy + 6, gx + 6, gy - 6), fill=GOAL, width=2)
         for trail in scene.trails:
             if len(trail) >= 2:
-                pg.draw.lines(surf, TRAIL, False, [self.to_px(p, c) for p in trail], 2)
+                pen.line([self.to_px(p, c) for p in trail], fill=TRAIL, width=2)
         if scene.forecasts is not None:
             for fc in scene.forecasts:
                 pts = [self.to_px(p, c) for p in fc]
@@ -146,26 +167,26 @@ class Renderer:
                     n = max(1, int(np.hypot(b[0] - a[0], b[1] - a[1]) // 4))
                     for i in range(n):
                         t = i / n
-                        pg.draw.circle(
-                            surf, FORECAST, (round(a[0] + t * (b[0] - a[0])), round(a[1] + t * (b[1] - a[1]))), 1
-                        )
-                for p in pts:
-                    pg.draw.circle(surf, FORECAST, p, 2)
+                        x, y = round(a[0] + t * (b[0] - a[0])), round(a[1] + t * (b[1] - a[1]))
+                        pen.point((x, y), fill=FORECAST)
+                for x, y in pts:
+                    pen.ellipse((x - 2, y - 2, x + 2, y + 2), fill=FORECAST)
         for p, seen in zip(scene.pedestrians, scene.visible, strict=True):
-            pg.draw.circle(surf, PEDESTRIAN if seen else UNSEEN, self.to_px(p, c), r_px(scene.ped_radius_m))
-        robot_px = self.to_px(scene.robot, c)
-        pg.draw.circle(surf, (0, 0, 0) if scene.collided else ROBOT, robot_px, r_px(scene.robot_radius_m))
+            disk(p, scene.ped_radius_m, PEDESTRIAN if seen else UNSEEN)
+        disk(scene.robot, scene.robot_radius_m, (0, 0, 0) if scene.collided else ROBOT)
         tip = scene.robot + scene.robot_radius_m * np.array([np.cos(scene.heading), np.sin(scene.heading)])
-        pg.draw.line(surf, (255, 255, 255), robot_px, self.to_px(tip, c), 2)
+        pen.line((*self.to_px(scene.robot, c), *self.to_px(tip, c)), fill=(255, 255, 255), width=2)
         if self.font is not None and scene.text:
-            surf.blit(self.font.render(scene.text, True, TEXT), (8, 8))
+            pen.text((8, 8), scene.text, fill=TEXT, font=self.font)
+        frame = np.asarray(image, dtype=np.uint8)
         if self.mode == "human":
+            pg = self.pygame
             pg.event.pump()
-            self.window.blit(surf, (0, 0))
+            self.window.blit(pg.image.frombuffer(image.tobytes(), self.size, "RGB"), (0, 0))
             pg.display.flip()
             self.clock.tick(self.fps)
             return None
-        return np.transpose(pg.surfarray.array3d(surf), (1, 0, 2)).copy()
+        return frame.copy()
 
     def close(self) -> None:
         if self.window is not None:
