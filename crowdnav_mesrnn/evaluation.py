@@ -39,32 +39,55 @@ def cv_predict_batch(positions: torch.Tensor, mask: torch.Tensor) -> torch.Tenso
     return last.unsqueeze(1) + k * vel.unsqueeze(1)
 
 
-def evaluate_windows(
+def window_errors(
     predict: BatchPredictFn, windows: Sequence[Window], norm: MinMax, batch_size: int = 64
-) -> dict[str, float]:
-    """ADE/FDE over the scored pedestrians of ``windows`` (metres, and min-max-normalised units)."""
-    sums = dict.fromkeys(METRIC_KEYS, 0.0)
-    peds = 0
+) -> dict[str, np.ndarray]:
+    """Per-window sums over the scored pedestrians, in the order of ``windows``.
+
+    Returns:
+        ``{"ade_m", "fde_m", "ade_norm", "fde_norm"}``: ``(W,)`` float64 sums of each scored
+        pedestrian's error (metres / min-max-normalised units), and ``"pedestrians"``: ``(W,)`` counts.
+        Dividing a sum by the count total gives the split's ADE/FDE; paired differences of the sums
+        feed :mod:`crowdnav_mesrnn.stats`.
+    """
+    out = {k: np.zeros(len(windows), np.float64) for k in METRIC_KEYS}
+    out["pedestrians"] = np.zeros(len(windows), np.int64)
     scale = torch.as_tensor(norm.scale, dtype=torch.float32)
     for chunk in batches(windows, batch_size):
         pos, pres, scored = collate([windows[i] for i in chunk])
         pos_t, pres_t = torch.from_numpy(pos), torch.from_numpy(pres)
         with torch.no_grad():
             pred = predict(pos_t, pres_t)  # (B, P, N, 2)
-        gt = pos_t[:, OBS_LEN:].float()
-        err = pred.float() - gt
+        err = pred.float() - pos_t[:, OBS_LEN:].float()
         d_m = err.norm(dim=-1)  # (B, P, N)
         d_n = (err * scale).norm(dim=-1)
-        s = torch.from_numpy(scored)
-        sums["ade_m"] += d_m.mean(1)[s].sum().item()
-        sums["fde_m"] += d_m[:, -1][s].sum().item()
-        sums["ade_norm"] += d_n.mean(1)[s].sum().item()
-        sums["fde_norm"] += d_n[:, -1][s].sum().item()
-        peds += int(s.sum())
-    out = {k: v / max(peds, 1) for k, v in sums.items()}
-    out["windows"] = len(windows)
+        s = torch.from_numpy(scored).to(d_m.dtype)
+        sums = {
+            "ade_m": d_m.mean(1),
+            "fde_m": d_m[:, -1],
+            "ade_norm": d_n.mean(1),
+            "fde_norm": d_n[:, -1],
+        }
+        for key, per_ped in sums.items():
+            out[key][chunk] = (per_ped * s).sum(1).double().numpy()
+        out["pedestrians"][chunk] = scored.sum(1)
+    return out
+
+
+def summarise(errors: dict[str, np.ndarray]) -> dict[str, float]:
+    """ADE/FDE of a split from :func:`window_errors` (pedestrian-weighted means)."""
+    peds = int(errors["pedestrians"].sum())
+    out: dict[str, float] = {k: float(errors[k].sum()) / max(peds, 1) for k in METRIC_KEYS}
+    out["windows"] = len(errors["pedestrians"])
     out["pedestrians"] = peds
     return out
+
+
+def evaluate_windows(
+    predict: BatchPredictFn, windows: Sequence[Window], norm: MinMax, batch_size: int = 64
+) -> dict[str, float]:
+    """ADE/FDE over the scored pedestrians of ``windows`` (metres, and min-max-normalised units)."""
+    return summarise(window_errors(predict, windows, norm, batch_size))
 
 
 def split_norm(split: str, data_dir: str | os.PathLike[str] | None = None) -> MinMax:
