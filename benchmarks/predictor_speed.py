@@ -1,14 +1,22 @@
-"""Training throughput and forecast latency of the structural RNN predictors.
+"""Training throughput and forecast latency of the structural RNN predictors, against the CPU's matmul peak.
 
-Run: ``python benchmarks/predictor_speed.py [--quick]``. Uses real ETH/UCY training windows when
-``$CROWDNAV_MESRNN_DATA`` is set (synthetic windows otherwise). Prints medians of repeats and ratios
-against a reference run in the same process (one window per optimiser step, the authors' style);
-never asserts on time.
+Run: ``python benchmarks/predictor_speed.py [--quick] [--threads 1 2]``. Uses real ETH/UCY training
+windows when ``$CROWDNAV_MESRNN_DATA`` is set (synthetic windows otherwise). Prints the matmul peak
+measured in the same run (``torch.mm`` of 1024² matrices, fp32 and bf16, per thread count), training
+throughputs with the fraction of that peak they reach (best of interleaved passes: on a shared machine
+the least disturbed), latency medians, and ratios against the first implementation
+(:mod:`crowdnav_mesrnn.models.reference`) run in the same process; never asserts on time.
+
+FLOPs per training window are counted as in issue 10: every pedestrian of the window (scored and
+context) at each of the 19 input steps, the multiply-adds of the node and edge LSTMs and embeddings,
+x 2 (multiply + add) x 3 (forward + backward). The fast path computes only pedestrians present at a
+step, so it executes less than this nominal count (the header says how much less).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 import numpy as np
@@ -16,13 +24,15 @@ import torch
 from _timing import median_seconds
 
 from crowdnav_mesrnn.data import MinMax, collate, data_available, split_windows
-from crowdnav_mesrnn.data.constants import OBS_LEN
+from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
 from crowdnav_mesrnn.evaluation import batches
-from crowdnav_mesrnn.models.learned import LearnedPredictor
+from crowdnav_mesrnn.models.pretrained import load_pretrained
+from crowdnav_mesrnn.models.reference import reference_forward, reference_rollout
 from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
-from crowdnav_mesrnn.training import masked_loss
+from crowdnav_mesrnn.training import keep_freed_memory, masked_loss
 
 COMPACT = {"node_embed": 64, "node_hidden": 128, "edge_embed": 32, "edge_hidden": 64}
+STEPS = OBS_LEN + PRED_LEN - 1
 
 
 def synthetic_windows(count: int, rng: np.random.Generator) -> list:
@@ -37,66 +47,92 @@ def synthetic_windows(count: int, rng: np.random.Generator) -> list:
     return out
 
 
-def train_rate(cfg: ModelConfig, windows: list, norm: MinMax, batch_size: int, max_batches: int) -> float:
+def macs_per_pedestrian_step(cfg: ModelConfig) -> int:
+    """Multiply-adds of one pedestrian at one step (embeddings, LSTMs, decoder)."""
+    k = len(cfg.types)
+    node = 2 * cfg.node_embed + (cfg.node_embed + k * cfg.edge_hidden + cfg.node_hidden) * 4 * cfg.node_hidden
+    edge = k * (2 * cfg.edge_embed + (cfg.edge_embed + cfg.edge_hidden) * 4 * cfg.edge_hidden)
+    return node + edge + 2 * cfg.node_hidden
+
+
+def matmul_peak_gflops(dtype: torch.dtype, threads: int, repeats: int) -> float:
+    """Best of ``repeats`` timings (a peak: on a shared machine the best run is the least disturbed)."""
+    torch.set_num_threads(threads)
+    a, b = torch.randn(1024, 1024).to(dtype), torch.randn(1024, 1024).to(dtype)
+    for _ in range(3):
+        torch.mm(a, b)
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        torch.mm(a, b)
+        best = min(best, time.perf_counter() - t0)
+    return 2 * 1024**3 / best / 1e9
+
+
+def trainer_pass(cfg: ModelConfig, bf16: bool = False, reference: bool = False):
+    """A function running one training step (forward, loss, backward, clip, Adam) on a batch."""
     torch.manual_seed(0)
     net = StructuralRNN(cfg).train()
     opt = torch.optim.Adam(net.parameters(), 1e-3)
-    n_chunks = -(-len(windows) // batch_size)
-    chunks = list(batches(windows, batch_size, np.random.default_rng(0).permutation(n_chunks)))[:max_batches]
-    seen, t0 = 0, time.perf_counter()
-    for chunk in chunks:
-        pos, pres, _ = collate([windows[i] for i in chunk])
-        p, m = torch.from_numpy(pos), torch.from_numpy(pres)
-        p = torch.where(m.unsqueeze(-1), norm.normalise(p), torch.zeros_like(p))
-        pred, used = net(p, m, OBS_LEN)
-        loss = masked_loss(pred, used, p, m)
+
+    def one(p: torch.Tensor, m: torch.Tensor) -> None:
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            pred, used = reference_forward(net, p, m, OBS_LEN) if reference else net(p, m, OBS_LEN)
+        loss = masked_loss(pred.float(), used, p, m)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
         opt.step()
-        seen += len(chunk)
-    return seen / (time.perf_counter() - t0)
+
+    return one
 
 
-def median_ms(fn, repeats: int) -> float:
-    return median_seconds(fn, repeats) * 1e3
+def train_rates(cfg: ModelConfig, data: list, repeats: int) -> dict[str, float]:
+    """Windows/s of the fast path (fp32, bf16) and the first implementation, passes interleaved so
+    that all three see the same load; the best pass of each (least disturbed)."""
+    steps = {
+        "fp32": trainer_pass(cfg),
+        "bf16": trainer_pass(cfg, bf16=True),
+        "first": trainer_pass(cfg, reference=True),
+    }
+    for one in steps.values():
+        one(*data[0][:2])  # warm-up
+    windows = sum(d[2] for d in data)
+    best = dict.fromkeys(steps, 0.0)
+    for _ in range(repeats):
+        for name, one in steps.items():
+            t0 = time.perf_counter()
+            for p, m, _n in data:
+                one(p, m)
+            best[name] = max(best[name], windows / (time.perf_counter() - t0))
+    return best
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true", help="fewer batches and repeats")
-    ap.add_argument("--threads", type=int, default=1)
-    args = ap.parse_args()
-    torch.set_num_threads(args.threads)
+def training_batches(windows: list, norm: MinMax, batch_size: int, count: int) -> list:
+    n_chunks = -(-len(windows) // batch_size)
+    chunks = list(batches(windows, batch_size, np.random.default_rng(0).permutation(n_chunks)))[:count]
+    out = []
+    for chunk in chunks:
+        pos, pres, _ = collate([windows[i] for i in chunk])
+        p, m = torch.from_numpy(pos), torch.from_numpy(pres)
+        out.append((torch.where(m.unsqueeze(-1), norm.normalise(p), torch.zeros_like(p)), m, len(chunk)))
+    return out
+
+
+def latency_table(repeats: int) -> None:
+    torch.set_num_threads(1)
     rng = np.random.default_rng(0)
-    if data_available():
-        windows = split_windows("zara1", "train", min_scored=2)
-        source = f"zara1 train windows ({len(windows)}, mean {np.mean([w.num_peds for w in windows]):.1f} pedestrians incl. context)"
-    else:
-        windows = synthetic_windows(512, rng)
-        source = "synthetic windows (no ETH/UCY data found)"
-    norm = MinMax.fit(np.concatenate([w.positions[w.present] for w in windows]))
-    nb = 4 if args.quick else 12
-    print(f"Training throughput on {source}, {args.threads} thread(s), batch 32, bucketed by size")
-    print(f"{'model':<8}{'sizes':<10}{'windows/s':>11}{'1 window/step':>15}{'batching speed-up':>19}")
+    print("\nForecast latency, shipped zara1 weights, 1 thread (ms, median of", repeats, "calls):")
+    print("  from scratch = LearnedPredictor.forecast: 8 observed steps + 12-step rollout;")
+    print("  incremental  = OnlineForecaster.observe (one step, carried states) + forecast;")
+    print("  first impl.  = the same from-scratch rollout through crowdnav_mesrnn.models.reference")
+    print(f"{'model':<8}{'N':>5}{'from scratch':>14}{'incremental':>13}{'first impl.':>13}{'speed-up':>10}")
     for model in ("mesrnn", "srnn", "vlstm"):
-        for label, kw in (("paper", {}), ("compact", COMPACT)):
-            cfg = ModelConfig(model=model, **kw)
-            rate = train_rate(cfg, windows, norm, 32, nb)
-            ref = train_rate(cfg, windows, norm, 1, nb * 2)
-            print(f"{model:<8}{label:<10}{rate:>11.1f}{ref:>15.1f}{rate / ref:>18.1f}x")
-
-    print("\nForecast latency (ms, median): from scratch = 8 observed steps + 12-step rollout;")
-    print("incremental = one observed step with carried hidden states + 12-step rollout")
-    print(f"{'model':<8}{'N':>5}{'from scratch':>14}{'incremental':>13}{'ratio':>8}")
-    reps = 5 if args.quick else 20
-    for model in ("mesrnn", "srnn", "vlstm"):
-        torch.manual_seed(0)
-        pred = LearnedPredictor(StructuralRNN(ModelConfig(model=model)), norm)
-        for n in (1, 10, 50, 100):
+        pred = load_pretrained(model, "zara1")
+        for n in (1, 10, 50):
             hist = (np.cumsum(rng.normal(0, 0.3, (8, n, 2)), 0) + 5).astype(np.float32)
             mask = np.ones((8, n), bool)
-            scratch = median_ms(lambda h=hist, m=mask, p=pred: p.forecast(h, m), reps)
+            scratch = median_seconds(lambda h=hist, m=mask, p=pred: p.forecast(h, m), repeats) * 1e3
             online = pred.online(n)
             for t in range(8):
                 online.observe(hist[t], mask[t])
@@ -105,8 +141,79 @@ def main() -> None:
                 o.observe(h[-1], m[-1])
                 o.forecast()
 
-            inc = median_ms(incremental, reps)
-            print(f"{model:<8}{n:>5}{scratch:>14.2f}{inc:>13.2f}{scratch / inc:>7.1f}x")
+            inc = median_seconds(incremental, repeats) * 1e3
+            x = pred.norm.normalise(torch.from_numpy(hist))[None]
+            mt = torch.from_numpy(mask)[None]
+
+            def first(net=pred.net, x=x, mt=mt) -> None:
+                with torch.no_grad():
+                    reference_rollout(net, x, mt, PRED_LEN)
+
+            ref = median_seconds(first, repeats) * 1e3
+            print(f"{model:<8}{n:>5}{scratch:>14.2f}{inc:>13.2f}{ref:>13.2f}{ref / scratch:>9.1f}x")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="fewer batches and repeats")
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts for training")
+    ap.add_argument("--skip-training", action="store_true")
+    args = ap.parse_args()
+    keep_freed_memory()  # as in training
+    reps = 9 if args.quick else 25
+    peaks = {}
+    print("Matmul peak: torch.mm of 1024 x 1024 matrices (GFLOP/s, best of repeats)")
+    print(f"{'threads':>7}{'fp32':>9}{'bf16':>9}")
+    for th in args.threads:
+        peaks[th] = {dt: matmul_peak_gflops(dt, th, reps) for dt in (torch.float32, torch.bfloat16)}
+        print(f"{th:>7}{peaks[th][torch.float32]:>9.0f}{peaks[th][torch.bfloat16]:>9.0f}")
+    if not args.skip_training:
+        if data_available():
+            windows = split_windows("zara1", "train", min_scored=2)
+            source = (
+                f"zara1 train windows (mean {np.mean([w.num_peds for w in windows]):.1f} pedestrians incl. context)"
+            )
+        else:
+            windows = synthetic_windows(512, np.random.default_rng(0))
+            source = "synthetic windows (no ETH/UCY data found)"
+        norm = MinMax.fit(np.concatenate([w.positions[w.present] for w in windows]))
+        data = training_batches(windows, norm, 32, 3 if args.quick else 8)
+        present = sum(int(d[1][:, :STEPS].sum()) for d in data)  # pedestrian-steps computed
+        real = sum(int(d[1].any(1).sum()) for d in data)  # pedestrians of the windows (no padding)
+        nominal_peds = real / sum(d[2] for d in data)
+        repeats = 2 if args.quick else 3
+        for th in args.threads:
+            torch.set_num_threads(th)
+            print(
+                f"\nTraining throughput, {source}: {len(data)} batches of 32 (bucketed by size), teacher forcing, "
+                f"Adam step included, {th} thread(s), best of {repeats} interleaved passes.\n"
+                f"% peak = nominal GFLOP/s ({nominal_peds:.1f} pedestrians x {STEPS} steps per window) over the "
+                f"matmul peak;\nthe fast path computes only present pedestrians: "
+                f"{present / (real * STEPS):.0%} of that nominal work."
+            )
+            rows = []
+            for model in ("mesrnn", "srnn", "vlstm"):
+                for label, kw in (("paper", {}), ("compact", COMPACT)):
+                    cfg = ModelConfig(model=model, **kw)
+                    gflop = nominal_peds * STEPS * macs_per_pedestrian_step(cfg) * 6 / 1e9
+                    rows.append((model, label, gflop, train_rates(cfg, data, repeats)))
+            for dt in (torch.float32, torch.bfloat16):  # the peak again after the load of this section
+                peaks[th][dt] = max(peaks[th][dt], matmul_peak_gflops(dt, th, reps))
+            print(
+                f"matmul peak (best of the measurements before and after): fp32 {peaks[th][torch.float32]:.0f}, "
+                f"bf16 {peaks[th][torch.bfloat16]:.0f} GFLOP/s"
+            )
+            print(
+                f"{'model':<8}{'sizes':<9}{'windows/s':>10}{'% fp32 peak':>13}{'bf16 windows/s':>16}"
+                f"{'% bf16 peak':>13}{'first impl.':>13}{'speed-up':>10}"
+            )
+            for model, label, gflop, r in rows:
+                print(
+                    f"{model:<8}{label:<9}{r['fp32']:>10.1f}{100 * r['fp32'] * gflop / peaks[th][torch.float32]:>12.0f}%"
+                    f"{r['bf16']:>16.1f}{100 * r['bf16'] * gflop / peaks[th][torch.bfloat16]:>12.0f}%"
+                    f"{r['first']:>13.1f}{r['fp32'] / r['first']:>9.1f}x"
+                )
+    latency_table(9 if args.quick else 25)
 
 
 if __name__ == "__main__":

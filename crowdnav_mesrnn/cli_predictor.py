@@ -162,6 +162,12 @@ crowdnav-mesrnn predictor eval --model mesrnn --split all
 """
 
 
+def _plan(args: argparse.Namespace) -> int:
+    from crowdnav_mesrnn.plan import main_plan
+
+    return main_plan(args)
+
+
 def _plot(args: argparse.Namespace) -> int:
     from crowdnav_mesrnn.plotting import plot_window
 
@@ -218,6 +224,23 @@ def add_parser(sub: Any) -> None:
     r.add_argument("--data-dir", default=None)
     r.add_argument("--threads", type=int, default=1)
     r.set_defaults(func=_report)
+
+    pl = psub.add_parser(
+        "plan",
+        help="train every run of a comparison plan (configs/predictor/candidates.yaml); resumable",
+        description="Stages: candidates (every candidate x model x split), seeds (the candidate selected on "
+        "validation data, every seed), all (both), export (ship the best-validation seed; explicit only). "
+        "Finished runs are skipped, interrupted ones resumed.",
+    )
+    pl.add_argument("file", help="plan file, e.g. configs/predictor/candidates.yaml")
+    pl.add_argument("--stage", default="all", choices=("candidates", "seeds", "all", "export"))
+    pl.add_argument("--dry-run", action="store_true", help="print every run, its status and the CPU-time estimate")
+    pl.add_argument("--shard", default="0/1", metavar="I/N", help="run only runs I, I+N, ... (one process per core)")
+    pl.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    pl.add_argument("--measure-batches", type=int, default=2, help="training batches timed per config (dry run)")
+    pl.add_argument("--remeasure", action="store_true", help="ignore the cached throughputs (dry run)")
+    pl.add_argument("--data-dir", default=None)
+    pl.set_defaults(func=_plan)
 
     g = psub.add_parser("plot", help="draw observed paths, true futures and forecasts of one test window")
     g.add_argument("--split", required=True, choices=SPLITS)

@@ -1,0 +1,135 @@
+"""The comparison plan: every candidate applied to every model, expansion, selection on validation,
+resumable execution and export of the best-validation seed."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+import crowdnav_mesrnn.models.pretrained as pretrained
+from crowdnav_mesrnn.config import ConfigError
+from crowdnav_mesrnn.models.base import LEARNED_MODELS
+from crowdnav_mesrnn.plan import (
+    REPO_ROOT,
+    candidate_runs,
+    execute,
+    load_plan,
+    parse_shard,
+    run_dir,
+    selected_candidate,
+    shard_filter,
+    stage_runs,
+    status,
+    summary,
+)
+from crowdnav_mesrnn.training import load_configs
+
+SHIPPED = REPO_ROOT / "configs" / "predictor" / "candidates.yaml"
+
+
+def test_every_candidate_is_applied_to_every_model() -> None:
+    plan = load_plan(SHIPPED)
+    assert set(plan.models) == set(LEARNED_MODELS) and len(plan.splits) == 5 and len(plan.seeds) >= 3
+    runs = candidate_runs(plan)
+    assert len(runs) == len(plan.models) * len(plan.splits) * len(plan.candidates)
+    combos = {(r.model, r.split, r.candidate.name) for r in runs}
+    assert combos == {(m, s, c.name) for m in plan.models for s in plan.splits for c in plan.candidates}
+    assert len({r.out for r in runs}) == len(runs)
+    for cand in plan.candidates:
+        resolved = {}
+        for model in plan.models:
+            mcfg, tcfg = load_configs(model, cand.config_path(model), {**cand.overrides, "split": "eth", "seed": 0})
+            assert mcfg.model == model and tcfg.seed == 0 and tcfg.split == "eth"
+            resolved[model] = (tcfg, {k: v for k, v in mcfg.to_dict().items() if k not in ("model", "types")})
+        # The same training recipe and the same architecture options for every model.
+        assert len({repr(t) for t, _ in resolved.values()}) == 1, cand.name
+        assert len({json.dumps(a, sort_keys=True) for _, a in resolved.values()}) == 1, cand.name
+    rotation = next(c for c in plan.candidates if c.name == "residual_rotation")
+    for model in plan.models:
+        assert load_configs(model, rotation.config_path(model), rotation.overrides)[1].augment_rotation
+    run = runs[0]
+    assert f"--model {run.model} --split {run.split}" in run.command() and "--set seed=0" in run.command()
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("models: [lstm]\ncandidates: {a: {config: 'configs/predictor/{model}.yaml'}}\n", "unknown model 'lstm'"),
+        ("candidates: {a: {config: 'configs/predictor/{model}.yaml', set: {seed: 3}}}\n", "may not set 'seed'"),
+        ("candidates: {a: {config: 'nowhere/{model}.yaml'}}\n", "no config"),
+        ("seeds: [1, 2]\ncandidates: {a: {config: 'configs/predictor/{model}.yaml'}}\n", "selection_seed 0 must be"),
+        ("candidates: {a: {config: 'configs/predictor/{model}.yaml'}}\nepochs: 3\n", "valid keys"),
+    ],
+)
+def test_plan_errors(tmp_path: Path, text: str, message: str) -> None:
+    bad = tmp_path / "p.yaml"
+    bad.write_text(text)
+    with pytest.raises(ConfigError, match=message):
+        load_plan(bad)
+
+
+def test_shard_syntax() -> None:
+    assert parse_shard("1/2") == (1, 2)
+    with pytest.raises(ValueError, match="i/n"):
+        parse_shard("2")
+
+
+def _fake_done(out: Path, val: float, epochs: int = 1) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "done.json").write_text(json.dumps({"best_val_ade_m": val, "epochs": epochs}))
+
+
+def test_selection_on_validation_then_seed_expansion_and_shards(tmp_path: Path) -> None:
+    text = SHIPPED.read_text().replace("out_dir: runs/predictor/plan", f"out_dir: {tmp_path}")
+    (tmp_path / "plan.yaml").write_text(text)
+    plan = load_plan(tmp_path / "plan.yaml")
+    runs, waiting = stage_runs(plan, "seeds")
+    assert runs == [] and len(waiting) == len(plan.models) * len(plan.splits)
+    vals = {"paper": 0.9, "residual": 0.45, "residual_rotation": 0.44}
+    for name, val in list(vals.items())[:2]:
+        _fake_done(run_dir(plan, "srnn", "hotel", name, plan.selection_seed), val)
+    assert selected_candidate(plan, "srnn", "hotel")[0] is None  # one candidate still missing
+    _fake_done(run_dir(plan, "srnn", "hotel", "residual_rotation", plan.selection_seed), vals["residual_rotation"])
+    cand, got = selected_candidate(plan, "srnn", "hotel")
+    assert cand is not None and cand.name == "residual_rotation" and got == vals
+    runs, waiting = stage_runs(plan, "seeds")
+    assert [(r.model, r.split, r.candidate.name, r.seed) for r in runs] == [
+        ("srnn", "hotel", "residual_rotation", k) for k in plan.seeds if k != plan.selection_seed
+    ]
+    assert ("srnn", "hotel") not in waiting
+    assert status(runs[0]) == ("todo", 0)
+    for k, val in zip([k for k in plan.seeds if k != plan.selection_seed], [0.43, 0.47], strict=False):
+        _fake_done(run_dir(plan, "srnn", "hotel", "residual_rotation", k), val)
+    row = summary(plan)["srnn/hotel"]
+    assert row["selected"] == "residual_rotation" and row["shipped_seed"] == 1
+    every = candidate_runs(plan)
+    shards = [shard_filter(every, (i, 3)) for i in range(3)]
+    assert sorted(r.out for s in shards for r in s) == sorted(r.out for r in every)
+    assert not set(r.out for r in shards[0]) & set(r.out for r in shards[1])
+
+
+def test_execute_is_resumable_and_exports_the_best_seed(
+    tmp_path: Path, data_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    tiny = "{node_embed: 8, node_hidden: 16, edge_embed: 4, edge_hidden: 8, max_windows: 16, epochs: 1, batch_size: 8}"
+    (tmp_path / "plan.yaml").write_text(
+        f"models: [vlstm]\nsplits: [zara1]\nseeds: [0, 1]\nout_dir: {tmp_path / 'runs'}\ncandidates:\n"
+        f"  a: {{config: 'configs/predictor/{{model}}_residual.yaml', set: {tiny}}}\n"
+        f"  b: {{config: 'configs/predictor/{{model}}.yaml', set: {tiny}}}\n"
+    )
+    plan = load_plan(tmp_path / "plan.yaml")
+    lines: list[str] = []
+    assert execute(plan, "all", data_dir=str(data_dir), log=lines.append) == 0
+    assert sum("done: best val ADE" in line for line in lines) == 3  # two candidates, one more seed
+    lines.clear()
+    assert execute(plan, "all", data_dir=str(data_dir), log=lines.append) == 0
+    assert not any("done: best val ADE" in line for line in lines)  # nothing retrained
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "shipped")
+    assert execute(plan, "export", log=lines.append) == 0
+    row = summary(plan)["vlstm/zara1"]
+    shipped = pretrained.load_predictor(tmp_path / "shipped" / "vlstm_zara1.pt", "vlstm", "zara1")
+    note = shipped.info["selection"]["note"]
+    assert note.startswith("lowest val ADE") and f"seed {row['shipped_seed']})" in note
+    assert f"candidate {row['selected']} selected on val ADE" in note
