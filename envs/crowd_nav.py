@@ -5,10 +5,10 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
-import time
 import warnings
 from collections import deque
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any, Final
 
 import gymnasium as gym
@@ -21,13 +21,7 @@ from crowdnav_mesrnn.data.constants import OBS_LEN
 from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, DataNotFoundError
 from crowdnav_mesrnn.data.recordings import Recording, load_recording
 from envs.config import FORECAST_SOURCES, CrowdNavConfig, config_from, episode_recordings, resolve_scenes
-from envs.crowds import (
-    Episode,
-    EpisodeSampler,
-    Replay,
-    empty_recording,
-    synthetic_recording,
-)
+from envs.episodes import Episode, EpisodeSampler
 from envs.forecast_cache import ForecastStore, cache_root
 from envs.forecasts import (
     ForecastModel,
@@ -38,8 +32,11 @@ from envs.forecasts import (
     make_forecast_source,
 )
 from envs.observation import ObservationBuilder, nearest_visible, observation_space
+from envs.recordings import empty_recording, synthetic_recording
 from envs.rendering import HUMAN_NEEDS_PYGAME
+from envs.replay import Replay
 from envs.rewards import EpisodeMetrics, reward_components, total_reward
+from envs.timing import PhaseTimer, timed
 from envs.world import World
 
 #: Default of ``CrowdNavEnv(predictor=...)``: the config's ``predictor`` (an explicit None is an error).
@@ -47,6 +44,30 @@ _CONFIGURED: Final[Any] = object()
 #: Keys accepted in ``reset(options=...)``.
 RESET_OPTIONS: Final[tuple[str, ...]] = ("recording", "t0_s", "start", "goal", "time_limit_s")
 TIMING_KEYS: Final[tuple[str, ...]] = ("replay", "physics", "forecasts", "observation", "reward", "reset")
+
+
+@dataclass(frozen=True)
+class _Moved:
+    """What the physics phase of a step produced."""
+
+    robot_before: np.ndarray
+    robot_after: np.ndarray
+    positions: np.ndarray  # (1 + H, N, 2) replay positions at t_next + h * dt_s
+    present: np.ndarray  # (1 + H, N)
+    gap_m: float  # smallest surface gap during the step (substeps after its start)
+    collided: bool
+    fault: str | None
+    new_contacts: int
+
+
+@dataclass(frozen=True)
+class _Sensed:
+    """What the perception phase found in the world (for the reward): gap and intrusion at the step's end, and how
+    many pedestrians the robot perceives."""
+
+    gap_m: float
+    intruding: bool
+    visible: int
 
 
 def reset_options(options: Any, goal_tolerance_m: float) -> dict[str, Any]:
@@ -300,7 +321,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._r_sum = cfg.robot_radius_m + cfg.pedestrian_radius_m
         self._near_m = self._r_sum + max(cfg.discomfort_dist_m, 0.0) + cfg.robot_pref_speed_mps * cfg.dt_s + 0.05
 
-        self.timings: dict[str, float] = dict.fromkeys(TIMING_KEYS, 0.0)
+        self._timer = PhaseTimer(TIMING_KEYS)
         self._renderer: Any = None
         self.episode: Episode | None = None
         self._replay: Replay | None = None
@@ -391,8 +412,13 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         recs = self.recordings if recording is None else [self.sampler.recording_named(recording)]
         return sum(self.forecaster.table(rec) for rec in recs)
 
+    @property
+    def timings(self) -> dict[str, float]:
+        """Seconds spent per phase since the last :meth:`reset_timings` (exclusive of nested phases)."""
+        return self._timer.totals
+
     def reset_timings(self) -> None:
-        self.timings = dict.fromkeys(TIMING_KEYS, 0.0)
+        self._timer.reset()
 
     # ------------------------------------------------------------------ gym API
 
@@ -409,9 +435,28 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                 self._forecast_rng = self.np_random.spawn(1)[0]
             except (TypeError, ValueError):  # a generator without a seed sequence
                 self._forecast_rng = np.random.default_rng(int(self.np_random.integers(2**63)))
-        t_start = time.perf_counter()
+        ep = self._start_episode(reset_options(options, self.config.goal_tolerance_m))
+        pos, present = self._world_positions(self._time(0) + self._obs_offsets)
+        obs, _ = self._observe(self._time(0), pos, present, ep.start)
+        info = {
+            "recording": ep.recording.name,
+            "crowd": self.crowd_kind,
+            "predictor": self.predictor_name,
+            "t0_s": ep.t0_s,
+            "start": ep.start.tolist(),
+            "goal": ep.goal.tolist(),
+            "time_limit_s": ep.time_limit_s,
+            "crowd_density": ep.crowd_density,
+            "pedestrians_near_path": ep.pedestrians_near_path,
+        }
+        if self.render_mode == "human":
+            self.render()
+        return obs, info
+
+    @timed("reset")
+    def _start_episode(self, opts: dict[str, Any]) -> Episode:
+        """Draw the episode and set the world, the robot and the bookkeeping to its start."""
         cfg = self.config
-        opts = reset_options(options, cfg.goal_tolerance_m)
         ep = self.sampler.sample(self.np_random, **opts)
         self.episode = ep
         history_s = (OBS_LEN - 1) * ep.recording.step_s
@@ -435,131 +480,110 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._collided_last = False
         self._touch_fault: dict[int, str] = {}
         self._trails: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=cfg.render_trail_steps)
-
         k0 = round(ep.t0_s / cfg.dt_s)
         self._k0: int | None = k0 if abs(ep.t0_s - k0 * cfg.dt_s) < 1e-9 else None
-        pos, present = self._replay.positions_at(self._time(0) + self._obs_offsets)
-        obs, _ = self._observe(self._time(0), pos, present, ep.start)
-        self.timings["reset"] += time.perf_counter() - t_start
-        info = {
-            "recording": ep.recording.name,
-            "crowd": self.crowd_kind,
-            "predictor": self.predictor_name,
-            "t0_s": ep.t0_s,
-            "start": ep.start.tolist(),
-            "goal": ep.goal.tolist(),
-            "time_limit_s": ep.time_limit_s,
-            "crowd_density": ep.crowd_density,
-            "pedestrians_near_path": ep.pedestrians_near_path,
-        }
-        if self.render_mode == "human":
-            self.render()
-        return obs, info
+        return ep
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         if not self._started:
             raise RuntimeError("call reset() before step()")
         if self._done:
             raise RuntimeError("the episode has ended (terminated or truncated); call reset() before step()")
-        ax, ay = self._parse_action(action)
-        cfg = self.config
-        ep = self.episode
-        assert ep is not None and self._replay is not None
-        tick = time.perf_counter()
-        timings = self.timings
-        t_now = self._time(self._n)
-        t_next = self._time(self._n + 1)
-        s = self._substeps
+        velocities = self._command(self._parse_action(action))
+        moved = self._physics(velocities)
+        self._n += 1
+        self._velocity = (moved.robot_after - moved.robot_before) / self.config.dt_s
+        obs, sensed = self._observe(self.time_s, moved.positions, moved.present, moved.robot_after)
+        reward, terminated, truncated, info = self._reward(moved, sensed)
+        if self.render_mode == "human":
+            self.render()
+        return obs, reward, terminated, truncated, info
 
-        # robot command for each substep
+    # ------------------------------------------------------------------ the phases of a step
+
+    def _command(self, action: tuple[float, float]) -> list[tuple[float, float]]:
+        """The robot's velocity (m/s) in each physics substep for an action, and its heading after the step."""
+        cfg = self.config
+        ax, ay = action
+        s = self._substeps
         v_pref = cfg.robot_pref_speed_mps
         if cfg.kinematics == "holonomic":
             vx, vy = ax * v_pref, ay * v_pref
             speed = math.hypot(vx, vy)
             if speed > v_pref:
                 vx, vy = vx * (v_pref / speed), vy * (v_pref / speed)
-            vel_sub = [(vx, vy)] * s
             if speed > 1e-9:
                 self._heading = math.atan2(vy, vx)
-        else:
-            speed = ax * v_pref
-            omega = ay * cfg.robot_max_turn_rate_radps
-            h0, hs = self._heading, self._substep_s
-            vel_sub = [
-                (speed * math.cos(h0 + omega * hs * (k + 0.5)), speed * math.sin(h0 + omega * hs * (k + 0.5)))
-                for k in range(s)
-            ]
-            self._heading = math.remainder(h0 + omega * cfg.dt_s, 2 * math.pi)
+            return [(vx, vy)] * s
+        speed = ax * v_pref
+        omega = ay * cfg.robot_max_turn_rate_radps
+        h0, hs = self._heading, self._substep_s
+        self._heading = math.remainder(h0 + omega * cfg.dt_s, 2 * math.pi)
+        return [
+            (speed * math.cos(h0 + omega * hs * (k + 0.5)), speed * math.sin(h0 + omega * hs * (k + 0.5)))
+            for k in range(s)
+        ]
 
-        # replay at the substep boundaries and over the horizon after t_next
-        pos, present = self._replay.positions_at(
-            np.concatenate([t_now + self._sub_offsets, t_next + self._obs_offsets])
-        )
+    @timed("replay")
+    def _world_positions(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        assert self._replay is not None
+        return self._replay.positions_at(times_s)
+
+    @timed("physics")
+    def _physics(self, velocities: list[tuple[float, float]]) -> _Moved:
+        """Move the robot through the replayed crowd for one control step (pymunk substeps), with contacts and the
+        smallest gap during the step; the replay at the substep boundaries and over the horizon after it."""
+        s = self._substeps
+        t_now, t_next = self._time(self._n), self._time(self._n + 1)
+        pos, present = self._world_positions(np.concatenate([t_now + self._sub_offsets, t_next + self._obs_offsets]))
         robot0 = self.world.robot_position
         sub_pos, sub_present = pos[: s + 1], present[: s + 1]
         d_sub = np.hypot(sub_pos[..., 0] - robot0[0], sub_pos[..., 1] - robot0[1])
         d_sub = np.where(sub_present, d_sub, np.inf)
         near = np.flatnonzero(d_sub.min(axis=0) < self._near_m) if d_sub.size else np.zeros(0, dtype=np.int64)
-        t1 = time.perf_counter()
-        timings["replay"] += t1 - tick
-
-        ws = self.world.step(vel_sub, sub_pos[:, near], sub_present[:, near], near, self._substep_s)
-        robot = ws.robot_positions[-1]
-        t2 = time.perf_counter()
-        timings["physics"] += t2 - t1
-
+        ws = self.world.step(velocities, sub_pos[:, near], sub_present[:, near], near, self._substep_s)
         # smallest gap during the step (after its start): substeps for the pedestrians near the robot
-        gap_sub = math.inf
+        gap = math.inf
         if len(near):
             rp = ws.robot_positions[1:, None, :]
             dn = np.hypot(sub_pos[1:, near, 0] - rp[..., 0], sub_pos[1:, near, 1] - rp[..., 1])
-            dn = np.where(sub_present[1:, near], dn, np.inf)
-            gap_sub = float(dn.min()) - self._r_sum
-
-        # contacts
+            gap = float(np.where(sub_present[1:, near], dn, np.inf).min()) - self._r_sum
         for c in ws.contacts:
             self._touch_fault.setdefault(c.row, c.fault)
         self._touch_fault = {r: f for r, f in self._touch_fault.items() if r in ws.touching}
+        fault = ws.contacts[0].fault if ws.contacts else next(iter(self._touch_fault.values()), None)
         collided = bool(ws.contacts) or bool(ws.touching)
-        if ws.contacts:
-            fault: str | None = ws.contacts[0].fault
-        elif ws.touching:
-            fault = next(iter(self._touch_fault.values()), None)
-        else:
-            fault = None
+        return _Moved(
+            robot0, ws.robot_positions[-1], pos[s:], present[s:], gap, collided, fault if collided else None,
+            len(ws.contacts),
+        )  # fmt: skip
 
-        # observation at t_next
-        self._n += 1
-        displacement = robot - robot0
-        self._velocity = displacement / cfg.dt_s
-        obs, extra = self._observe(t_next, pos[s:], present[s:], robot)
-        min_gap = min(gap_sub, extra["gap_end"])
-        t3 = time.perf_counter()
-
-        # reward and termination
-        dist_before = math.hypot(ep.goal[0] - robot0[0], ep.goal[1] - robot0[1])
-        dist_after = math.hypot(ep.goal[0] - robot[0], ep.goal[1] - robot[1])
+    @timed("reward")
+    def _reward(self, moved: _Moved, sensed: _Sensed) -> tuple[float, bool, bool, dict[str, Any]]:
+        """Reward components, termination, truncation, the step's info and the episode's metrics."""
+        cfg = self.config
+        ep = self.episode
+        assert ep is not None
+        before, after = moved.robot_before, moved.robot_after
+        min_gap = min(moved.gap_m, sensed.gap_m)
+        collided = moved.collided
+        dist_before = math.hypot(ep.goal[0] - before[0], ep.goal[1] - before[1])
+        dist_after = math.hypot(ep.goal[0] - after[0], ep.goal[1] - after[1])
         reached = dist_after <= cfg.goal_tolerance_m
-        comps = reward_components(cfg, reached, collided, min_gap, dist_before, dist_after, extra["intruding"])
+        comps = reward_components(cfg, reached, collided, min_gap, dist_before, dist_after, sensed.intruding)
         reward = total_reward(comps)
         terminated = (collided and cfg.terminate_on_collision) or (reached and not collided)
         truncated = (not terminated) and self._n >= ep.max_steps
+        step_m = math.hypot(after[0] - before[0], after[1] - before[1])
         self._metrics.update(
-            reward,
-            math.hypot(displacement[0], displacement[1]),
-            self._velocity,
-            min_gap,
-            extra["intruding"],
-            len(ws.contacts),
-            fault,
-            len(self._last["rows"]),
+            reward, step_m, self._velocity, min_gap, sensed.intruding, moved.new_contacts, moved.fault, sensed.visible
         )
         info: dict[str, Any] = {
             "time_s": round(self._n * cfg.dt_s, 9),
             "distance_to_goal_m": dist_after,
             "min_gap_m": None if math.isinf(min_gap) else min_gap,
             "collision": collided,
-            "collision_fault": fault,
+            "collision_fault": moved.fault,
             "reached_goal": reached and not collided,
             "reward_components": comps,
         }
@@ -574,10 +598,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                 outcome = "timeout"
             # info["episode"] belongs to Gymnasium's RecordEpisodeStatistics and SB3's Monitor
             info["episode_metrics"] = self._metrics.summary(outcome, self._n * cfg.dt_s, self.with_forecasts)
-        timings["reward"] += time.perf_counter() - t3
-        if self.render_mode == "human":
-            self.render()
-        return obs, reward, terminated, truncated, info
+        return reward, terminated, truncated, info
 
     # ------------------------------------------------------------------ internals
 
@@ -595,54 +616,31 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             raise ValueError(f"action must be finite, got {action!r}")
         return min(max(ax, -1.0), 1.0), min(max(ay, -1.0), 1.0)
 
+    @timed("observation")
     def _observe(
-        self,
-        t_s: float,
-        positions: np.ndarray,
-        present: np.ndarray,
-        robot: np.ndarray,
-    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        """Observation at ``t_s``: what the robot perceives (causal), plus the world's gap and intrusion.
+        self, t_s: float, positions: np.ndarray, present: np.ndarray, robot: np.ndarray
+    ) -> tuple[dict[str, np.ndarray], _Sensed]:
+        """Perception at ``t_s``: what the robot perceives (causal) and its forecasts; plus, from the world, the
+        gap at ``t_s`` and whether the robot intrudes on a pedestrian's true future path.
 
         Args:
             positions: ``(1 + H, N, 2)`` world (replay) metres at ``t_s + h * dt_s``; present: ``(1 + H, N)``.
             robot: ``(2,)`` robot position.
         """
-        tick = time.perf_counter()
         cfg = self.config
         assert self.episode is not None and self._replay is not None
         seen = self._replay.perceived_at(t_s)
         rows, _ = nearest_visible(robot, seen.positions, seen.present, cfg.sensor_range_m, cfg.num_pedestrians)
-        # the world at t_s (interpolated): smallest gap and intrusion
         p_now, pres_now = positions[0], present[0]
-        gap_end = math.inf
-        if pres_now.any():
-            d = np.hypot(p_now[pres_now, 0] - robot[0], p_now[pres_now, 1] - robot[1])
-            gap_end = float(d.min()) - self._r_sum
-        fut_p, fut_valid = positions[1:], present[1:]
-        # intrusion: robot on a present pedestrian's true future path within the horizon
+        gap = math.inf
         intruding = False
         if pres_now.any():
-            dfut = np.hypot(fut_p[..., 0] - robot[0], fut_p[..., 1] - robot[1])
-            intruding = bool(np.any((dfut < self._r_sum) & fut_valid & pres_now[None, :]))
-        truth = None
-        if len(rows):
-            tp = fut_p[:, rows].transpose(1, 0, 2)
-            tv = fut_valid[:, rows].T
-            # a perceived pedestrian may have left the world since its annotation: hold the perceived position
-            current = np.where(pres_now[rows, None], p_now[rows], seen.positions[rows])
-            truth = TrueFuture(fill_forward(tp, tv, current), tv)
-        t1 = time.perf_counter()
-        self.timings["observation"] += t1 - tick
-        fc = None
-        if self.with_forecasts and len(rows):
-            assert self._forecast_rng is not None
-            fc = self.forecaster.forecast(self._replay, t_s, rows, truth, self._forecast_rng)
-            if fc is not None and truth is not None:
-                err = np.hypot(fc[..., 0] - truth.positions[..., 0], fc[..., 1] - truth.positions[..., 1])
-                self._metrics.add_forecast_errors(err, truth.valid)
-        t2 = time.perf_counter()
-        self.timings["forecasts"] += t2 - t1
+            d = np.hypot(p_now[pres_now, 0] - robot[0], p_now[pres_now, 1] - robot[1])
+            gap = float(d.min()) - self._r_sum
+            # intrusion: robot on a present pedestrian's true future path within the horizon
+            dfut = np.hypot(positions[1:, :, 0] - robot[0], positions[1:, :, 1] - robot[1])
+            intruding = bool(np.any((dfut < self._r_sum) & present[1:] & pres_now[None, :]))
+        fc = self._forecast(t_s, rows, seen.positions, positions, present) if len(rows) else None
         time_left = 1.0 - self._n / self.episode.max_steps
         obs = self._builder.build(
             robot,
@@ -657,8 +655,26 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         )
         self._trails.append((p_now, pres_now))
         self._last = {"rows": rows, "forecasts": fc, "positions": p_now, "present": pres_now}
-        self.timings["observation"] += time.perf_counter() - t2
-        return obs, {"gap_end": gap_end, "intruding": intruding}
+        return obs, _Sensed(gap, intruding, len(rows))
+
+    @timed("forecasts")
+    def _forecast(
+        self, t_s: float, rows: np.ndarray, perceived: np.ndarray, positions: np.ndarray, present: np.ndarray
+    ) -> np.ndarray | None:
+        """Forecasts ``(m, H, 2)`` of the perceived pedestrians ``rows`` (None without forecasts), and their errors
+        against the world's true future for the episode's metrics."""
+        if not self.with_forecasts:
+            return None
+        assert self._replay is not None and self._forecast_rng is not None
+        future, valid = positions[1:, rows].transpose(1, 0, 2), present[1:, rows].T
+        # a perceived pedestrian may have left the world since its annotation: hold the perceived position
+        current = np.where(present[0, rows, None], positions[0, rows], perceived[rows])
+        truth = TrueFuture(fill_forward(future, valid, current), valid)
+        fc = self.forecaster.forecast(self._replay, t_s, rows, truth, self._forecast_rng)
+        if fc is not None:
+            err = np.hypot(fc[..., 0] - truth.positions[..., 0], fc[..., 1] - truth.positions[..., 1])
+            self._metrics.add_forecast_errors(err, truth.valid)
+        return fc
 
     # ------------------------------------------------------------------ rendering
 

@@ -31,7 +31,6 @@ from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, SPLIT_TEST_RECORDINGS
 from crowdnav_mesrnn.data.recordings import Recording
 from envs.config import FORECAST_MEMORIES, FORECAST_SOURCES, LEARNED_SOURCES
-from envs.crowds import TIME_TOL_S, Replay
 from envs.forecast_cache import (
     CHUNK_FRAMES,
     ForecastStore,
@@ -42,6 +41,7 @@ from envs.forecast_cache import (
     predictor_fingerprint,
     recording_fingerprint,
 )
+from envs.replay import TIME_TOL_S, Replay
 
 
 class PredictorUnavailableError(FileNotFoundError):
@@ -195,7 +195,7 @@ class PredictorForecast(ForecastSource):
     """Forecasts of a trajectory predictor (``forecast(history (8, N, 2), mask (8, N)) -> (N, 12, 2)``), causal.
 
     At env time ``t`` the robot perceives the latest annotation at or before ``t`` (time ``tau``; see
-    :meth:`envs.crowds.Replay.perceived_at`), and its forecasts come from that same annotation: the predictor
+    :meth:`envs.replay.Replay.perceived_at`), and its forecasts come from that same annotation: the predictor
     sees the histories of the last ``obs_len`` annotation steps up to ``tau`` (sampled every ``step_s``), and its
     forecast on the annotation grid ``tau + j * step_s`` is resampled linearly onto ``t + h * dt_s`` (the
     interpolation shifted by ``t - tau``, non-zero between ``biwi_eth`` annotations). Nothing annotated after

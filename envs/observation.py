@@ -26,7 +26,7 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
         ``pedestrians``: ``(K, 4)`` float32: position relative to the robot (m) and velocity relative
         to the robot's (m/s) of the K nearest pedestrians within the sensor range, nearest first;
         zero rows where the mask is 0. Both as perceived at t: the latest annotation at or before t
-        (see :meth:`envs.crowds.Replay.perceived_at`).
+        (see :meth:`envs.replay.Replay.perceived_at`).
         ``mask``: ``(K,)`` int8 MultiBinary: 1 where a row holds a pedestrian.
         ``forecasts`` (unless the predictor is ``none``): ``(K, H, 2)`` float32 forecast positions
         relative to the robot's current position (m) at ``t + h * dt_s``, h = 1..H.

@@ -76,7 +76,7 @@ class EpisodeMetrics:
         goal: ``(2,)`` goal, metres.
         dt_s: control step, seconds.
         discomfort_dist_m: gap below which a step counts as uncomfortable, metres.
-        crowd_density: the episode's policy-independent crowd density (see :func:`envs.crowds.crowd_near_path`).
+        crowd_density: the episode's policy-independent crowd density (see :func:`envs.episodes.crowd_near_path`).
         pedestrians_near_path: pedestrians within sensor range of the start-goal segment during the episode.
     """
 

@@ -17,8 +17,8 @@ from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data import load_recording
 from crowdnav_mesrnn.data.recordings import Recording
 from envs.crowd_nav import CrowdNavEnv
-from envs.crowds import make_recording, scripted_recording
 from envs.forecasts import CarriedPredictorForecast, PredictorForecast
+from envs.recordings import make_recording, scripted_recording
 
 #: Robot far from the crowd, seeing everybody, never ending the episode on contact.
 WATCHER: dict[str, Any] = {"sensor_range_m": 200.0, "num_pedestrians": 40, "terminate_on_collision": False}

@@ -90,7 +90,7 @@ def test_observations_up_to_t_ignore_annotations_after_t(data_dir: Path, name: s
 
 
 def test_perception_age_is_observed_on_request() -> None:
-    from envs.crowds import scripted_recording
+    from envs.recordings import scripted_recording
 
     crowd = scripted_recording([np.tile([3.0, 0.0], (60, 1))], step_s=2 / 3)
     env = CrowdNavEnv(predictor="cv", crowd=crowd, observe_perception_age=True, observe_time_left=True)

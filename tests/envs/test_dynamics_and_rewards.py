@@ -12,7 +12,8 @@ import pytest
 
 from envs.config import CrowdNavConfig
 from envs.crowd_nav import CrowdNavEnv
-from envs.crowds import Replay, scripted_recording, synthetic_recording
+from envs.recordings import scripted_recording, synthetic_recording
+from envs.replay import Replay
 from envs.rewards import REWARD_COMPONENTS
 from envs.world import World, fault_of
 

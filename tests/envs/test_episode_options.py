@@ -12,7 +12,8 @@ import pytest
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data import load_recording
 from envs.crowd_nav import CrowdNavEnv
-from envs.crowds import crowd_near_path, scripted_recording
+from envs.episodes import crowd_near_path
+from envs.recordings import scripted_recording
 
 
 def _standing(env: CrowdNavEnv, options: dict[str, Any] | None = None, seed: int = 0) -> list[tuple]:

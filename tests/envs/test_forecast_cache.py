@@ -125,7 +125,7 @@ SHARED = """
 import json, numpy as np, torch
 torch.set_num_threads(1)
 from envs.crowd_nav import CrowdNavEnv
-from envs.crowds import scripted_recording
+from envs.recordings import scripted_recording
 rng = np.random.default_rng(0)
 paths = [np.cumsum(rng.normal(0.0, 0.3, (200, 2)), axis=0) + 3.0 * k for k in range(6)]
 env = CrowdNavEnv(predictor="mesrnn", crowd=scripted_recording(paths, name="shared"))

@@ -11,8 +11,9 @@ import pytest
 
 from crowdnav_mesrnn.data import load_recording
 from envs.crowd_nav import CrowdNavEnv
-from envs.crowds import Replay, scripted_recording
 from envs.forecasts import NoisyOracleForecast, PredictorForecast, resample_weights
+from envs.recordings import scripted_recording
+from envs.replay import Replay
 
 TEST_RECORDINGS = ("biwi_eth", "biwi_hotel", "students001", "students003", "crowds_zara01", "crowds_zara02")
 

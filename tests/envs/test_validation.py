@@ -16,7 +16,7 @@ import crowdnav_mesrnn  # noqa: F401  (registers the ids)
 from crowdnav_mesrnn.config import ConfigError
 from envs.config import CrowdNavConfig
 from envs.crowd_nav import CrowdNavEnv
-from envs.crowds import scripted_recording
+from envs.recordings import scripted_recording
 
 BASE: dict[str, Any] = {"crowd": "empty", "predictor": "none"}
 FIELDS = {f.name: f for f in dataclasses.fields(CrowdNavConfig)}
