@@ -133,33 +133,15 @@ def _report(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     extra = dict(item.split("=", 1) for item in (args.extra or []))
-    text, results = build_report(extra, data_dir=args.data_dir)
+    text, results = build_report(
+        extra, data_dir=args.data_dir, plan=args.plan, block_len=args.block_len, n_resamples=args.resamples
+    )
     out = Path(args.out)
-    atomic_write_text(out, text + "\n## Reproduce\n\n```bash\n" + REPRODUCE + "```\n")
+    atomic_write_text(out, text)
     atomic_write_json(out.with_suffix(".json"), results)
     print(text)
     print(f"wrote {out} and {out.with_suffix('.json')}")
     return 0
-
-
-REPRODUCE = """\
-# shipped models: for each MODEL in vlstm srnn mesrnn and SPLIT in eth hotel univ zara1 zara2
-crowdnav-mesrnn predictor train --model MODEL --split SPLIT --config configs/predictor/MODEL_residual.yaml \\
-    --out runs/predictor/MODEL_residual_SPLIT
-crowdnav-mesrnn predictor train --model MODEL --split SPLIT --out runs/predictor/MODEL_paper_SPLIT   # paper config
-# MESRNN only (compute budget): the same with rotation augmentation
-crowdnav-mesrnn predictor train --model mesrnn --split SPLIT --config configs/predictor/mesrnn_residual.yaml \\
-    --set augment_rotation=true --out runs/predictor/mesrnn_rotaug_SPLIT
-crowdnav-mesrnn predictor select --model MODEL --split SPLIT runs/predictor/MODEL_*_SPLIT
-# this page (evaluates the shipped weights and, where present, the other candidates)
-crowdnav-mesrnn predictor report --out docs/results/predictors.md \\
-    --extra 'mesrnn:residual, no rotation=runs/predictor/mesrnn_residual_{split}/best.pt' \\
-    --extra 'mesrnn:paper config=runs/predictor/mesrnn_paper_{split}/best.pt' \\
-    --extra 'srnn:paper config=runs/predictor/srnn_paper_{split}/best.pt' \\
-    --extra 'vlstm:paper config=runs/predictor/vlstm_paper_{split}/best.pt'
-# any single row
-crowdnav-mesrnn predictor eval --model mesrnn --split all
-"""
 
 
 def _plan(args: argparse.Namespace) -> int:
@@ -221,6 +203,9 @@ def add_parser(sub: Any) -> None:
     r = psub.add_parser("report", help="evaluate every predictor and write docs/results/predictors.md (+ .json)")
     r.add_argument("--out", default="docs/results/predictors.md")
     r.add_argument("--extra", action="append", metavar="MODEL:LABEL=TEMPLATE", help="extra rows from checkpoints")
+    r.add_argument("--plan", default=None, help="plan file whose seeds to report (configs/predictor/candidates.yaml)")
+    r.add_argument("--block-len", type=int, default=20, help="block bootstrap block length in windows (default 20)")
+    r.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
     r.add_argument("--data-dir", default=None)
     r.add_argument("--threads", type=int, default=1)
     r.set_defaults(func=_report)

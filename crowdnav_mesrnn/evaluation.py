@@ -103,11 +103,14 @@ def evaluate_model(
     part: str = "test",
     min_scored: int = 2,
     batch_size: int = 64,
+    window_sums: dict[str, dict[str, np.ndarray]] | None = None,
 ) -> dict[str, Any]:
     """Evaluate ``cv`` or a learned model on each split's ``part``; averaged over the splits.
 
     Args:
         checkpoint_for: ``split -> LearnedPredictor`` (default: the shipped pretrained weights).
+        window_sums: if given, filled with ``split ->`` :func:`window_errors` (windows in time order),
+            for paired comparisons.
     """
     if splits == "all":
         splits = SPLITS
@@ -132,7 +135,10 @@ def evaluate_model(
             result.setdefault("checkpoints", {})[split] = predictor.info.get("selection") or predictor.info.get(
                 "train_config"
             )
-        result["splits"][split] = evaluate_windows(predict, windows, norm, batch_size)
+        errors = window_errors(predict, windows, norm, batch_size)
+        result["splits"][split] = summarise(errors)
+        if window_sums is not None:
+            window_sums[split] = errors
     if len(splits) > 1:
         result["splits"]["average"] = {
             k: float(np.mean([result["splits"][s][k] for s in splits])) for k in METRIC_KEYS

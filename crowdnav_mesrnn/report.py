@@ -1,7 +1,9 @@
-"""``docs/results/predictors.md``: per-split ADE/FDE of every predictor beside published figures.
+"""``docs/results/predictors.md``: per-split ADE/FDE of every predictor beside published figures,
+seeds, paired differences with block-bootstrap intervals, and the verdicts read from them.
 
-Everything in the page is computed by :func:`build_report` from the shipped checkpoints (and, where
-given, extra checkpoints such as the paper-faithful runs); only the published figures are constants.
+Everything in the page is computed by :func:`build_report` from the shipped checkpoints, the runs of
+the comparison plan (``configs/predictor/candidates.yaml``) and, where given, extra checkpoints; only
+the published figures are constants.
 """
 
 from __future__ import annotations
@@ -10,9 +12,20 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import yaml
+
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.evaluation import evaluate_model
 from crowdnav_mesrnn.models.learned import load_predictor
+from crowdnav_mesrnn.stats import (
+    DEFAULT_BLOCK_LEN,
+    DEFAULT_RESAMPLES,
+    PairedErrors,
+    average_ci,
+    block_bootstrap_ci,
+    verdict,
+)
 
 #: Social-GAN paper (Gupta et al., CVPR 2018), Table 1, ADE/FDE in metres, 8 -> 12 steps.
 PUBLISHED_SGAN: dict[str, dict[str, tuple[float, float]]] = {
@@ -51,37 +64,50 @@ PUBLISHED_SGAN: dict[str, dict[str, tuple[float, float]]] = {
 }
 COLS = (*SPLITS, "average")
 
-DEPARTURES = """## Configurations: the paper's and the shipped ones
+NAMES = {"cv": "CV", "vlstm": "VLSTM", "srnn": "SRNN", "mesrnn": "MESRNN"}
+LABELS = {
+    "cv": "Constant velocity",
+    "vlstm": "VLSTM (shipped)",
+    "srnn": "SRNN (shipped)",
+    "mesrnn": "MESRNN (shipped)",
+}
+#: Paired differences reported with intervals (A − B; negative = A better).
+PAIRS: tuple[tuple[str, str], ...] = (
+    ("mesrnn", "cv"),
+    ("srnn", "cv"),
+    ("vlstm", "cv"),
+    ("mesrnn", "srnn"),
+    ("srnn", "vlstm"),
+)
+PLAN_FILE = "configs/predictor/candidates.yaml"
+
+OPTIONS = """## Configurations: the paper's and the project's options
 
 *Paper config* (`configs/predictor/{mesrnn,srnn,vlstm}.yaml`): node embedding 128, node hidden 256,
 edge embedding 64, edge hidden 128; the node RNN reads the absolute (normalised) position; meta-paths
 summed over neighbours; MSE on the 12 predicted steps with teacher forcing; Adam 1e-3, gradient norm
-10, 10 epochs. At these sizes MESRNN trained at 9-10 windows/s on one core of this 2-core CPU (the
-progress lines of `crowdnav-mesrnn predictor train --model mesrnn --split zara1`, with another job on
-the second core; see also `docs/results/speed.md`), about 40 minutes per split, so the paper config was
-trained only where the compute budget allowed (rows marked *paper config*; empty cells were not run).
+10, 10 epochs.
 
-*Shipped candidates* (`configs/predictor/{mesrnn,srnn,vlstm}_residual.yaml`), options added beside
-the paper's, each a documented `ModelConfig`/`TrainConfig` key:
+*Residual config* (`configs/predictor/{mesrnn,srnn,vlstm}_residual.yaml`), options added beside the
+paper's, each a documented `ModelConfig`/`TrainConfig` key:
 - `node_input: velocity` — the node RNN reads the last displacement instead of the absolute position,
-  which is meaningless across scenes under leave-one-out (a 3-epoch VLSTM pilot on the zara1 split,
-  `predictor train --model vlstm --split zara1 --epochs 3 --set node_hidden=128 --set edge_hidden=64
-  --set node_embed=64 --set edge_embed=32 [--set node_input=velocity]`, went from 1.19 m to 0.63 m
-  best validation ADE);
+  which is meaningless across scenes under leave-one-out;
 - `offset: cv_residual` — the decoder's offset is added to a constant-velocity step and starts at zero,
   so the untrained network is exactly constant velocity and learns corrections to it;
 - `teacher_forcing: false` — trained on its own 12-step rollout, exactly as evaluated;
 - `aggregate: mean`, `standardise: true` — meta-paths averaged over neighbours and every feature type
   scaled to unit RMS on training data (the raw SS/TT products are orders of magnitude smaller than S);
-- halved sizes, lr 3e-4 and 8 epochs, to fit the compute budget;
-- MESRNN only, as a second candidate: `augment_rotation: true` (each training window rotated by a
-  random angle about its centre before normalising), so the learned corrections cannot depend on the
-  walking directions of the training scenes. SRNN and VLSTM were not given this candidate (compute
-  budget), so **the MESRNN vs SRNN/VLSTM comparison below is confounded by it**; the row
-  *MESRNN (residual, no rotation)* is the like-for-like one.
+- halved sizes, lr 3e-4 and 8 epochs;
+- `augment_rotation: true` (the *residual_rotation* candidate) — each training window rotated by a
+  random angle about its centre before normalising.
 These change the inputs and the training, not the protocol: same windows, same rollout, same metric.
-Validation data are the `_val` pieces of the training scenes (in-domain), so they cannot show how a
-model transfers to the held-out scene; every selection below used them only."""
+
+*The comparison* (`configs/predictor/candidates.yaml`, committed before its runs): the same candidate
+set for VLSTM, SRNN and MESRNN; per (model, split) the candidate with the lowest validation ADE (the
+`_val` pieces of the training scenes; test data never enter a choice) is trained with every seed; the
+shipped weights are the seed with the lowest validation ADE. An earlier version of this page had given
+only MESRNN the rotation-augmented candidate, added after test numbers had been seen; the plan replaces
+that. Validation data are in-domain, so they cannot show how a model transfers to the held-out scene."""
 
 FIGURES = """## Figures
 
@@ -101,14 +127,103 @@ def _row(label: str, res: dict[str, Any], a: str, f: str, fmt: str) -> str:
     return f"| {label} | " + " | ".join(cells) + " |"
 
 
+def _label(key: str) -> str:
+    return LABELS.get(key, f"{key.split(':')[0].upper()} ({key.split(':', 1)[-1]})")
+
+
+# ------------------------------------------------------------------ computing
+def compare(
+    errors: dict[str, dict[str, dict[str, np.ndarray]]],
+    pairs: tuple[tuple[str, str], ...] = PAIRS,
+    block_len: int = DEFAULT_BLOCK_LEN,
+    n_resamples: int = DEFAULT_RESAMPLES,
+    confidence: float = 0.95,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Paired ADE/FDE differences ``A − B`` per split and over the five-split average, with
+    block-bootstrap intervals and verdicts, from per-window errors ``model -> split -> window_errors``."""
+    out: dict[str, Any] = {}
+    for a, b in pairs:
+        if a not in errors or b not in errors:
+            continue
+        splits = [s for s in SPLITS if s in errors[a] and s in errors[b]]
+        entry: dict[str, Any] = {}
+        for metric in ("ade_m", "fde_m"):
+            per: dict[str, Any] = {}
+            paired: dict[str, PairedErrors] = {}
+            for s in splits:
+                ea, eb = errors[a][s], errors[b][s]
+                if not np.array_equal(ea["pedestrians"], eb["pedestrians"]):
+                    raise ValueError(f"{a} and {b} were evaluated on different windows of {s}")
+                paired[s] = PairedErrors(ea[metric] - eb[metric], ea["pedestrians"])
+                ci = block_bootstrap_ci(paired[s], block_len, n_resamples, confidence, seed)
+                per[s] = {"diff": paired[s].estimate, "ci": list(ci), "verdict": _verdict(ci, a, b)}
+            if len(paired) == len(SPLITS):
+                est, ci = average_ci(paired, block_len, n_resamples, confidence, seed)
+                per["average"] = {"diff": est, "ci": list(ci), "verdict": _verdict(ci, a, b)}
+            entry[metric] = per
+        out[f"{a}-{b}"] = entry
+    return out
+
+
+def _verdict(ci: tuple[float, float], a: str, b: str) -> str:
+    v = verdict(ci)
+    return {"A better": f"{NAMES[a]} better", "B better": f"{NAMES[b]} better"}.get(v, v)
+
+
+def seed_results(plan_path: str | os.PathLike[str], data_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+    """Test ADE/FDE of every finished seed of the plan's selected candidates; mean ± std over seeds."""
+    from crowdnav_mesrnn.plan import load_plan, summary
+
+    plan = load_plan(plan_path)
+    rows = summary(plan)
+    for key, row in rows.items():
+        model, split = key.split("/")
+        for info in row["seeds"].values():
+            res = evaluate_model(
+                model,
+                [split],
+                data_dir=data_dir,
+                checkpoint_for=lambda s, c=info["checkpoint"], m=model: load_predictor(c, m, s),
+            )
+            info["test"] = {m: res["splits"][split][m] for m in ("ade_m", "fde_m")}
+        if row["seeds"]:
+            row["test"] = _mean_std([info["test"] for info in row["seeds"].values()])
+    average: dict[str, Any] = {}
+    for model in plan.models:
+        per_seed = []
+        for k in plan.seeds:
+            cells = [rows[f"{model}/{s}"]["seeds"].get(k) for s in SPLITS]
+            if all(c is not None for c in cells) and set(plan.splits) == set(SPLITS):
+                per_seed.append({m: float(np.mean([c["test"][m] for c in cells])) for m in ("ade_m", "fde_m")})
+        if per_seed:
+            average[model] = _mean_std(per_seed)
+    return {"plan": str(plan_path), "seeds": list(plan.seeds), "rows": rows, "average": average}
+
+
+def _mean_std(values: list[dict[str, float]]) -> dict[str, Any]:
+    out: dict[str, Any] = {"n": len(values)}
+    for m in ("ade_m", "fde_m"):
+        x = np.array([v[m] for v in values])
+        out[m] = {"mean": float(x.mean()), "std": float(x.std(ddof=1)) if len(x) > 1 else None}
+    return out
+
+
 def build_report(
-    extra: dict[str, str] | None = None, data_dir: str | os.PathLike[str] | None = None
+    extra: dict[str, str] | None = None,
+    data_dir: str | os.PathLike[str] | None = None,
+    plan: str | os.PathLike[str] | None = None,
+    block_len: int = DEFAULT_BLOCK_LEN,
+    n_resamples: int = DEFAULT_RESAMPLES,
 ) -> tuple[str, dict[str, Any]]:
     """Evaluate CV and the shipped VLSTM, SRNN, MESRNN on every split; ``extra`` maps a row label
-    ``"<model>:<label>"`` to a checkpoint template with ``{split}`` (rows only for existing files)."""
+    ``"<model>:<label>"`` to a checkpoint template with ``{split}`` (rows only for existing files);
+    ``plan`` adds the seeds of the comparison plan. Returns the page and the JSON results."""
     results: dict[str, Any] = {}
+    errors: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     for model in ("cv", "vlstm", "srnn", "mesrnn"):
-        results[model] = evaluate_model(model, "all", data_dir=data_dir)
+        errors[model] = {}
+        results[model] = evaluate_model(model, "all", data_dir=data_dir, window_sums=errors[model])
     for key, template in (extra or {}).items():
         model, _ = key.split(":", 1)
         splits = [s for s in SPLITS if Path(template.format(split=s, model=model)).is_file()]
@@ -120,8 +235,104 @@ def build_report(
             data_dir=data_dir,
             checkpoint_for=lambda s, m=model, t=template: load_predictor(t.format(split=s, model=m), m, s),
         )
+        res["template"] = template
+        res["trained_by"] = _training_command(Path(template.format(split=splits[0], model=model)))
         results[key] = res
+    results["comparisons"] = compare(errors, block_len=block_len, n_resamples=n_resamples)
+    results["bootstrap"] = {
+        "method": "moving-block bootstrap over consecutive test windows, percentile interval",
+        "block_len_windows": block_len,
+        "resamples": n_resamples,
+        "confidence": 0.95,
+        "seed": 0,
+    }
+    if plan is not None:
+        results["seeds"] = seed_results(plan, data_dir)
     return render(results), results
+
+
+def _training_command(checkpoint: Path) -> str | None:
+    """The training command recorded beside a checkpoint (``run.yaml`` of its run folder)."""
+    run = checkpoint.parent / "run.yaml"
+    if not run.is_file():
+        return None
+    return (yaml.safe_load(run.read_text()) or {}).get("command")
+
+
+# ------------------------------------------------------------------ rendering
+def _ci_cell(d: dict[str, Any] | None) -> str:
+    if d is None:
+        return "–"
+    lo, hi = d["ci"]
+    return f"{d['diff']:+.3f} [{lo:+.3f}, {hi:+.3f}]"
+
+
+def _pm(d: dict[str, Any], m: str) -> str:
+    std = d[m]["std"]
+    return f"{d[m]['mean']:.3f}" + (f" ± {std:.3f}" if std is not None else "")
+
+
+def _shipped_protocol(results: dict[str, Any]) -> str:
+    notes = [
+        (model, split, (results[model].get("checkpoints") or {}).get(split) or {})
+        for model in ("vlstm", "srnn", "mesrnn")
+        for split in SPLITS
+    ]
+    by_plan = [f"{m}/{s}" for m, s, n in notes if isinstance(n, dict) and "plan " in str(n.get("note", ""))]
+    if len(by_plan) == len(notes):
+        return "All 15 shipped predictors were exported by the comparison plan (`predictor plan ... --stage export`)."
+    if not by_plan:
+        return (
+            "**The shipped predictors predate the comparison plan**: they were selected under the earlier "
+            "protocol (the selection table at the end says among what); the seed and plan sections below are "
+            "empty until `predictor plan` has run and exported."
+        )
+    return (
+        f"{len(by_plan)} of 15 shipped predictors were exported by the comparison plan ({', '.join(by_plan)}); "
+        "the others predate it (selection table at the end)."
+    )
+
+
+def render(results: dict[str, Any]) -> str:
+    head = "| model | " + " | ".join(COLS) + " |\n|---|" + "---|" * len(COLS)
+    rows = [k for k in results if k not in ("comparisons", "bootstrap", "seeds")]
+    lines = [
+        "# Trajectory prediction results (ETH/UCY, leave-one-out, 8 observed → 12 predicted)",
+        "",
+        "Generated by `crowdnav-mesrnn predictor report` (see *Reproduce* below); do not edit by hand.",
+        "Every learned number is a true autoregressive rollout: after the last observation every input —",
+        "the pedestrian's own position and every neighbour's in the meta-path features — is the model's",
+        "own prediction. Scored pedestrians: present in all 20 steps, windows with at least 2 of them.",
+        "",
+        _shipped_protocol(results),
+        "",
+        "## ADE / FDE in metres (headline)",
+        "",
+        head,
+    ]
+    lines += [_row(_label(k), results[k], "ade_m", "fde_m", ".2f") for k in rows]
+    lines += ["", "Published figures for orientation (Social-GAN paper, Table 1, same protocol, metres):", "", head]
+    for name, vals in PUBLISHED_SGAN.items():
+        lines.append(f"| {name} | " + " | ".join(f"{vals[s][0]:.2f} / {vals[s][1]:.2f}" for s in COLS) + " |")
+    lines += ["", *render_seeds(results.get("seeds"))]
+    lines += ["", *render_comparisons(results["comparisons"], results["bootstrap"])]
+    lines += ["", "## Does the paper's ordering hold?", "", *ordering(results["comparisons"])]
+    lines += [
+        "",
+        "## ADE / FDE in the paper's min-max-normalised units",
+        "",
+        "Positions mapped to [-1, 1] per axis with the statistics of each split's training part (the metric",
+        "of the MESRNN paper's Table I; smaller scenes look better in it, so it is not comparable across",
+        "splits). The paper's Table I values were not available to this project's build and are not copied here.",
+        "",
+        head,
+    ]
+    lines += [_row(_label(k), results[k], "ade_norm", "fde_norm", ".4f") for k in rows]
+    lines += ["", OPTIONS, "", FIGURES]
+    lines += ["", "## Which configuration each shipped model uses (chosen on validation data only)", ""]
+    lines += ["| model | split | selection |", "|---|---|---|", *_selection_rows(results)]
+    lines += ["", "## Reproduce", "", *reproduce_rows(results), "", "```bash", REPRODUCE.rstrip(), "```"]
+    return "\n".join(lines) + "\n"
 
 
 def _selection_rows(results: dict[str, Any]) -> list[str]:
@@ -134,76 +345,157 @@ def _selection_rows(results: dict[str, Any]) -> list[str]:
     return rows
 
 
-def render(results: dict[str, Any]) -> str:
-    labels = {
-        "cv": "Constant velocity",
-        "vlstm": "VLSTM (shipped)",
-        "srnn": "SRNN (shipped)",
-        "mesrnn": "MESRNN (shipped)",
-    }
+def render_seeds(seeds: dict[str, Any] | None) -> list[str]:
+    """The seeds section: test ADE / FDE mean ± std over the seeds of each selected candidate."""
+    lines = ["## Seeds of the selected configurations (test ADE / FDE, metres, mean ± std over seeds)", ""]
+    if not seeds:
+        return [
+            *lines,
+            f"Not computed: run `crowdnav-mesrnn predictor report --plan {PLAN_FILE}` after the plan's runs.",
+        ]
     head = "| model | " + " | ".join(COLS) + " |\n|---|" + "---|" * len(COLS)
-    lines = [
-        "# Trajectory prediction results (ETH/UCY, leave-one-out, 8 observed → 12 predicted)",
-        "",
-        "Generated by `crowdnav-mesrnn predictor report` (see *Reproduce* below); do not edit by hand.",
-        "Every learned number is a true autoregressive rollout: after the last observation every input —",
-        "the pedestrian's own position and every neighbour's in the meta-path features — is the model's",
-        "own prediction. Scored pedestrians: present in all 20 steps, windows with at least 2 of them.",
-        "",
-        "## ADE / FDE in metres (headline)",
+    lines += [
+        f"Seeds {seeds['seeds']} of the candidate each (model, split) selected on validation data (plan `{seeds['plan']}`);",
+        "cells: ADE / FDE; n = finished seeds.",
         "",
         head,
     ]
-    for key, res in results.items():
-        label = labels.get(key, f"{key.split(':')[0].upper()} ({key.split(':', 1)[-1]})")
-        lines.append(_row(label, res, "ade_m", "fde_m", ".2f"))
-    lines += ["", "Published figures for orientation (Social-GAN paper, Table 1, same protocol, metres):", "", head]
-    for name, vals in PUBLISHED_SGAN.items():
-        lines.append(f"| {name} | " + " | ".join(f"{vals[s][0]:.2f} / {vals[s][1]:.2f}" for s in COLS) + " |")
+    for model in ("vlstm", "srnn", "mesrnn"):
+        cells = []
+        for s in SPLITS:
+            row = seeds["rows"].get(f"{model}/{s}")
+            t = (row or {}).get("test")
+            cells.append(f"{_pm(t, 'ade_m')} / {_pm(t, 'fde_m')} (n={t['n']})" if t else "–")
+        avg = seeds["average"].get(model)
+        cells.append(f"{_pm(avg, 'ade_m')} / {_pm(avg, 'fde_m')} (n={avg['n']})" if avg else "–")
+        lines.append(f"| {NAMES[model]} | " + " | ".join(cells) + " |")
     lines += [
         "",
-        "## ADE / FDE in the paper's min-max-normalised units",
-        "",
-        "Positions mapped to [-1, 1] per axis with the statistics of each split's training part (the metric",
-        "of the MESRNN paper's Table I; smaller scenes look better in it, so it is not comparable across",
-        "splits). The paper's Table I values were not available to this project's build and are not copied here.",
-        "",
-        head,
+        "| model | split | candidates (val ADE, m) | selected | seeds (val ADE, m) | shipped seed |",
+        "|---|---|---|---|---|---|",
     ]
-    for key, res in results.items():
-        label = labels.get(key, f"{key.split(':')[0].upper()} ({key.split(':', 1)[-1]})")
-        lines.append(_row(label, res, "ade_norm", "fde_norm", ".4f"))
-    lines += ["", "## Does the paper's ordering hold?", ""]
-    lines += verdict(results)
-    lines += ["", DEPARTURES, "", FIGURES]
-    lines += ["", "## Which configuration each shipped model uses (chosen on validation data only)", ""]
-    lines += ["| model | split | selection |", "|---|---|---|", *_selection_rows(results)]
-    return "\n".join(lines) + "\n"
+    for key, row in seeds["rows"].items():
+        model, split = key.split("/")
+        cands = ", ".join(f"{c} {v:.3f}" for c, v in row["candidates_val_ade_m"].items()) or "–"
+        seed_vals = ", ".join(f"{k}: {v['val_ade_m']:.3f}" for k, v in row["seeds"].items()) or "–"
+        lines.append(
+            f"| {model} | {split} | {cands} | {row['selected'] or '–'} | {seed_vals} | {row.get('shipped_seed', '–')} |"
+        )
+    return lines
 
 
-def verdict(results: dict[str, Any]) -> list[str]:
-    """Plain statements computed from the results (average ADE/FDE in metres)."""
-    avg = {k: results[k]["splits"]["average"] for k in ("cv", "vlstm", "srnn", "mesrnn")}
-    out = []
-    order = sorted(("vlstm", "srnn", "mesrnn"), key=lambda k: avg[k]["ade_m"])
-    holds = order == ["mesrnn", "srnn", "vlstm"]
-    summary = ", ".join(f"{m.upper()} {avg[m]['ade_m']:.3f} m" for m in order)
-    out.append(
-        f"- Average ADE order of the shipped models: {' < '.join(m.upper() for m in order)} "
-        f"({summary}). "
-        f"The paper's ordering MESRNN < SRNN < VLSTM **{'holds' if holds else 'does not hold'}**."
-    )
+def render_comparisons(comparisons: dict[str, Any], boot: dict[str, Any]) -> list[str]:
+    head = "| difference | " + " | ".join(COLS) + " |\n|---|" + "---|" * len(COLS)
+    lines = [
+        "## Paired differences with 95 % intervals (shipped predictors)",
+        "",
+        "Each cell: A − B in metres over the same test windows and pedestrians (negative: A is better)",
+        "and a 95 % percentile interval from a moving-block bootstrap over consecutive test windows. Test",
+        f"windows slide by one step and overlap, so blocks of {boot['block_len_windows']} consecutive windows "
+        "(the window length in steps)",
+        f"are resampled, {boot['resamples']} times; the average column resamples the five splits",
+        "independently. An interval that includes 0 reads *no detectable difference*.",
+    ]
     for metric, name in (("ade_m", "ADE"), ("fde_m", "FDE")):
-        gain = 100 * (avg["srnn"][metric] - avg["mesrnn"][metric]) / avg["srnn"][metric]
-        out.append(
-            f"- MESRNN vs SRNN, average {name}: {gain:+.1f} % "
-            f"({'better' if gain > 0 else 'worse'}; the paper reports over 32 % at long horizons)."
-        )
-    for m in ("mesrnn", "srnn", "vlstm"):
-        d = avg[m]["ade_m"] - avg["cv"]["ade_m"]
-        wins = [s for s in SPLITS if results[m]["splits"][s]["ade_m"] < results["cv"]["splits"][s]["ade_m"]]
-        out.append(
-            f"- {m.upper()} vs constant velocity: average ADE {avg[m]['ade_m']:.3f} vs {avg['cv']['ade_m']:.3f} m "
-            f"({d:+.3f} m); better than CV on {len(wins)}/5 splits ({', '.join(wins) or 'none'})."
-        )
+        lines += ["", f"{name} difference, metres:", "", head]
+        for key, entry in comparisons.items():
+            a, b = key.split("-")
+            lines.append(
+                f"| {NAMES[a]} − {NAMES[b]} | " + " | ".join(_ci_cell(entry[metric].get(c)) for c in COLS) + " |"
+            )
+    lines += ["", "Verdicts (ADE):", "", "| comparison | " + " | ".join(COLS) + " |\n|---|" + "---|" * len(COLS)]
+    for key, entry in comparisons.items():
+        a, b = key.split("-")
+        cells = [entry["ade_m"].get(c, {}).get("verdict", "–") for c in COLS]
+        lines.append(f"| {NAMES[a]} vs {NAMES[b]} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def ordering(comparisons: dict[str, Any]) -> list[str]:
+    """Plain statements read from the intervals (ADE): never a win where the interval includes 0."""
+    out = []
+
+    def summary_line(a: str, b: str) -> str | None:
+        entry = comparisons.get(f"{a}-{b}")
+        if entry is None:
+            return None
+        per = entry["ade_m"]
+        groups: dict[str, list[str]] = {}
+        for s in SPLITS:
+            if s in per:
+                groups.setdefault(per[s]["verdict"], []).append(s)
+        parts = [f"{v} on {', '.join(ss)}" for v, ss in groups.items()]
+        avg = per.get("average")
+        head = f"average ADE difference {_ci_cell(avg)} m → **{avg['verdict']}**" if avg else "no five-split average"
+        return f"- {NAMES[a]} − {NAMES[b]}: {head}; per split: {'; '.join(parts)}."
+
+    for a, b in (("mesrnn", "srnn"), ("srnn", "vlstm"), ("mesrnn", "cv"), ("srnn", "cv"), ("vlstm", "cv")):
+        line = summary_line(a, b)
+        if line:
+            out.append(line)
+    ms, sv = comparisons.get("mesrnn-srnn", {}), comparisons.get("srnn-vlstm", {})
+    avg = [c.get("ade_m", {}).get("average") for c in (ms, sv)]
+    if all(avg):
+        hi = [a["ci"][1] for a in avg]
+        lo = [a["ci"][0] for a in avg]
+        if all(h < 0 for h in hi):
+            state = "**holds** (both average differences detectably negative)"
+        elif any(x > 0 for x in lo):
+            state = "**is contradicted** (a difference is detectably in the other direction)"
+        else:
+            state = "**is not established** (at least one average difference is not detectable)"
+        out.append(f"- The paper's ordering MESRNN < SRNN < VLSTM (average ADE) {state}.")
+    out.append("- The paper reports MESRNN over 32 % better than SRNN at long horizons; compare the MESRNN − SRNN row.")
     return out
+
+
+def reproduce_rows(results: dict[str, Any]) -> list[str]:
+    """One reproduce command per row of the headline table (and where its weights came from)."""
+    lines = ["| row | evaluate | weights from |", "|---|---|---|"]
+    for key in results:
+        if key in ("comparisons", "bootstrap", "seeds"):
+            continue
+        if key == "cv":
+            lines.append("| Constant velocity | `crowdnav-mesrnn predictor eval --model cv --split all` | – |")
+        elif key in NAMES:
+            notes = [
+                str(n.get("note", "")) for n in (results[key].get("checkpoints") or {}).values() if isinstance(n, dict)
+            ]
+            by_plan = bool(notes) and all("plan " in n for n in notes)
+            source = (
+                f"`crowdnav-mesrnn predictor plan {PLAN_FILE}` then `--stage export`"
+                if by_plan
+                else "earlier protocol: `crowdnav-mesrnn predictor train --model "
+                f"{key} --split SPLIT --config configs/predictor/{key}_residual.yaml` (runs named *rotaug* in the "
+                "selection table: plus `--set augment_rotation=true`)"
+            )
+            lines.append(f"| {_label(key)} | `crowdnav-mesrnn predictor eval --model {key} --split all` | {source} |")
+        else:
+            model = key.split(":")[0]
+            trained = results[key].get("trained_by")
+            lines.append(
+                f"| {_label(key)} | `crowdnav-mesrnn predictor eval --model {model} --split all "
+                f"--checkpoint '{results[key].get('template', '?')}'` | "
+                + (f"`{trained}` (for each split)" if trained else "no run.yaml beside the checkpoint")
+                + " |"
+            )
+    lines.append(
+        f"| Seeds, intervals, verdicts | `crowdnav-mesrnn predictor report --plan {PLAN_FILE}` | "
+        f"`crowdnav-mesrnn predictor plan {PLAN_FILE}` |"
+    )
+    return lines
+
+
+REPRODUCE = f"""\
+# the comparison, declared in {PLAN_FILE}: every candidate x model x split, then the seeds of the
+# candidate each (model, split) selects on validation data; resumable (finished runs are skipped)
+crowdnav-mesrnn predictor plan {PLAN_FILE} --dry-run              # every run and the CPU budget
+crowdnav-mesrnn predictor plan {PLAN_FILE} --shard 0/2 &          # one process per core
+crowdnav-mesrnn predictor plan {PLAN_FILE} --shard 1/2
+crowdnav-mesrnn predictor plan {PLAN_FILE}                        # again, until nothing is left
+crowdnav-mesrnn predictor plan {PLAN_FILE} --stage export         # ship the best-validation seeds
+# this page (evaluates the shipped weights, the plan's seeds and any --extra rows)
+crowdnav-mesrnn predictor report --plan {PLAN_FILE} --out docs/results/predictors.md
+# any single row
+crowdnav-mesrnn predictor eval --model mesrnn --split all
+"""
