@@ -222,7 +222,7 @@ def add_parser(sub: Any) -> None:
     pl.add_argument("--dry-run", action="store_true", help="print every run, its status and the CPU-time estimate")
     pl.add_argument("--shard", default="0/1", metavar="I/N", help="run only runs I, I+N, ... (one process per core)")
     pl.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    pl.add_argument("--measure-batches", type=int, default=2, help="training batches timed per config (dry run)")
+    pl.add_argument("--measure-batches", type=int, default=3, help="training batches timed per config (dry run)")
     pl.add_argument("--remeasure", action="store_true", help="ignore the cached throughputs (dry run)")
     pl.add_argument("--data-dir", default=None)
     pl.set_defaults(func=_plan)

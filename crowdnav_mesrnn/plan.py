@@ -17,7 +17,6 @@ command can be re-run (or run as shards ``--shard i/n`` on several cores) until 
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from collections.abc import Callable, Iterable
@@ -374,8 +373,9 @@ def _cost_key(mcfg: Any, tcfg: Any) -> str:
     return json.dumps({"model": arch, "train": train}, sort_keys=True)
 
 
-def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 2, data_dir: str | None = None) -> Rate:
-    """Time ``batches_count`` training steps and validation batches on zara1 (one thread)."""
+def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | None = None) -> Rate:
+    """Time ``batches_count`` training steps (batches spread over the size range) and the validation
+    rollout of the same windows, on zara1 training windows (one thread)."""
     import numpy as np
     import torch
 
@@ -388,9 +388,11 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 2, data_dir: str | N
 
     windows = split_windows("zara1", "train", tcfg.min_scored, data_dir)
     norm = MinMax.fit(np.concatenate([w.positions[w.present] for w in windows]))
-    n_chunks = math.ceil(len(windows) / tcfg.batch_size)
-    chunks = list(batches(windows, tcfg.batch_size, np.random.default_rng(0).permutation(n_chunks)))
-    chunks = chunks[: batches_count + 1]
+    # Batches as training makes them (bucketed by size); time ``batches_count`` of them spread evenly
+    # over the size range, after the smallest as warm-up.
+    chunks = list(batches(windows, tcfg.batch_size))
+    picks = np.unique(np.linspace(0, len(chunks) - 1, batches_count).round().astype(int))
+    chunks = [chunks[0], *(chunks[i] for i in picks)]
     torch.manual_seed(0)
     net = StructuralRNN(mcfg).train()
     opt = torch.optim.Adam(net.parameters(), tcfg.lr)
@@ -446,7 +448,7 @@ def _split_sizes(splits: Iterable[str], min_scored: int, data_dir: str | None) -
 def dry_run(
     plan: Plan,
     stage: str = "all",
-    measure_batches: int = 2,
+    measure_batches: int = 3,
     remeasure: bool = False,
     data_dir: str | None = None,
     cores: int = 2,
@@ -506,7 +508,8 @@ def dry_run(
         "",
         f"{'stage':<11}{'model':<8}{'split':<7}{'candidate':<20}{'seed':>5}{'status':>14}{'CPU min':>9}  command",
     ]
-    totals: dict[str, float] = {}
+    totals: dict[str, float] = {}  # minutes; seeds not yet selected costed as the dearest candidate
+    spread: dict[str, float] = {}  # minutes saved if every waiting seed uses the cheapest candidate
     count: dict[str, int] = {}
     stages = ("candidates", "seeds") if stage == "all" else (stage,)
     for st in stages:
@@ -522,24 +525,28 @@ def dry_run(
                 f"{minutes:>9.1f}  {run.command()}"
             )
         for m, s in waiting:
-            worst = max(plan.candidates, key=lambda c: cpu_s(Run(st, m, s, c, 0, Path("/nonexistent")), c))
+            costs = {c.name: cpu_s(Run(st, m, s, c, 0, Path("/nonexistent")), c) / 60 for c in plan.candidates}
+            cheap, dear = min(costs, key=costs.get), max(costs, key=costs.get)
             for k in plan.seeds:
                 if k == plan.selection_seed:
                     continue
-                run = Run(st, m, s, worst, k, Path("/nonexistent"))
-                minutes = cpu_s(run, worst) / 60
-                totals[st] = totals.get(st, 0.0) + minutes
+                totals[st] = totals.get(st, 0.0) + costs[dear]
+                spread[st] = spread.get(st, 0.0) + costs[dear] - costs[cheap]
                 count[st] = count.get(st, 0) + 1
                 lines.append(
-                    f"{st:<11}{m:<8}{s:<7}{'(to be selected)':<20}{k:>5}{'waits':>14}{minutes:>9.1f}  "
-                    f"(upper bound: costed as {worst.name})"
+                    f"{st:<11}{m:<8}{s:<7}{'(to be selected)':<20}{k:>5}{'waits':>14}{costs[dear]:>9.1f}  "
+                    f"(upper bound, as {dear}; as {cheap}: {costs[cheap]:.1f} min)"
                 )
     grand = sum(totals.values())
+    saved = sum(spread.values())
     lines.append("")
     for st, minutes in totals.items():
-        lines.append(f"{st}: {count[st]} runs, {minutes / 60:.1f} CPU-hours left")
+        span = f"{(minutes - spread[st]) / 60:.1f}-" if spread.get(st) else ""
+        lines.append(f"{st}: {count[st]} runs, {span}{minutes / 60:.1f} CPU-hours left")
+    lo_total = (grand - saved) / 60
     lines.append(
-        f"total: {grand / 60:.1f} CPU-hours left = about {grand / 60 / cores:.1f} h on {cores} cores "
+        f"total: {lo_total:.1f}-{grand / 60:.1f} CPU-hours left (the range is the candidate the seeds will use) = "
+        f"about {lo_total / cores:.1f}-{grand / 60 / cores:.1f} h on {cores} cores "
         f"(shards --shard 0/{cores} ... --shard {cores - 1}/{cores}, one thread each)"
     )
     lines.append(

@@ -133,3 +133,27 @@ def test_execute_is_resumable_and_exports_the_best_seed(
     note = shipped.info["selection"]["note"]
     assert note.startswith("lowest val ADE") and f"seed {row['shipped_seed']})" in note
     assert f"candidate {row['selected']} selected on val ADE" in note
+
+
+def test_dry_run_lists_every_run_with_a_cpu_estimate(tmp_path: Path, data_dir: Path) -> None:
+    from crowdnav_mesrnn.plan import dry_run
+
+    tiny = "{node_embed: 8, node_hidden: 16, edge_embed: 4, edge_hidden: 8, epochs: 2}"
+    (tmp_path / "plan.yaml").write_text(
+        f"models: [vlstm, srnn]\nsplits: [zara1, hotel]\nseeds: [0, 1, 2]\nout_dir: {tmp_path / 'runs'}\n"
+        f"candidates:\n  a: {{config: 'configs/predictor/{{model}}_residual.yaml', set: {tiny}}}\n"
+        f"  b: {{config: 'configs/predictor/{{model}}.yaml', set: {tiny}}}\n"
+    )
+    plan = load_plan(tmp_path / "plan.yaml")
+    text = dry_run(plan, "all", measure_batches=1, data_dir=str(data_dir))
+    assert (tmp_path / "runs" / "rates.json").is_file()
+    rows = [line for line in text.splitlines() if line.startswith(("candidates ", "seeds "))]
+    assert len(rows) == 2 * 2 * 2 + 2 * 2 * 2  # candidates, then two more seeds per (model, split)
+    assert sum("waits" in r for r in rows) == 8 and all(float(r.split()[6]) > 0 for r in rows if "waits" not in r)
+    assert (
+        "candidates: 8 runs" in text and "seeds: 8 runs" in text and "CPU-hours left" in text and "upper bound" in text
+    )
+    _fake_done(run_dir(plan, "vlstm", "zara1", "a", 0), 0.5, epochs=2)
+    again = dry_run(plan, "candidates", data_dir=str(data_dir))  # rates come from the cache now
+    assert "measured now" not in again
+    assert any(" done " in line and line.startswith("candidates vlstm   zara1  a ") for line in again.splitlines())
