@@ -467,6 +467,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._n = 0
         self._heading = math.atan2(ep.goal[1] - ep.start[1], ep.goal[0] - ep.start[0])
         self._velocity = np.zeros(2)
+        self._forecast_log: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._metrics = EpisodeMetrics(
             ep.start.copy(),
             ep.goal.copy(),
@@ -597,6 +598,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             else:
                 outcome = "timeout"
             # info["episode"] belongs to Gymnasium's RecordEpisodeStatistics and SB3's Monitor
+            self._forecast_errors()
             info["episode_metrics"] = self._metrics.summary(outcome, self._n * cfg.dt_s, self.with_forecasts)
         return reward, terminated, truncated, info
 
@@ -661,20 +663,41 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     def _forecast(
         self, t_s: float, rows: np.ndarray, perceived: np.ndarray, positions: np.ndarray, present: np.ndarray
     ) -> np.ndarray | None:
-        """Forecasts ``(m, H, 2)`` of the perceived pedestrians ``rows`` (None without forecasts), and their errors
-        against the world's true future for the episode's metrics."""
+        """Forecasts ``(m, H, 2)`` of the perceived pedestrians ``rows`` (None without forecasts), kept for the
+        episode's forecast errors (computed against the world's true future when the episode ends)."""
         if not self.with_forecasts:
             return None
         assert self._replay is not None and self._forecast_rng is not None
-        future, valid = positions[1:, rows].transpose(1, 0, 2), present[1:, rows].T
-        # a perceived pedestrian may have left the world since its annotation: hold the perceived position
-        current = np.where(present[0, rows, None], positions[0, rows], perceived[rows])
-        truth = TrueFuture(fill_forward(future, valid, current), valid)
+        truth = None
+        if self.forecaster.needs_truth:
+            future, valid = positions[1:, rows].transpose(1, 0, 2), present[1:, rows].T
+            # a perceived pedestrian may have left the world since its annotation: hold the perceived position
+            current = np.where(present[0, rows, None], positions[0, rows], perceived[rows])
+            truth = TrueFuture(fill_forward(future, valid, current), valid)
         fc = self.forecaster.forecast(self._replay, t_s, rows, truth, self._forecast_rng)
         if fc is not None:
-            err = np.hypot(fc[..., 0] - truth.positions[..., 0], fc[..., 1] - truth.positions[..., 1])
-            self._metrics.add_forecast_errors(err, truth.valid)
+            self._forecast_log.append((t_s, rows, fc))
         return fc
+
+    def _forecast_errors(self) -> None:
+        """Displacement errors of every forecast of the episode against the replay's true future, at once."""
+        if not self._forecast_log:
+            return
+        assert self._replay is not None
+        cfg = self.config
+        times = np.array([t for t, _, _ in self._forecast_log])[:, None] + cfg.dt_s * np.arange(
+            1, cfg.horizon_steps + 1
+        )
+        pos, present = self._replay.positions_at(times.reshape(-1))
+        steps = len(self._forecast_log)
+        pos = pos.reshape(steps, cfg.horizon_steps, -1, 2)
+        present = present.reshape(steps, cfg.horizon_steps, -1)
+        step_of = np.concatenate([np.full(len(r), k) for k, (_, r, _) in enumerate(self._forecast_log)])
+        rows = np.concatenate([r for _, r, _ in self._forecast_log])
+        fc = np.concatenate([f for _, _, f in self._forecast_log])
+        truth, valid = pos[step_of, :, rows], present[step_of, :, rows]
+        self._metrics.add_forecast_errors(np.hypot(*(fc - truth).transpose(2, 0, 1)), valid)
+        self._forecast_log = []
 
     # ------------------------------------------------------------------ rendering
 

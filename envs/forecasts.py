@@ -100,6 +100,16 @@ def fill_forward(positions: np.ndarray, valid: np.ndarray, current: np.ndarray) 
     return np.take_along_axis(full, idx[..., None], axis=1)
 
 
+def resample_matrix(step_s: float, dt_s: float, horizon: int, pred_len: int, offset_s: float = 0.0) -> np.ndarray:
+    """:func:`resample_weights` as a ``(H, pred_len + 1)`` matrix: row ``h`` weighs the values at ``j = 0..pred_len``."""
+    j0, j1, w = resample_weights(step_s, dt_s, horizon, pred_len, offset_s)
+    matrix = np.zeros((horizon, pred_len + 1))
+    rows = np.arange(horizon)
+    np.add.at(matrix, (rows, j0), 1.0 - w)
+    np.add.at(matrix, (rows, j1), w)
+    return matrix
+
+
 def resample_weights(
     step_s: float, dt_s: float, horizon: int, pred_len: int, offset_s: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -245,7 +255,7 @@ class PredictorForecast(ForecastSource):
         self._keys: dict[str, tuple[Recording, TableKey | None]] = {}
         self._full: dict[str, Replay] = {}
         self._times: dict[str, tuple[Recording, list[float]]] = {}
-        self._weights: dict[tuple[float, int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._weights: dict[tuple[float, int, int], np.ndarray] = {}
         self.calls = 0
         self.chunks_loaded = 0
         self.chunks_computed = 0
@@ -448,11 +458,15 @@ class PredictorForecast(ForecastSource):
             return empty
         pred_len = fc.shape[1]
         wkey = (float(rec.step_s), pred_len, time_key(offset))
-        if wkey not in self._weights:
-            self._weights[wkey] = resample_weights(float(rec.step_s), self.dt_s, self.horizon, pred_len, offset)
-        j0, j1, w = self._weights[wkey]
-        full = np.concatenate([rec.positions[i, cols][:, None, :], fc.astype(np.float64)], axis=1)
-        return cols, full[:, j0] * (1.0 - w)[None, :, None] + full[:, j1] * w[None, :, None]
+        weights = self._weights.get(wkey)
+        if weights is None:
+            weights = self._weights[wkey] = resample_matrix(
+                float(rec.step_s), self.dt_s, self.horizon, pred_len, offset
+            )
+        out = weights[:, 1:] @ fc.astype(np.float64)  # (H, P) @ (n, P, 2) -> (n, H, 2)
+        if weights[:, 0].any():  # the first env steps fall before the first forecast step: the annotated position
+            out += weights[None, :, 0, None] * rec.positions[i, cols][:, None, :]
+        return cols, out
 
     def forecast(
         self, replay: Replay, t_s: float, rows: np.ndarray, truth: TrueFuture | None, rng: np.random.Generator
