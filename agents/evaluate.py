@@ -278,18 +278,6 @@ def prepare_forecasts(env_kwargs: Mapping[str, Any], progress: bool = False) -> 
         return None  # the environments fall back to the synthetic crowd (and say so)
 
 
-def share_forecasts(envs: Sequence[Any]) -> None:
-    """Let in-process environments with one configuration share the first one's forecast memo (forecasts
-    depend only on the recording and time, never on the robot), so no forecast is computed twice."""
-    first = envs[0].unwrapped
-    if not getattr(first.config, "cache_forecasts", False):
-        return
-    for env in envs[1:]:
-        inner = env.unwrapped
-        if inner.config == first.config and hasattr(inner, "forecaster"):
-            inner.forecaster = first.forecaster
-
-
 def episode_row(index: int, seed: int, reset_info: Mapping[str, Any], metrics: Mapping[str, Any], ret: float) -> dict:
     """One row of ``episodes.csv`` (see :data:`EPISODE_COLUMNS`)."""
     row: dict[str, Any] = {"episode": index, "seed": seed}
@@ -487,7 +475,6 @@ def evaluate(
     prepare_forecasts(kwargs, progress=progress)
     envs = [CrowdNavEnv(**kwargs) for _ in range(max(1, min(n_envs, episodes)))]
     check_spaces(policy, envs[0])
-    share_forecasts(envs)
     try:
         rows = run_episodes(policy, envs, evaluation_seeds(split, episodes, seed), progress=progress)
     finally:

@@ -75,6 +75,8 @@ class CrowdFeaturesExtractor(BaseFeaturesExtractor):
         activation: activation name (``relu``, ``tanh``, ``elu``, ``leaky_relu``, ``silu``).
         position_scale_m: positions are divided by this, metres.
         velocity_scale_mps: velocities are divided by this, m/s.
+        distances: also give the pedestrian encoder each row's distance to the robot, and (with forecasts) the
+            distance of every forecast position (widths 5 and 5 + 3H instead of 4 and 4 + 2H).
     """
 
     def __init__(
@@ -85,6 +87,7 @@ class CrowdFeaturesExtractor(BaseFeaturesExtractor):
         activation: str = "relu",
         position_scale_m: float = 5.0,
         velocity_scale_mps: float = 1.0,
+        distances: bool = False,
     ) -> None:
         if pooling not in POOLINGS:
             raise ValueError(f"unknown pooling {pooling!r}; valid: {', '.join(POOLINGS)}")
@@ -100,21 +103,26 @@ class CrowdFeaturesExtractor(BaseFeaturesExtractor):
         forecast_dim = 0
         if "forecasts" in keys:
             forecast_dim = int(math.prod(observation_space["forecasts"].shape)) // k  # type: ignore[arg-type]
+        horizon = forecast_dim // 2
         pooled = 2 * hidden_dim if pooling == "meanmax" else hidden_dim
         super().__init__(observation_space, features_dim=hidden_dim + pooled + 1)
         act = activation_class(activation)
         self.num_pedestrians = k
         self.forecast_dim = forecast_dim
+        self.horizon = horizon
+        self.distances = bool(distances)
         self.pooling = pooling
         inv_pos, inv_vel = 1.0 / float(position_scale_m), 1.0 / float(velocity_scale_mps)
         # robot: goal offset, velocity, the rest (heading, time left) as is, then goal distance and direction
         robot_scale = [inv_pos] * 2 + [inv_vel] * 2 + [1.0] * (robot_dim - 4) + [inv_pos, 1.0, 1.0]
-        row_scale = [inv_pos] * 2 + [inv_vel] * 2 + [inv_pos] * forecast_dim
+        # row: position, velocity, [distance], forecast positions, [forecast distances]
+        n_dist = (1 + horizon) if self.distances else 0
+        row_scale = [inv_pos] * 2 + [inv_vel] * 2 + [inv_pos] * (forecast_dim + n_dist)
         self.register_buffer("robot_scale", torch.tensor(robot_scale, dtype=torch.float32), persistent=False)
         self.register_buffer("row_scale", torch.tensor(row_scale, dtype=torch.float32), persistent=False)
         self.nonnegative = act in (nn.ReLU,)
         self.robot_encoder = _mlp(robot_dim + 3, hidden_dim, act)
-        self.pedestrian_encoder = _mlp(PED_ROW + forecast_dim, hidden_dim, act)
+        self.pedestrian_encoder = _mlp(PED_ROW + forecast_dim + n_dist, hidden_dim, act)
         if pooling == "attention":
             self.query = nn.Linear(hidden_dim, hidden_dim, bias=False)
             self.key = nn.Linear(hidden_dim, hidden_dim, bias=False)
@@ -132,11 +140,18 @@ class CrowdFeaturesExtractor(BaseFeaturesExtractor):
         return torch.cat([robot, dist, goal / dist.clamp_min(1e-6)], dim=1) * self.robot_scale
 
     def pedestrian_features(self, obs: dict[str, torch.Tensor], present: torch.Tensor) -> torch.Tensor:
-        """``(B, K, 4 [+ 2H])`` scaled rows, zero where absent."""
+        """``(B, K, 4 [+ 1] [+ 2H [+ H]])`` scaled rows (with ``distances``: the distance to the robot now and of
+        every forecast position), zero where absent."""
         b, k = present.shape
-        rows = obs["pedestrians"].reshape(b, k, PED_ROW)
+        parts = [obs["pedestrians"].reshape(b, k, PED_ROW)]
+        if self.distances:
+            parts.append(torch.linalg.vector_norm(parts[0][..., :2], dim=-1, keepdim=True))
         if self.forecast_dim:
-            rows = torch.cat([rows, obs["forecasts"].reshape(b, k, self.forecast_dim)], dim=-1)
+            fc = obs["forecasts"].reshape(b, k, self.horizon, 2)
+            parts.append(fc.reshape(b, k, self.forecast_dim))
+            if self.distances:
+                parts.append(torch.linalg.vector_norm(fc, dim=-1))
+        rows = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
         return torch.where(present.unsqueeze(-1), rows * self.row_scale, 0.0)
 
     def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:  # type: ignore[override]

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from agents.evaluate import run_episodes, share_forecasts
+from agents.evaluate import run_episodes
 from agents.planners import PLANNERS, make_planner
 from envs.config import config_from
 
@@ -120,7 +120,6 @@ def collect_teacher(
     env_cfg = config_from(dict(env_kwargs), {})
     teacher = make_planner(cfg.teacher, env_cfg, **dict(cfg.teacher_kwargs))
     envs = [CrowdNavEnv(**dict(env_kwargs)) for _ in range(max(1, min(cfg.n_envs, cfg.episodes)))]
-    share_forecasts(envs)
     per_episode: dict[int, tuple[list[dict[str, np.ndarray]], list[np.ndarray], list[float]]] = {}
 
     def record(k: int, obs: Mapping[str, np.ndarray], action: np.ndarray, reward: float, *_: bool) -> None:

@@ -66,7 +66,7 @@ from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import KVWriter, Logger, TensorBoardOutputFormat, filter_excluded_keys
 
-from agents.evaluate import SB3Policy, evaluation_seeds, parse_set, prepare_forecasts, run_episodes, share_forecasts
+from agents.evaluate import SB3Policy, evaluation_seeds, parse_set, prepare_forecasts, run_episodes
 from agents.pretrain import PretrainConfig
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import SPLITS
@@ -567,6 +567,7 @@ class Validation(BaseCallback):
 
     def finish(self) -> None:
         """Validate the final policy unless it was just validated."""
+        self.num_timesteps = int(self.model.num_timesteps)
         if self.enabled and (not self.state["history"] or self.state["last_eval_step"] != self.num_timesteps):
             self.validate()
             self.logger.dump(self.num_timesteps)
@@ -578,7 +579,6 @@ class Validation(BaseCallback):
         if not self.envs:
             kwargs = {**self.cfg.env_kwargs("val"), "require_pedestrians": self.cfg.eval.require_pedestrians}
             self.envs = [CrowdNavEnv(**kwargs) for _ in range(max(1, min(self.cfg.eval.n_envs, len(self.seeds))))]
-            share_forecasts(self.envs)
         policy = SB3Policy(self.model, self.model.get_vec_normalize_env())
         rows = run_episodes(policy, self.envs, self.seeds)
         n = len(rows)
@@ -814,6 +814,11 @@ def train(
                 for key, value in stats.items():
                     if isinstance(value, int | float):
                         model.logger.record(f"pretrain/{key}", value)
+                if validation.enabled:  # what the warm start alone achieves (and the best model until RL beats it)
+                    validation.init_callback(model)
+                    validation.num_timesteps = 0
+                    validation.validate()
+                    model.logger.dump(0)
             start_step = 0
         else:
             model = _resume_model(cfg, ckpt, venv, validation)

@@ -29,12 +29,14 @@ def random_obs(sp: object, batch: int, seed: int = 0) -> dict[str, torch.Tensor]
     return out
 
 
-@pytest.mark.parametrize("pooling", ["meanmax", "attention"])
+@pytest.mark.parametrize(("pooling", "distances"), [("meanmax", False), ("attention", False), ("meanmax", True)])
 @pytest.mark.parametrize("with_forecasts", [False, True])
-def test_absent_pedestrians_change_nothing_whatever_their_rows_hold(pooling: str, with_forecasts: bool) -> None:
+def test_absent_pedestrians_change_nothing_whatever_their_rows_hold(
+    pooling: str, distances: bool, with_forecasts: bool
+) -> None:
     torch.manual_seed(0)
     sp = space(with_forecasts)
-    ext = CrowdFeaturesExtractor(sp, hidden_dim=16, pooling=pooling)  # type: ignore[arg-type]
+    ext = CrowdFeaturesExtractor(sp, hidden_dim=16, pooling=pooling, distances=distances)  # type: ignore[arg-type]
     obs = random_obs(sp, batch=6)
     obs["mask"][0] = 0.0  # one observation with nobody
     obs["mask"][1] = 1.0  # one with everybody
@@ -68,11 +70,12 @@ def test_all_masked_is_finite_and_pools_to_zero(pooling: str) -> None:
     assert all(torch.isfinite(p.grad).all() for p in ext.parameters() if p.grad is not None)
 
 
-@pytest.mark.parametrize("pooling", ["meanmax", "attention"])
-def test_same_parameters_in_every_arm_except_the_forecast_input(pooling: str) -> None:
+@pytest.mark.parametrize(("pooling", "distances"), [("meanmax", False), ("attention", False), ("meanmax", True)])
+def test_same_parameters_in_every_arm_except_the_forecast_input(pooling: str, distances: bool) -> None:
     hidden = 32
-    without = CrowdFeaturesExtractor(space(False), hidden_dim=hidden, pooling=pooling)  # type: ignore[arg-type]
-    with_fc = CrowdFeaturesExtractor(space(True), hidden_dim=hidden, pooling=pooling)  # type: ignore[arg-type]
+    kw = {"hidden_dim": hidden, "pooling": pooling, "distances": distances}
+    without = CrowdFeaturesExtractor(space(False), **kw)  # type: ignore[arg-type]
+    with_fc = CrowdFeaturesExtractor(space(True), **kw)  # type: ignore[arg-type]
     assert without.features_dim == with_fc.features_dim
     names_a = {n: p.shape for n, p in without.named_parameters()}
     names_b = {n: p.shape for n, p in with_fc.named_parameters()}
@@ -80,8 +83,9 @@ def test_same_parameters_in_every_arm_except_the_forecast_input(pooling: str) ->
     differing = {n for n in names_a if names_a[n] != names_b[n]}
     assert differing == {"pedestrian_encoder.0.weight"}
     count = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
-    assert count(with_fc) - count(without) == 2 * H * hidden
-    assert with_fc.pedestrian_input_layer.in_features == 4 + 2 * H
+    per_step = 3 if distances else 2  # forecast x, y (and its distance)
+    assert count(with_fc) - count(without) == per_step * H * hidden
+    assert with_fc.pedestrian_input_layer.in_features - without.pedestrian_input_layer.in_features == per_step * H
 
 
 def test_structured_and_flat_observations_give_the_same_features() -> None:

@@ -184,3 +184,13 @@ def test_command_line_trains_and_resumes(tmp_path: Path, tiny: Any) -> None:
     assert main(["--out", str(run), "--resume", "--timesteps", "128", "--no-progress"]) == 0
     assert json.loads((run / "DONE").read_text())["steps"] == 128
     assert main(["--config", str(PPO_YAML), "--set", "learning_rat=1"]) == 2
+
+
+def test_warm_start_runs_before_rl_and_is_validated_at_step_zero(tmp_path: Path, tiny: Any) -> None:
+    extra = {"pretrain.episodes": 3, "pretrain.epochs": 1, "pretrain.n_envs": 2}
+    cfg = load_train_config(PPO_YAML, None, tiny("ppo", "cv", steps=64, **extra))
+    run = train(cfg, tmp_path / "bc", progress=False)
+    stats = json.loads((run / "pretrain.json").read_text())
+    assert stats["episodes"] == 3 and stats["transitions"] > 0 and stats["teacher"] == "planner"
+    with open(run / "evaluations.csv", newline="") as fh:
+        assert [int(r["step"]) for r in csv.DictReader(fh)] == [0, 64]
