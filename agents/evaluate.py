@@ -220,12 +220,15 @@ def model_path(spec: str | Path, which: str = "best") -> Path:
 
 
 def load_policy(
-    spec: str | Path, env_config: CrowdNavConfig | Mapping[str, Any] | None = None, which: str = "best"
+    spec: str | Path,
+    env_config: CrowdNavConfig | Mapping[str, Any] | None = None,
+    which: str = "best",
+    planner_kwargs: Mapping[str, Any] | None = None,
 ) -> Any:
-    """A policy with SB3's ``predict``: ``"planner"``/``"straight"`` (built for ``env_config``), an SB3 ``.zip``,
-    or a run folder (its best model, see :func:`model_path`)."""
+    """A policy with SB3's ``predict``: ``"planner"``/``"straight"`` (built for ``env_config``, with
+    ``planner_kwargs``), an SB3 ``.zip``, or a run folder (its best model, see :func:`model_path`)."""
     if str(spec) in PLANNERS:
-        return make_planner(str(spec), env_config)  # type: ignore[return-value]
+        return make_planner(str(spec), env_config, **dict(planner_kwargs or {}))  # type: ignore[return-value]
     path = model_path(spec, which)
     return load_sb3(path, run_settings(path).get("algo"))
 
@@ -442,6 +445,7 @@ def evaluate(
     n_envs: int = 4,
     which: str = "best",
     progress: bool = False,
+    planner_kwargs: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Evaluate a policy on the held-out scene of ``split`` over :func:`evaluation_seeds`.
 
@@ -457,6 +461,8 @@ def evaluate(
         n_envs: environments stepped in lockstep (only speed changes).
         which: ``best`` or ``final`` model of a run folder.
         progress: show a progress bar.
+        planner_kwargs: options of the sampling planner (``headings_deg``, ``speed_fractions``, ``margin_m``,
+            ``lookahead_steps``).
 
     Returns:
         the summary (see :func:`summarise`) plus ``policy``, ``predictor``, ``split``, ``seed``,
@@ -471,7 +477,7 @@ def evaluate(
     started = time.perf_counter()
     kwargs = evaluation_env_kwargs(spec, predictor, split, env_overrides, require_pedestrians)
     config = config_from(kwargs, {})
-    policy = load_policy(spec, config, which)
+    policy = load_policy(spec, config, which, planner_kwargs)
     prepare_forecasts(kwargs, progress=progress)
     envs = [CrowdNavEnv(**kwargs) for _ in range(max(1, min(n_envs, episodes)))]
     check_spaces(policy, envs[0])
@@ -489,6 +495,7 @@ def evaluate(
         seed=seed,
         require_pedestrians=kwargs["require_pedestrians"],
         env=kwargs,
+        planner=dict(planner_kwargs or {}) if str(spec) in PLANNERS else None,
         seconds=round(time.perf_counter() - started, 3),
     )
     if out_dir is not None:
@@ -549,6 +556,13 @@ def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
         help="keep episodes in which no pedestrian comes near the path (default: require one)",
     )
     p.add_argument("--model", default="best", choices=RUN_MODELS, help="model of a run folder (default: best)")
+    p.add_argument(
+        "--planner-set",
+        dest="planner_set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="sampling planner option, e.g. headings_deg=[0,15,-15,30,-30,45,-45,60,-60,75,-75,90,-90]",
+    )
     p.add_argument("--n-envs", type=int, default=4, help="environments stepped in lockstep (default: 4)")
     p.add_argument("--set", dest="env_set", action="append", metavar="KEY=VALUE", help="environment setting override")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -569,6 +583,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         require_pedestrians=not args.all_episodes,
         n_envs=args.n_envs,
         which=args.model,
+        planner_kwargs=parse_set(args.planner_set),
         progress=not (args.no_progress or args.json),
     )
     if args.json:

@@ -106,8 +106,12 @@ def test_lockstep_episodes_do_not_depend_on_how_many_envs_run() -> None:
 
 
 def test_evaluate_a_planner_writes_episodes_and_summary(tmp_path: Path) -> None:
-    s = evaluate("planner", "cv", "zara1", 6, out_dir=tmp_path, env_overrides=SYNTHETIC, n_envs=2)
+    options = {"headings_deg": [0, 30, -30, 90, -90], "margin_m": 0.3}
+    s = evaluate(
+        "planner", "cv", "zara1", 6, out_dir=tmp_path, env_overrides=SYNTHETIC, n_envs=2, planner_kwargs=options
+    )
     assert s["episodes"] == 6 and s["require_pedestrians"] is True and s["env"]["part"] == "test"
+    assert s["planner"] == options
     for key in ("success_rate", "success_ci", "collision_rate", "collision_ci", "timeout_rate", "timeout_ci"):
         assert key in s
     saved = json.loads((tmp_path / "summary.json").read_text())
