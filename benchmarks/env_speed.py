@@ -15,7 +15,9 @@ the same way:
    time of the process (robust to a shared machine) and by wall time; the time to make the env is printed apart.
 3. **PPO** (``--ppo-steps N``, off by default): Stable-Baselines3 PPO (``MultiInputPolicy``, ``n_steps=512``) on
    2 ``SubprocVecEnv`` workers of the default configuration, ``none`` against ``mesrnn`` (cache on disk), wall
-   time of ``learn(N)``.
+   time of ``learn(N)``; ``cv`` as a control with MESRNN's observation (so the same policy network) and cheap
+   forecasts: what ``mesrnn`` costs beyond ``cv`` is its forecasts, what ``cv`` costs beyond ``none`` is the
+   larger observation.
 
 The forecast cache is the usual one (``$CROWDNAV_MESRNN_CACHE`` or ``~/.cache/crowdnav-mesrnn/forecasts``).
 Learned arms need the pretrained weights and are reported as missing otherwise. Never asserts on time.
@@ -199,7 +201,8 @@ def ppo(args: argparse.Namespace) -> None:
     print(
         f"\n3. SB3 PPO, 2 SubprocVecEnv workers, n_steps=512, learn({args.ppo_steps}), {args.repeats} repeats (median)"
     )
-    ids = ("CrowdNav-NoPred-v0", "CrowdNav-MESRNN-v0")
+    # CV: the same observation (and policy network) as MESRNN, forecasts computed in memory from the data
+    ids = ("CrowdNav-NoPred-v0", "CrowdNav-MESRNN-v0", "CrowdNav-CV-v0")
     rates: dict[str, list[float]] = {i: [] for i in ids}
     for _ in range(args.repeats):
         for env_id in ids:
