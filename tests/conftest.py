@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,9 @@ import pytest
 os.environ.setdefault("SB3_LOGDIR", str(Path(__file__).resolve().parent.parent / ".pytest_cache" / "sb3"))
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+# Forecasts cached on disk by one test run are shared by its tests and processes, never read from (or written to)
+# the user's cache: a run starts empty unless CROWDNAV_MESRNN_CACHE is set on purpose.
+os.environ.setdefault("CROWDNAV_MESRNN_CACHE", tempfile.mkdtemp(prefix="crowdnav-mesrnn-test-cache-"))
 
 import torch
 
