@@ -194,3 +194,18 @@ def test_warm_start_runs_before_rl_and_is_validated_at_step_zero(tmp_path: Path,
     assert stats["episodes"] == 3 and stats["transitions"] > 0 and stats["teacher"] == "planner"
     with open(run / "evaluations.csv", newline="") as fh:
         assert [int(r["step"]) for r in csv.DictReader(fh)] == [0, 64]
+
+
+@pytest.mark.slow
+def test_subprocess_workers_with_observation_normalisation_resume_and_evaluate(tmp_path: Path, tiny: Any) -> None:
+    from agents.evaluate import evaluate
+
+    extra = {"n_envs": 2, "vec_env": "subproc", "normalize": True, "n_steps": 32}
+    run = tmp_path / "subproc"
+    train(load_train_config(PPO_YAML, None, tiny("ppo", "cv", steps=128, **extra)), run, progress=False)
+    for name in ("final_model_vecnormalize.pkl", "best_model_vecnormalize.pkl"):
+        assert (run / name).is_file()
+    assert (run / "checkpoints" / "step_0000000128" / "model_vecnormalize.pkl").is_file()
+    train(load_train_config(PPO_YAML, None, tiny("ppo", "cv", steps=192, **extra)), run, resume=True, progress=False)
+    assert json.loads((run / "DONE").read_text())["steps"] == 192
+    assert evaluate(run, "cv", "zara1", 2, env_overrides={"crowd": "synthetic"}, n_envs=1)["episodes"] == 2
