@@ -287,11 +287,11 @@ class StructuralRNN(nn.Module):
         """Scaled edge features ``(K, ..., N, 2)`` (``None`` without edge types) and the velocity
         ``(..., N, 2)``, from positions/masks at t, t−1, t−2 (each ``(..., N, ·)``)."""
         dt = p[0].dtype
-        w = [x.to(dt).unsqueeze(-1) for x in m]  # (..., N, 1)
-        feats, vel = stacked_features_step(p[0], p[1], p[2], w[0], w[1], w[2], self.types)
         k = len(self.types)
         if not k:
-            return None, vel
+            return None, (p[0] - p[1]) * (m[0] & m[1]).unsqueeze(-1).to(dt)
+        w = [x.to(dt).unsqueeze(-1) for x in m]  # (..., N, 1)
+        feats, vel = stacked_features_step(p[0], p[1], p[2], w[0], w[1], w[2], self.types)
         if self.cfg.aggregate == "mean":
             n_t = w[0].sum(-2, keepdim=True)  # (..., 1, 1)
             nb = (n_t - 1).clamp(min=1)
