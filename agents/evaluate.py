@@ -230,12 +230,23 @@ def load_policy(
     if str(spec) in PLANNERS:
         return make_planner(str(spec), env_config, **dict(planner_kwargs or {}))  # type: ignore[return-value]
     path = model_path(spec, which)
-    return load_sb3(path, run_settings(path).get("algo"))
+    settings = run_settings(path)
+    policy: Any = load_sb3(path, settings.get("algo"))
+    if (settings.get("action") or {}).get("kind", "continuous") != "continuous":
+        from agents.actions import DiscretePolicy
+        from agents.planners import as_env_config
+        from agents.train import action_set
+
+        policy = DiscretePolicy(policy, action_set(settings["action"], as_env_config(env_config)))
+    return policy
 
 
 def check_spaces(policy: Any, env: Any) -> None:
     """Raise ``ValueError`` if an SB3 policy was trained on another observation space than ``env`` gives."""
     space = getattr(policy, "observation_space", None)
+    while space is None and hasattr(policy, "model"):  # adapters (e.g. discrete actions) around an SB3 policy
+        policy = policy.model
+        space = getattr(policy, "observation_space", None)
     if space is None:
         return
     want = {k: getattr(v, "shape", None) for k, v in space.spaces.items()}

@@ -30,7 +30,8 @@ DEFAULT_HEADINGS_DEG: Final[tuple[float, ...]] = (0.0, 20.0, -20.0, 40.0, -40.0,
 DEFAULT_SPEED_FRACTIONS: Final[tuple[float, ...]] = (1.0, 0.75, 0.5, 0.25)
 
 
-def _as_config(env_config: CrowdNavConfig | Mapping[str, Any] | None) -> CrowdNavConfig:
+def as_env_config(env_config: CrowdNavConfig | Mapping[str, Any] | None) -> CrowdNavConfig:
+    """The environment configuration itself, or one built (validated) from a mapping of settings."""
     if isinstance(env_config, CrowdNavConfig):
         return env_config
     return config_from(dict(env_config or {}), {})
@@ -88,7 +89,7 @@ class _Planner:
     """Shared ``predict`` plumbing: batch a single observation, call :meth:`act`, unbatch."""
 
     def __init__(self, env_config: CrowdNavConfig | Mapping[str, Any] | None = None) -> None:
-        self.cfg = _as_config(env_config)
+        self.cfg = as_env_config(env_config)
 
     def act(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError

@@ -152,7 +152,7 @@ def _action_loss(policy: Any, obs: dict[str, torch.Tensor], target: torch.Tensor
 
     if isinstance(policy, ActorCriticPolicy):
         dist = policy.get_distribution(obs)
-        if loss == "nll":
+        if loss == "nll" or target.dtype == torch.int64:  # discrete actions: cross-entropy of the teacher's label
             return -dist.log_prob(target).mean()
         return F.mse_loss(dist.distribution.mean, target)
     if loss == "nll":
@@ -172,12 +172,14 @@ def _value_loss(
 
 
 def fit_policy(
-    model: Any, data: TeacherData, cfg: PretrainConfig, seed: int, vecnormalize: Any = None
+    model: Any, data: TeacherData, cfg: PretrainConfig, seed: int, vecnormalize: Any = None, actions: Any = None
 ) -> dict[str, float]:
     """Fit ``model.policy`` to the teacher's data (in place); returns the first and last epochs' mean losses.
 
     With ``vecnormalize``, its observation statistics are first updated with the teacher's observations and the
-    policy is fitted on normalised observations (as it will see them in training).
+    policy is fitted on normalised observations (as it will see them in training). With ``actions`` (a discrete
+    set, :class:`agents.actions.GoalRelativeActions`) each teacher action is labelled with the nearest action of
+    the set and the policy is fitted by cross-entropy (classification), whatever ``cfg.loss`` says.
     """
     from stable_baselines3.common.policies import ActorCriticPolicy
 
@@ -189,7 +191,11 @@ def fit_policy(
         obs_np = vecnormalize.normalize_obs(dict(obs_np))
     device = policy.device
     obs_all = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32, device=device) for k, v in obs_np.items()}
-    act_all = torch.as_tensor(np.clip(data.actions, -1.0, 1.0), device=device)
+    if actions is not None:
+        labels = actions.nearest(data.actions, data.observations["robot"])
+        act_all = torch.as_tensor(labels, dtype=torch.int64, device=device)
+    else:
+        act_all = torch.as_tensor(np.clip(data.actions, -1.0, 1.0), device=device)
     ret_all = torch.as_tensor(data.returns, dtype=torch.float32, device=device)
     params = list(policy.parameters())
     if not isinstance(policy, ActorCriticPolicy):  # SAC: the targets follow the critics, not the optimiser
@@ -234,6 +240,7 @@ def pretrain(
     gamma: float,
     vecnormalize: Any = None,
     progress: bool = False,
+    actions: Any = None,
 ) -> dict[str, Any]:
     """Collect the teacher's episodes and fit ``model``'s policy to them (see the module docstring).
 
@@ -245,6 +252,7 @@ def pretrain(
         gamma: discount of the Monte-Carlo returns (the algorithm's).
         vecnormalize: the training ``VecNormalize``, if any.
         progress: progress bar over the teacher's episodes.
+        actions: the discrete action set the policy chooses from, or None (continuous actions).
 
     Returns:
         statistics: teacher episodes, transitions, success rate, losses, seconds.
@@ -252,7 +260,7 @@ def pretrain(
     started = time.perf_counter()
     torch.manual_seed(int(seed))
     data = collect_teacher(cfg, env_kwargs, seed, gamma, progress=progress)
-    losses = fit_policy(model, data, cfg, seed, vecnormalize)
+    losses = fit_policy(model, data, cfg, seed, vecnormalize, actions)
     return {
         "teacher": cfg.teacher,
         "episodes": len(data.outcomes),

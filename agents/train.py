@@ -84,6 +84,7 @@ PROJECT_KEYS: Final[tuple[str, ...]] = (
     "keep_checkpoints",
     "vec_env",
     "pretrain",
+    "action",
     "run",
 )
 #: Environment id whose config entry each forecast arm uses.
@@ -169,6 +170,9 @@ class TrainConfig:
     """``auto`` (subprocesses for 2+ environments), ``subproc`` or ``dummy``."""
     pretrain: PretrainConfig | None
     """Behaviour-cloning warm start, or None."""
+    action: dict[str, Any] = dataclasses.field(default_factory=lambda: {"kind": "continuous"})
+    """The ``action:`` section: ``kind`` (``continuous``: the environment's velocity box; ``discrete``: the
+    goal-relative velocities of :mod:`agents.actions`, PPO only) and the discrete set's options."""
     source: str = ""
     """The file it was read from."""
 
@@ -200,11 +204,31 @@ class TrainConfig:
             "keep_checkpoints": self.keep_checkpoints,
             "vec_env": self.vec_env,
             "pretrain": None if self.pretrain is None else dataclasses.asdict(self.pretrain),
+            "action": copy.deepcopy(self.action),
         }
         return {self.env_id: entry, PROJECT_KEY: project}
 
+    def action_set(self) -> Any:
+        """The discrete action set (:class:`agents.actions.GoalRelativeActions`), or None for continuous actions."""
+        return action_set(self.action, config_from(self.env_kwargs("train"), {}))
+
 
 # ---------------------------------------------------------------------------- loading configs
+
+
+def action_set(action: Mapping[str, Any] | None, env_config: Any) -> Any:
+    """The discrete action set an ``action:`` section describes for an environment configuration, or None."""
+    from agents.actions import ACTION_KINDS, make_actions
+
+    options = dict(action or {})
+    kind = options.pop("kind", "continuous")
+    if kind not in ACTION_KINDS:
+        raise ConfigError(f"unknown action kind {kind!r}; valid: {', '.join(ACTION_KINDS)}")
+    if kind == "continuous":
+        if options:
+            raise ConfigError(f"action kind 'continuous' takes no options, got {', '.join(sorted(options))}")
+        return None
+    return make_actions(env_config, options)
 
 
 def env_id_for(predictor: str) -> str:
@@ -313,6 +337,12 @@ def _build(
     eval_cfg = replace_checked(EvalConfig(), eval_section, where=f"{PROJECT_KEY}.eval")
     pre = project.get("pretrain")
     pretrain = None if pre is None else replace_checked(PretrainConfig(), pre, where="pretrain").validate()
+    action = project.get("action") or {"kind": "continuous"}
+    if not isinstance(action, dict):
+        raise ConfigError(f"{source}: {PROJECT_KEY}.action must be a mapping with a 'kind'")
+    action = {"kind": "continuous", **action}
+    if action["kind"] == "discrete" and algo != "ppo":
+        raise ConfigError(f"action kind 'discrete' needs algo 'ppo' (SAC acts in a continuous space), got {algo!r}")
     vec_env = project.get("vec_env", "auto")
     if vec_env not in VEC_ENVS:
         raise ConfigError(f"unknown vec_env {vec_env!r}; valid: {', '.join(VEC_ENVS)}")
@@ -334,9 +364,10 @@ def _build(
         keep_checkpoints=_positive_int(project.get("keep_checkpoints", 1), "keep_checkpoints"),
         vec_env=vec_env,
         pretrain=pretrain,
+        action=action,
         source=source,
     )
-    config_from(cfg.env_kwargs("train"), {})  # validate the environment settings now, naming the bad key
+    cfg.action_set()  # validates the environment settings and the action section now, naming the bad key
     return cfg
 
 
@@ -401,9 +432,10 @@ def policy_class(name: str) -> Any:
         raise ConfigError(f"policy {name!r} cannot be imported: {exc}") from None
 
 
-def make_env(env_kwargs: Mapping[str, Any]) -> Any:
-    """A training environment (run in the worker process): one torch thread, SB3's ``Monitor``, and
-    ``info["is_success"]`` at the end of an episode (SB3 logs it as ``rollout/success_rate``)."""
+def make_env(env_kwargs: Mapping[str, Any], action: Mapping[str, Any] | None = None) -> Any:
+    """A training environment (run in the worker process): one torch thread, the discrete action wrapper when
+    ``action`` says so, SB3's ``Monitor``, and ``info["is_success"]`` at the end of an episode (SB3 logs it as
+    ``rollout/success_rate``)."""
     import gymnasium as gym
     import torch
     from stable_baselines3.common.monitor import Monitor
@@ -419,7 +451,13 @@ def make_env(env_kwargs: Mapping[str, Any]) -> Any:
                 info["is_success"] = info["episode_metrics"]["outcome"] == "success"
             return obs, reward, terminated, truncated, info
 
-    return Monitor(SuccessInfo(CrowdNavEnv(**dict(env_kwargs))))
+    env: gym.Env = CrowdNavEnv(**dict(env_kwargs))
+    actions = action_set(action, env.unwrapped.config)
+    if actions is not None:
+        from agents.actions import DiscreteActionWrapper
+
+        env = DiscreteActionWrapper(env, actions)
+    return Monitor(SuccessInfo(env))
 
 
 def make_vec_env(cfg: TrainConfig) -> Any:
@@ -427,7 +465,7 @@ def make_vec_env(cfg: TrainConfig) -> Any:
     ``vec_env: auto``), wrapped in ``VecNormalize`` when configured."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    fns = [partial(make_env, cfg.env_kwargs("train")) for _ in range(cfg.n_envs)]
+    fns = [partial(make_env, cfg.env_kwargs("train"), cfg.action) for _ in range(cfg.n_envs)]
     subproc = cfg.vec_env == "subproc" or (cfg.vec_env == "auto" and cfg.n_envs >= 2)
     venv = SubprocVecEnv(fns, start_method="forkserver") if subproc else DummyVecEnv(fns)
     if cfg.normalize:
@@ -548,6 +586,7 @@ class Validation(BaseCallback):
         self.run_dir = run_dir
         self.envs: list[Any] = []
         self.seeds = evaluation_seeds(cfg.split, cfg.eval.episodes, cfg.eval.seed)
+        self.actions = cfg.action_set()
         self.state: dict[str, Any] = {"best": None, "last_eval_step": 0, "history": []}
 
     @property
@@ -579,7 +618,11 @@ class Validation(BaseCallback):
         if not self.envs:
             kwargs = {**self.cfg.env_kwargs("val"), "require_pedestrians": self.cfg.eval.require_pedestrians}
             self.envs = [CrowdNavEnv(**kwargs) for _ in range(max(1, min(self.cfg.eval.n_envs, len(self.seeds))))]
-        policy = SB3Policy(self.model, self.model.get_vec_normalize_env())
+        policy: Any = SB3Policy(self.model, self.model.get_vec_normalize_env())
+        if self.actions is not None:
+            from agents.actions import DiscretePolicy
+
+            policy = DiscretePolicy(policy, self.actions)
         rows = run_episodes(policy, self.envs, self.seeds)
         n = len(rows)
         result = {
@@ -809,6 +852,7 @@ def train(
                     gamma,
                     model.get_vec_normalize_env(),
                     progress,
+                    actions=cfg.action_set(),
                 )
                 atomic_write_json(run_dir / "pretrain.json", stats)
                 for key, value in stats.items():

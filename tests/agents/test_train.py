@@ -209,3 +209,25 @@ def test_subprocess_workers_with_observation_normalisation_resume_and_evaluate(t
     train(load_train_config(PPO_YAML, None, tiny("ppo", "cv", steps=192, **extra)), run, resume=True, progress=False)
     assert json.loads((run / "DONE").read_text())["steps"] == 192
     assert evaluate(run, "cv", "zara1", 2, env_overrides={"crowd": "synthetic"}, n_envs=1)["episodes"] == 2
+
+
+def test_discrete_goal_relative_actions_train_warm_start_and_evaluate(tmp_path: Path, tiny: Any) -> None:
+    from agents.actions import DiscretePolicy
+    from agents.evaluate import evaluate, load_policy
+
+    extra = {"action.kind": "discrete", "pretrain.episodes": 3, "pretrain.epochs": 1}
+    cfg = load_train_config(PPO_YAML, None, tiny("ppo", "cv", steps=64, **extra))
+    assert cfg.action_set().n == 57
+    run = train(cfg, tmp_path / "discrete", progress=False)
+    saved = yaml.safe_load((run / "config.yaml").read_text())
+    assert saved[PROJECT_KEY]["action"] == {"kind": "discrete"}
+    policy = load_policy(run, cfg.env_kwargs("val"))
+    assert isinstance(policy, DiscretePolicy)
+    summary = evaluate(run, "cv", "zara1", 2, env_overrides={"crowd": "synthetic"}, n_envs=2)
+    assert summary["episodes"] == 2
+    with pytest.raises(ConfigError, match="ppo"):
+        load_train_config(SAC_YAML, None, {"action.kind": "discrete"})
+    with pytest.raises(ConfigError, match="kind"):
+        load_train_config(PPO_YAML, None, {"action.kind": "polar"})
+    with pytest.raises(ConfigError, match="headings"):
+        load_train_config(PPO_YAML, None, {"action.kind": "discrete", "action.headings": [0]})
