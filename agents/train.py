@@ -11,7 +11,8 @@ CrowdNav-MESRNN-v0 --gym-packages crowdnav_mesrnn -conf configs/agent/ppo.yaml``
 project live under the separate top-level key ``crowdnav_mesrnn`` (RL Zoo reads only the entry of
 the environment id it trains): ``algo``, ``env`` (environment settings, e.g. reward weights,
 ``time_penalty``, ``observe_time_left``), ``eval``, ``checkpoint_freq_steps``, ``keep_checkpoints``,
-``vec_env`` and ``pretrain`` (behaviour-cloning warm start, :mod:`agents.pretrain`). Everything is read
+``vec_env``, ``pretrain`` (behaviour-cloning warm start, :mod:`agents.pretrain`) and ``action``
+(``kind: continuous``, or ``discrete`` for the goal-relative velocities of :mod:`agents.actions`, PPO only). Everything is read
 with ``yaml.safe_load``; nothing is evaluated: ``policy_kwargs`` is a mapping (activation functions by
 name, see :mod:`agents.extractors`), learning-rate schedules are RL Zoo's ``lin_<initial>`` strings.
 
