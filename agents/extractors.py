@@ -34,6 +34,8 @@ ACTIVATIONS: Final[dict[str, type[nn.Module]]] = {
 }
 #: Pooling of the pedestrian codes over the mask.
 POOLINGS: Final[tuple[str, ...]] = ("meanmax", "attention")
+#: Frames the extractor may work in: the observation's (world axes) or one whose x axis points at the goal.
+FRAMES: Final[tuple[str, ...]] = ("world", "goal")
 #: Width of one pedestrian row of the observation (position x, y, velocity x, y).
 PED_ROW: Final[int] = 4
 
@@ -77,6 +79,14 @@ class CrowdFeaturesExtractor(BaseFeaturesExtractor):
         velocity_scale_mps: velocities are divided by this, m/s.
         distances: also give the pedestrian encoder each row's distance to the robot, and (with forecasts) the
             distance of every forecast position (widths 5 and 5 + 3H instead of 4 and 4 + 2H).
+        frame: ``world`` (the observation's axes) or ``goal``: every 2-D vector (goal offset, robot velocity,
+            pedestrian positions, velocities and forecasts) is first rotated into the frame whose x axis points
+            from the robot to the goal, as in SARL (Chen et al. 2019). With actions relative to the goal direction
+            (:mod:`agents.actions`) the policy is then the same function whatever the goal's bearing, instead of
+            having to learn every rotation. (The unicycle's heading, ``robot[4:6]``, stays in world axes.)
+        robot_context: append the robot's scaled features (``R + 3``) to every pedestrian row, so the shared
+            encoder judges each pedestrian against the robot's goal and velocity before pooling (the same in
+            every arm; absent rows stay zero).
     """
 
     def __init__(
@@ -88,7 +98,11 @@ class CrowdFeaturesExtractor(BaseFeaturesExtractor):
         position_scale_m: float = 5.0,
         velocity_scale_mps: float = 1.0,
         distances: bool = False,
+        frame: str = "world",
+        robot_context: bool = False,
     ) -> None:
+        if frame not in FRAMES:
+            raise ValueError(f"unknown frame {frame!r}; valid: {', '.join(FRAMES)}")
         if pooling not in POOLINGS:
             raise ValueError(f"unknown pooling {pooling!r}; valid: {', '.join(POOLINGS)}")
         if hidden_dim < 1:
@@ -111,6 +125,8 @@ class CrowdFeaturesExtractor(BaseFeaturesExtractor):
         self.forecast_dim = forecast_dim
         self.horizon = horizon
         self.distances = bool(distances)
+        self.frame = frame
+        self.robot_context = bool(robot_context)
         self.pooling = pooling
         inv_pos, inv_vel = 1.0 / float(position_scale_m), 1.0 / float(velocity_scale_mps)
         # robot: goal offset, velocity, the rest (heading, time left) as is, then goal distance and direction
@@ -122,7 +138,8 @@ class CrowdFeaturesExtractor(BaseFeaturesExtractor):
         self.register_buffer("row_scale", torch.tensor(row_scale, dtype=torch.float32), persistent=False)
         self.nonnegative = act in (nn.ReLU,)
         self.robot_encoder = _mlp(robot_dim + 3, hidden_dim, act)
-        self.pedestrian_encoder = _mlp(PED_ROW + forecast_dim + n_dist, hidden_dim, act)
+        n_context = robot_dim + 3 if self.robot_context else 0
+        self.pedestrian_encoder = _mlp(PED_ROW + forecast_dim + n_dist + n_context, hidden_dim, act)
         if pooling == "attention":
             self.query = nn.Linear(hidden_dim, hidden_dim, bias=False)
             self.key = nn.Linear(hidden_dim, hidden_dim, bias=False)
@@ -139,6 +156,25 @@ class CrowdFeaturesExtractor(BaseFeaturesExtractor):
         dist = torch.linalg.vector_norm(goal, dim=1, keepdim=True)
         return torch.cat([robot, dist, goal / dist.clamp_min(1e-6)], dim=1) * self.robot_scale
 
+    def to_goal_frame(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The observation with every 2-D vector rotated into the frame whose x axis points at the goal."""
+        robot = obs["robot"]
+        goal = robot[:, :2]
+        dist = torch.linalg.vector_norm(goal, dim=1)
+        at_goal = dist < 1e-6
+        c = torch.where(at_goal, 1.0, goal[:, 0] / dist.clamp_min(1e-6))  # (B,)
+        s = torch.where(at_goal, 0.0, goal[:, 1] / dist.clamp_min(1e-6))
+        b, k = obs["mask"].shape
+        out = dict(obs)
+        out["robot"] = torch.cat([_rotate(robot[:, 0:2], c, s), _rotate(robot[:, 2:4], c, s), robot[:, 4:]], dim=1)
+        peds = obs["pedestrians"].reshape(b, k, PED_ROW)
+        ck, sk = c[:, None], s[:, None]
+        out["pedestrians"] = torch.cat([_rotate(peds[..., 0:2], ck, sk), _rotate(peds[..., 2:4], ck, sk)], dim=-1)
+        if self.forecast_dim:
+            fc = obs["forecasts"].reshape(b, k, self.horizon, 2)
+            out["forecasts"] = _rotate(fc, ck[..., None], sk[..., None])
+        return out
+
     def pedestrian_features(self, obs: dict[str, torch.Tensor], present: torch.Tensor) -> torch.Tensor:
         """``(B, K, 4 [+ 1] [+ 2H [+ H]])`` scaled rows (with ``distances``: the distance to the robot now and of
         every forecast position), zero where absent."""
@@ -152,11 +188,17 @@ class CrowdFeaturesExtractor(BaseFeaturesExtractor):
             if self.distances:
                 parts.append(torch.linalg.vector_norm(fc, dim=-1))
         rows = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
-        return torch.where(present.unsqueeze(-1), rows * self.row_scale, 0.0)
+        rows = rows * self.row_scale
+        if self.robot_context:
+            context = self.robot_features(obs["robot"])
+            rows = torch.cat([rows, context.unsqueeze(1).expand(b, k, context.shape[1])], dim=-1)
+        return torch.where(present.unsqueeze(-1), rows, 0.0)
 
     def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:  # type: ignore[override]
         mask = observations["mask"]  # (B, K) float 0/1
         present = mask > 0.5
+        if self.frame == "goal":
+            observations = self.to_goal_frame(observations)
         robot_h = self.robot_encoder(self.robot_features(observations["robot"]))  # (B, d)
         ped_h = self.pedestrian_encoder(self.pedestrian_features(observations, present))  # (B, K, d)
         count = present.sum(dim=1, keepdim=True, dtype=ped_h.dtype)  # (B, 1)
@@ -175,6 +217,13 @@ class CrowdFeaturesExtractor(BaseFeaturesExtractor):
             scores = torch.where(present, scores, torch.where(count > 0, -math.inf, 0.0))
             pooled = torch.matmul(torch.softmax(scores, dim=1).unsqueeze(1), masked).squeeze(1)
         return torch.cat([robot_h, pooled, count * (1.0 / self.num_pedestrians)], dim=1)
+
+
+def _rotate(v: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """2-D vectors ``v`` ``(..., 2)`` rotated by minus the angle whose cosine and sine are ``c``, ``s`` (broadcast
+    against ``v[..., 0]``): world axes -> a frame whose x axis has direction ``(c, s)``."""
+    x, y = v[..., 0], v[..., 1]
+    return torch.stack([c * x + s * y, c * y - s * x], dim=-1)
 
 
 def _policy_kwargs(kwargs: dict[str, Any]) -> dict[str, Any]:

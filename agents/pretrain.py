@@ -58,6 +58,14 @@ class PretrainConfig:
     """Action loss: ``mse`` on the action mean or ``nll`` (Gaussian negative log-likelihood; PPO only)."""
     value: bool = True
     """Also fit the value function (PPO) or critics (SAC) to discounted Monte-Carlo returns (gamma of the algorithm)."""
+    dagger_rounds: int = 0
+    """DAgger (Ross et al. 2011) rounds after the first fit: the policy drives ``dagger_episodes`` new episodes,
+    the teacher labels every observation it met, and the policy is refitted on everything gathered so far. Cloning
+    alone only ever sees the teacher's states, and the student's first mistakes lead where it has no labels."""
+    dagger_episodes: int | None = None
+    """Episodes the policy drives per DAgger round (default: ``episodes``)."""
+    dagger_epochs: int | None = None
+    """Passes over the aggregated data per DAgger round (default: ``epochs``); the fit continues from the last one."""
     value_coef: float = 0.5
     """Weight of the value loss (Huber) against the action loss; PPO shares the extractor between both."""
     log_std: float | None = -1.0
@@ -70,6 +78,14 @@ class PretrainConfig:
             raise ConfigError(f"unknown pretrain teacher {self.teacher!r}; valid: {', '.join(PLANNERS)}")
         if self.loss not in ACTION_LOSSES:
             raise ConfigError(f"unknown pretrain loss {self.loss!r}; valid: {', '.join(ACTION_LOSSES)}")
+        for key in ("dagger_rounds", "dagger_episodes", "dagger_epochs"):
+            value = getattr(self, key)
+            if key != "dagger_rounds" and value is None:
+                continue
+            if not isinstance(value, int) or isinstance(value, bool) or value < (0 if key == "dagger_rounds" else 1):
+                raise ConfigError(
+                    f"pretrain key {key!r} must be a whole number >= {0 if key == 'dagger_rounds' else 1}, got {value!r}"
+                )
         for key in ("episodes", "n_envs", "epochs", "batch_size"):
             value = getattr(self, key)
             if not isinstance(value, int) or isinstance(value, bool) or value < (0 if key == "episodes" else 1):
@@ -81,9 +97,10 @@ class PretrainConfig:
         return self
 
 
-def teacher_seeds(seed: int, episodes: int) -> list[int]:
-    """Seeds of the teacher episodes (a stream of their own, distinct from evaluation lists)."""
-    rng = np.random.default_rng([int(seed), 0x5EED, 7])
+def teacher_seeds(seed: int, episodes: int, round_: int = 0) -> list[int]:
+    """Seeds of the warm start's episodes in DAgger round ``round_`` (0: the teacher's own episodes); a stream of
+    their own, distinct from the evaluation lists."""
+    rng = np.random.default_rng([int(seed), 0x5EED, 7] + ([int(round_)] if round_ else []))
     return [int(s) for s in rng.integers(0, 2**31, size=episodes)]
 
 
@@ -112,14 +129,26 @@ class TeacherData:
 
 
 def collect_teacher(
-    cfg: PretrainConfig, env_kwargs: Mapping[str, Any], seed: int, gamma: float, progress: bool = False
+    cfg: PretrainConfig,
+    env_kwargs: Mapping[str, Any],
+    seed: int,
+    gamma: float,
+    progress: bool = False,
+    driver: Any = None,
+    round_: int = 0,
 ) -> TeacherData:
-    """Run the teacher on ``cfg.episodes`` training episodes and gather its transitions."""
+    """Gather labelled transitions: ``driver`` (default: the teacher) drives episodes on the training environments,
+    and every observation it met is labelled with the teacher's action for it.
+
+    Returns:
+        the observations, the teacher's actions, the Monte-Carlo returns of the driver's episodes and their outcomes.
+    """
     from envs.crowd_nav import CrowdNavEnv
 
     env_cfg = config_from(dict(env_kwargs), {})
     teacher = make_planner(cfg.teacher, env_cfg, **dict(cfg.teacher_kwargs))
-    envs = [CrowdNavEnv(**dict(env_kwargs)) for _ in range(max(1, min(cfg.n_envs, cfg.episodes)))]
+    episodes = cfg.episodes if round_ == 0 else (cfg.dagger_episodes or cfg.episodes)
+    envs = [CrowdNavEnv(**dict(env_kwargs)) for _ in range(max(1, min(cfg.n_envs, episodes)))]
     per_episode: dict[int, tuple[list[dict[str, np.ndarray]], list[np.ndarray], list[float]]] = {}
 
     def record(k: int, obs: Mapping[str, np.ndarray], action: np.ndarray, reward: float, *_: bool) -> None:
@@ -129,7 +158,13 @@ def collect_teacher(
         rew_list.append(reward)
 
     try:
-        rows = run_episodes(teacher, envs, teacher_seeds(seed, cfg.episodes), on_step=record, progress=progress)
+        rows = run_episodes(
+            teacher if driver is None else driver,
+            envs,
+            teacher_seeds(seed, episodes, round_),
+            on_step=record,
+            progress=progress,
+        )
     finally:
         for env in envs:
             env.close()
@@ -144,7 +179,49 @@ def collect_teacher(
     if not actions:
         raise ValueError("the teacher produced no transitions (pretrain.episodes = 0?)")
     stacked = {key: np.stack([o[key] for o in observations]) for key in observations[0]}
-    return TeacherData(stacked, np.stack(actions), np.concatenate(returns), [str(r["outcome"]) for r in rows])
+    if driver is None:
+        labels = np.stack(actions)
+    else:  # the teacher's action for every observation the driver met, in chunks (its scoring is (B, C, K, L) wide)
+        n = len(actions)
+        labels = np.concatenate(
+            [
+                np.asarray(teacher.predict({k: v[i : i + 1024] for k, v in stacked.items()})[0], dtype=np.float32)
+                for i in range(0, n, 1024)
+            ]
+        )
+    return TeacherData(stacked, labels, np.concatenate(returns), [str(r["outcome"]) for r in rows])
+
+
+def concatenate(parts: list[TeacherData]) -> TeacherData:
+    """The transitions of several collections, in order."""
+    return TeacherData(
+        {k: np.concatenate([p.observations[k] for p in parts]) for k in parts[0].observations},
+        np.concatenate([p.actions for p in parts]),
+        np.concatenate([p.returns for p in parts]),
+        [o for p in parts for o in p.outcomes],
+    )
+
+
+class _Student:
+    """The policy being warm-started, acting on plain environment observations (normalised for it when the
+    training uses ``VecNormalize``; discrete choices mapped to environment actions)."""
+
+    def __init__(self, model: Any, vecnormalize: Any = None, actions: Any = None) -> None:
+        self.model = model
+        self.vecnormalize = vecnormalize
+        self.actions = actions
+
+    def predict(
+        self, obs: Mapping[str, np.ndarray], state: Any = None, episode_start: Any = None, deterministic: bool = True
+    ) -> tuple[np.ndarray, None]:
+        seen = dict(obs) if self.vecnormalize is None else self.vecnormalize.normalize_obs(dict(obs))
+        out, _ = self.model.predict(seen, deterministic=deterministic)
+        if self.actions is not None:
+            single = np.ndim(obs["mask"]) == 1
+            robot = np.asarray(obs["robot"])
+            out = self.actions.to_env_actions(np.atleast_1d(out), robot[None] if single else robot)
+            out = out[0] if single else out
+        return out, None
 
 
 def _action_loss(policy: Any, obs: dict[str, torch.Tensor], target: torch.Tensor, loss: str) -> torch.Tensor:
@@ -172,7 +249,13 @@ def _value_loss(
 
 
 def fit_policy(
-    model: Any, data: TeacherData, cfg: PretrainConfig, seed: int, vecnormalize: Any = None, actions: Any = None
+    model: Any,
+    data: TeacherData,
+    cfg: PretrainConfig,
+    seed: int,
+    vecnormalize: Any = None,
+    actions: Any = None,
+    epochs: int | None = None,
 ) -> dict[str, float]:
     """Fit ``model.policy`` to the teacher's data (in place); returns the first and last epochs' mean losses.
 
@@ -206,7 +289,7 @@ def fit_policy(
     n = len(data)
     history: list[float] = []
     policy.set_training_mode(True)
-    for _ in range(cfg.epochs):
+    for _ in range(cfg.epochs if epochs is None else epochs):
         order = torch.randperm(n, generator=gen)
         total, batches = 0.0, 0
         for start in range(0, n, cfg.batch_size):
@@ -260,12 +343,28 @@ def pretrain(
     started = time.perf_counter()
     torch.manual_seed(int(seed))
     data = collect_teacher(cfg, env_kwargs, seed, gamma, progress=progress)
+    teacher_success = sum(o == "success" for o in data.outcomes) / max(len(data.outcomes), 1)
     losses = fit_policy(model, data, cfg, seed, vecnormalize, actions)
+    rounds: list[dict[str, Any]] = []
+    student = _Student(model, vecnormalize, actions)
+    for r in range(1, cfg.dagger_rounds + 1):
+        new = collect_teacher(cfg, env_kwargs, seed, gamma, progress=progress, driver=student, round_=r)
+        data = concatenate([data, new])
+        losses = fit_policy(model, data, cfg, seed + r, vecnormalize, actions, epochs=cfg.dagger_epochs)
+        rounds.append(
+            {
+                "round": r,
+                "student_success_rate": sum(o == "success" for o in new.outcomes) / max(len(new.outcomes), 1),
+                "transitions": len(data),
+                **losses,
+            }
+        )
     return {
         "teacher": cfg.teacher,
-        "episodes": len(data.outcomes),
+        "episodes": cfg.episodes + cfg.dagger_rounds * (cfg.dagger_episodes or cfg.episodes),
         "transitions": len(data),
-        "teacher_success_rate": sum(o == "success" for o in data.outcomes) / max(len(data.outcomes), 1),
+        "teacher_success_rate": teacher_success,
+        "dagger": rounds,
         **losses,
         "seconds": round(time.perf_counter() - started, 3),
     }

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -29,14 +31,20 @@ def random_obs(sp: object, batch: int, seed: int = 0) -> dict[str, torch.Tensor]
     return out
 
 
-@pytest.mark.parametrize(("pooling", "distances"), [("meanmax", False), ("attention", False), ("meanmax", True)])
+OPTIONS = [
+    {"pooling": "meanmax"},
+    {"pooling": "attention"},
+    {"pooling": "meanmax", "distances": True},
+    {"pooling": "meanmax", "frame": "goal", "robot_context": True},
+]
+
+
+@pytest.mark.parametrize("options", OPTIONS)
 @pytest.mark.parametrize("with_forecasts", [False, True])
-def test_absent_pedestrians_change_nothing_whatever_their_rows_hold(
-    pooling: str, distances: bool, with_forecasts: bool
-) -> None:
+def test_absent_pedestrians_change_nothing_whatever_their_rows_hold(options: dict, with_forecasts: bool) -> None:
     torch.manual_seed(0)
     sp = space(with_forecasts)
-    ext = CrowdFeaturesExtractor(sp, hidden_dim=16, pooling=pooling, distances=distances)  # type: ignore[arg-type]
+    ext = CrowdFeaturesExtractor(sp, hidden_dim=16, **options)  # type: ignore[arg-type]
     obs = random_obs(sp, batch=6)
     obs["mask"][0] = 0.0  # one observation with nobody
     obs["mask"][1] = 1.0  # one with everybody
@@ -126,3 +134,41 @@ def test_policies_use_the_extractor_and_take_activation_names(with_forecasts: bo
     for policy in (ppo, sac):
         action, _ = policy.predict(obs, deterministic=True)
         assert action.shape == (2,)
+
+
+def _rotated(obs: dict[str, torch.Tensor], angle: float) -> dict[str, torch.Tensor]:
+    """The observation of the same scene turned by ``angle`` about the robot (every 2-D vector rotated)."""
+    c, s = math.cos(angle), math.sin(angle)
+    rot = torch.tensor([[c, -s], [s, c]], dtype=torch.float32)
+
+    def turn(v: torch.Tensor) -> torch.Tensor:
+        return (v.reshape(*v.shape[:-1], -1, 2) @ rot.T).reshape(v.shape)
+
+    out = dict(obs)
+    out["robot"] = torch.cat([turn(obs["robot"][:, :4]), obs["robot"][:, 4:]], dim=1)
+    out["pedestrians"] = turn(obs["pedestrians"])
+    if "forecasts" in obs:
+        out["forecasts"] = turn(obs["forecasts"])
+    return out
+
+
+@pytest.mark.parametrize("with_forecasts", [False, True])
+def test_goal_frame_features_do_not_depend_on_the_goals_bearing(with_forecasts: bool) -> None:
+    torch.manual_seed(0)
+    sp = space(with_forecasts, observe_time_left=True)
+    goal_frame = CrowdFeaturesExtractor(sp, hidden_dim=16, frame="goal", robot_context=True)  # type: ignore[arg-type]
+    world = CrowdFeaturesExtractor(sp, hidden_dim=16)  # type: ignore[arg-type]
+    obs = random_obs(sp, batch=5)
+    for angle in (0.3, math.pi / 2, -2.5):
+        turned = _rotated(obs, angle)
+        torch.testing.assert_close(goal_frame(turned), goal_frame(obs), rtol=1e-4, atol=1e-4)
+        assert not torch.allclose(world(turned), world(obs), atol=1e-3)  # the world frame does see the turn
+
+
+def test_goal_frame_puts_the_goal_on_the_x_axis() -> None:
+    sp = space(False)
+    ext = CrowdFeaturesExtractor(sp, frame="goal")  # type: ignore[arg-type]
+    obs = random_obs(sp, batch=3)
+    obs["robot"][:, :2] = torch.tensor([[0.0, 4.0], [-3.0, 0.0], [0.0, 0.0]])
+    robot = ext.to_goal_frame(obs)["robot"]
+    torch.testing.assert_close(robot[:, :2], torch.tensor([[4.0, 0.0], [3.0, 0.0], [0.0, 0.0]]))

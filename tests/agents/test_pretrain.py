@@ -61,3 +61,30 @@ def test_pretraining_is_deterministic_given_the_seed(config_of: Any, tiny: Any) 
         fit_policy(model, data, cfg, seed=5)
         params.append(torch.cat([p.detach().flatten() for p in model.policy.parameters()]))
     assert torch.equal(params[0], params[1])
+
+
+def test_dagger_rounds_label_the_students_states_with_the_teachers_actions(config_of: Any, tiny: Any) -> None:
+    from stable_baselines3 import PPO
+
+    from agents.actions import GoalRelativeActions
+    from agents.planners import SamplingPlanner
+    from agents.pretrain import _Student, pretrain
+    from envs.config import config_from
+
+    cfg = load_train_config(config_of("ppo"), None, tiny("ppo", "cv", vec_env="dummy", **{"action.kind": "discrete"}))
+    venv = make_vec_env(cfg)
+    model = PPO(policy_class(cfg.policy), venv, seed=0, device="cpu", **algorithm_kwargs(cfg))
+    actions = GoalRelativeActions(config_from(ENV, {}))
+    pre = PretrainConfig(episodes=4, epochs=3, batch_size=64, dagger_rounds=2, dagger_episodes=3, dagger_epochs=2)
+    torch.manual_seed(0)
+    stats = pretrain(model, pre, ENV, seed=0, gamma=0.99, actions=actions)
+    assert [r["round"] for r in stats["dagger"]] == [1, 2]
+    assert stats["episodes"] == 4 + 2 * 3
+    sizes = [r["transitions"] for r in stats["dagger"]]
+    assert sizes[0] < sizes[1] == stats["transitions"]  # every round adds to the aggregate
+    # a round's data: observations the student met, labelled by the teacher (not by the student)
+    data = collect_teacher(pre, ENV, seed=0, gamma=0.99, driver=_Student(model, None, actions), round_=1)
+    teacher = SamplingPlanner(config_from(ENV, {}))
+    np.testing.assert_allclose(data.actions, teacher.predict(data.observations)[0], atol=1e-6)
+    with pytest.raises(Exception, match="dagger_rounds"):
+        PretrainConfig(dagger_rounds=-1).validate()
