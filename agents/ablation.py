@@ -29,9 +29,9 @@ Cells and their state
 
 Backends
     ``local`` (default): a process pool (forkserver) of ``--workers`` processes (default: cores // the
-    largest ``n_envs`` of a cell), each with one torch thread; ``--workers 1`` runs cells one after the
+    largest ``cpus`` of a cell), each with one torch thread; ``--workers 1`` runs cells one after the
     other in this process. ``ray``: the same cell function as Ray tasks (``ray.init(address=...)`` for an
-    existing cluster, a local instance otherwise), ``num_cpus`` per task = the cell's ``n_envs``. A Ray task
+    existing cluster, a local instance otherwise), ``num_cpus`` per task = the cell's ``cpus``. A Ray task
     does not need shared storage: the driver sends what the cell needs (an interrupted training run's folder,
     or the trained model being evaluated) with the task, the task works in a temporary folder on its node and
     returns the cell folder as a tar archive, which the driver writes into ``runs_dir``. Every node needs the
@@ -43,7 +43,7 @@ Backends
         CROWDNAV_MESRNN_DATA=/data/eth_ucy ray start --address=HEAD:6379  # every other node
         python -m agents.ablation configs/ablation/planning_aid.yaml --backend ray --address HEAD:6379
 
-    Without ``--address`` a local Ray instance with ``--workers`` x the largest ``n_envs`` CPUs is started
+    Without ``--address`` a local Ray instance with ``--workers`` x the largest ``cpus`` is started
     (no dashboard) and shut down at the end.
 
 The answer
@@ -123,7 +123,7 @@ _TOP_KEYS: Final[tuple[str, ...]] = (
     "power",
     "estimates",
 )
-_POLICY_KEYS: Final[tuple[str, ...]] = ("kind", "arms", "config", "timesteps", "n_envs", "model", "overrides")
+_POLICY_KEYS: Final[tuple[str, ...]] = ("kind", "arms", "config", "timesteps", "n_envs", "cpus", "model", "overrides")
 _EVAL_KEYS: Final[tuple[str, ...]] = ("episodes", "seed")
 _ESTIMATE_KEYS: Final[tuple[str, ...]] = ("train_steps_per_s", "eval_episodes_per_s")
 
@@ -160,7 +160,10 @@ class PolicySpec:
     timesteps: int | None = None
     """Learned kinds: environment steps of training per run."""
     n_envs: int = 1
-    """Learned kinds: vectorised environments per training run (= CPUs a training cell uses)."""
+    """Learned kinds: vectorised environments per training run (the agent config's ``n_envs`` is replaced)."""
+    cpus: int = 1
+    """Learned kinds: CPUs a training run keeps busy (1 when the agent config steps its environments in one
+    process, ``vec_env: dummy``; ``n_envs`` with subprocess workers); sizes the local pool and Ray's ``num_cpus``."""
     model: str = "best"
     """Learned kinds: ``best`` (selected on validation episodes of the training scenes) or ``final`` model."""
     overrides: Mapping[str, Any] = field(default_factory=dict)
@@ -309,9 +312,10 @@ def _policies(value: Any) -> tuple[PolicySpec, ...]:
                 raise _bad(f"{where}.config", config, "the path of an agent YAML (configs/agent/ppo.yaml)")
             timesteps = _positive_int(spec.get("timesteps"), f"{where}.timesteps")
             n_envs = _positive_int(spec.get("n_envs", 1), f"{where}.n_envs")
-            out.append(PolicySpec(str(name), kind, config, timesteps, n_envs, model, overrides))
+            cpus = _positive_int(spec.get("cpus", 1), f"{where}.cpus")
+            out.append(PolicySpec(str(name), kind, config, timesteps, n_envs, cpus, model, overrides))
         else:
-            extra = sorted(set(spec) & {"config", "timesteps", "n_envs", "overrides"})
+            extra = sorted(set(spec) & {"config", "timesteps", "n_envs", "cpus", "overrides"})
             if extra:
                 raise _bad(f"{where}.{extra[0]}", spec[extra[0]], f"nothing: a {kind!r} policy is not trained")
             out.append(PolicySpec(str(name), kind))
@@ -461,9 +465,9 @@ class Cell:
         return None
 
     @property
-    def n_envs(self) -> int:
+    def cpus(self) -> int:
         """CPUs the cell keeps busy."""
-        return self.policy.n_envs if self.kind == "train" else 1
+        return self.policy.cpus if self.kind == "train" else 1
 
 
 def expand(cfg: AblationConfig) -> list[Cell]:
@@ -684,7 +688,7 @@ def _hms(seconds: float) -> str:
 
 def default_workers(cells: Iterable[Cell]) -> int:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    widest = max((c.n_envs for c in cells), default=1)
+    widest = max((c.cpus for c in cells), default=1)
     return max(1, cores // widest)
 
 
@@ -1014,7 +1018,7 @@ class _Ray(_Backend):
         self._tasks: dict[Any, CellTask] = {}
 
     def submit(self, task: CellTask) -> Any:
-        ref = self._remote.options(num_cpus=task.cell.n_envs, num_returns=1).remote(task, _shipped_inputs(task))
+        ref = self._remote.options(num_cpus=task.cell.cpus, num_returns=1).remote(task, _shipped_inputs(task))
         self._tasks[ref] = task
         return ref
 
@@ -1127,7 +1131,7 @@ def run_grid(
     skipped: list[str] = []
     runner: _Backend
     if backend == "ray":
-        widest = max((c.n_envs for c in waiting.values()), default=1)
+        widest = max((c.cpus for c in waiting.values()), default=1)
         runner = _Ray(address, num_cpus=None if address else workers * widest)
     elif workers <= 1:
         runner = _Serial()
@@ -1810,7 +1814,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--workers",
         type=int,
         default=None,
-        help="cells at a time (default: cores // the largest n_envs of a cell; 1 = in this process)",
+        help="cells at a time (default: cores // the largest cpus of a cell; 1 = in this process)",
     )
     p.add_argument("--backend", choices=BACKENDS, default="local", help="local process pool (default) or Ray tasks")
     p.add_argument(
