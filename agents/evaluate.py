@@ -193,12 +193,33 @@ def export_policy(run_dir: str | Path, dest: str | Path, which: str = "best") ->
     config = config_of(src)
     if config is None:
         raise FileNotFoundError(f"{run_dir} holds no config.yaml: not a run folder of agents.train")
-    atomic_write(dest, lambda fh: fh.write(src.read_bytes()))
+    atomic_write(dest, lambda fh: fh.write(without_optimizer_state(src.read_bytes())))
     atomic_write_text(dest.with_suffix(".yaml"), config.read_text())
     stats = src.with_name(f"{src.stem}_vecnormalize.pkl")
     if stats.is_file():
         shutil.copyfile(stats, dest.with_name(f"{dest.stem}_vecnormalize.pkl"))
     return dest
+
+
+def without_optimizer_state(model_zip: bytes) -> bytes:
+    """An SB3 model archive whose optimizer keeps its settings but not its moment estimates (Adam's are twice the
+    policy's size and serve only to continue training); the policy, and so every action, is unchanged."""
+    import io
+    import zipfile
+
+    import torch
+
+    out = io.BytesIO()
+    with zipfile.ZipFile(io.BytesIO(model_zip)) as src, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as dst:
+        for item in src.infolist():
+            data = src.read(item.filename)
+            if item.filename.endswith("optimizer.pth"):
+                state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+                buf = io.BytesIO()
+                torch.save({**state, "state": {}}, buf)
+                data = buf.getvalue()
+            dst.writestr(item, data)
+    return out.getvalue()
 
 
 def model_path(spec: str | Path, which: str = "best") -> Path:

@@ -59,3 +59,29 @@ def test_agent_evaluate_subcommand(exported: Path, capsys: pytest.CaptureFixture
     args = ["agent", "evaluate", str(exported), "--predictor", "none", "--episodes", "2", "--json"]
     assert main([*args, "--set", "crowd=synthetic"]) == 0
     assert json.loads(capsys.readouterr().out)["episodes"] == 2
+
+
+def test_export_drops_the_optimizer_state_but_not_the_policy(tiny_ppo_run: Path, exported: Path) -> None:
+    import torch
+    from stable_baselines3 import PPO
+
+    from agents.evaluate import model_path
+
+    source = model_path(tiny_ppo_run)
+    assert exported.stat().st_size < source.stat().st_size
+    a, b = PPO.load(source, device="cpu"), PPO.load(exported, device="cpu")
+    for (ka, va), (kb, vb) in zip(a.policy.state_dict().items(), b.policy.state_dict().items(), strict=True):
+        assert ka == kb and torch.equal(va, vb)
+    assert not b.policy.optimizer.state_dict()["state"]
+
+
+def test_the_shipped_policy_crosses_the_held_out_zara1_scene(
+    data_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README's quick start: the shipped PPO policy with MESRNN forecasts on the real held-out scene."""
+    if not agents.cli.SHIPPED_POLICY.is_file():
+        pytest.fail(f"the shipped policy {agents.cli.SHIPPED_POLICY} is missing from the package")
+    assert main(["demo", "--no-gif", "--json"]) == 0
+    out = capsys.readouterr().out
+    assert "policy" in out.splitlines()[0] and "ppo_mesrnn_zara1.zip" in out.splitlines()[0]
+    assert '"outcome"' in out
