@@ -41,7 +41,8 @@ from crowdnav_mesrnn.data.recordings import Recording
 from crowdnav_mesrnn.utils import atomic_write
 
 #: Bump when the content or layout of the files changes (old files then no longer match and are rebuilt).
-FORMAT_VERSION: Final[int] = 1
+#: 2: one predictor call per frame (no cross-frame batching), so a chunk equals its frames computed alone.
+FORMAT_VERSION: Final[int] = 2
 #: How forecasts relate to perception: taken at each annotation frame from the histories up to it.
 PERCEPTION: Final[str] = "latest-annotation"
 #: Annotation frames per file.

@@ -213,9 +213,9 @@ class PredictorForecast(ForecastSource):
 
     Forecasts therefore depend only on (predictor, recording, annotation frame). With ``cache=True`` they are
     kept per chunk of :data:`~envs.forecast_cache.CHUNK_FRAMES` frames (:class:`FrameTable`): a chunk is loaded
-    from the shared disk cache (``store``) or computed in one batched pass (the pedestrians of all its frames
-    at once, padded and masked, for predictors with ``predict_batch``) and written there. With ``cache=False``
-    each frame is computed alone when an env time needs it (the reference path). Both give identical forecasts.
+    from the shared disk cache (``store``) or computed (one predictor call per frame) and written there. With
+    ``cache=False`` each frame is computed alone when an env time needs it (the reference path). Both give
+    identical forecasts, bit for bit.
 
     Args:
         name: source name.
@@ -329,38 +329,20 @@ class PredictorForecast(ForecastSource):
     def compute_chunks(self, recording: Recording, chunk: int) -> dict[int, FrameTable]:
         """Compute chunk ``chunk`` of ``recording`` (a window source needs no other): ``{chunk: table}``.
 
-        One batched predictor call for all its frames when the predictor has ``predict_batch`` (histories padded
-        to the largest frame and masked, so each frame's pedestrians only see each other); else one call per frame.
+        One predictor call per frame, exactly as :meth:`compute_frame`: batching frames together (padded to the
+        widest, or even unpadded) changes forecasts in the last float32 bit with the batch's make-up, which would
+        let later frames of the chunk change an earlier frame's forecasts (data after t entering the observation
+        at t) and make cached forecasts differ from online ones.
         """
         model, obs_len, pred_len = self._model_sizes(recording)
-        frames = chunk_frames(recording, chunk)
-        hist = self._histories(recording, frames, obs_len)
-        live = [k for k, h in enumerate(hist) if h[3].any()]
-        preds: dict[int, np.ndarray] = {}
-        batch = getattr(model, "predict_batch", None)
-        if callable(batch) and live:
-            import torch
-
-            width = max(len(hist[k][0]) for k in live)
-            positions = np.zeros((len(live), obs_len, width, 2), np.float32)
-            masks = np.zeros((len(live), obs_len, width), bool)
-            for b, k in enumerate(live):
-                n = len(hist[k][0])
-                positions[b, :, :n], masks[b, :, :n] = hist[k][1], hist[k][2]
-            out = batch(torch.from_numpy(positions), torch.from_numpy(masks)).permute(0, 2, 1, 3).numpy()
-            for b, k in enumerate(live):
-                preds[k] = self._checked(model, out[b, : len(hist[k][0])], len(hist[k][0]), pred_len)
-        else:
-            for k in live:
-                _, history, mask, _ = hist[k]
-                preds[k] = self._checked(model, np.asarray(model.forecast(history, mask)), len(history[0]), pred_len)
-        self.calls += len(live)
         parts = []
-        for k, (cols, _, _, now) in enumerate(hist):
-            if k in preds:
-                parts.append((cols[now], np.ascontiguousarray(preds[k][now], dtype=np.float32)))
-            else:
+        for cols, history, mask, now in self._histories(recording, chunk_frames(recording, chunk), obs_len):
+            if not now.any():
                 parts.append((np.zeros(0, dtype=np.int64), np.zeros((0, pred_len, 2), np.float32)))
+                continue
+            self.calls += 1
+            pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(cols), pred_len)
+            parts.append((cols[now], np.ascontiguousarray(pred[now], dtype=np.float32)))
         return {chunk: FrameTable.from_frames(parts, pred_len)}
 
     def table_key(self, recording: Recording) -> TableKey | None:
@@ -718,7 +700,7 @@ def build_forecast_cache(
     """Fill the shared disk cache with a learned predictor's forecasts for the recordings an env of ``split``/``part``
     replays (every replayable recording when ``split`` is None), each by its out-of-sample predictor.
 
-    Chunks already on disk are checked and kept; missing, unreadable or stale ones are computed (batched) and
+    Chunks already on disk are checked and kept; missing, unreadable or stale ones are computed and
     written. Call it before starting vectorised environments or grid workers, so none of them computes forecasts.
 
     Args:

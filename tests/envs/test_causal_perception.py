@@ -12,12 +12,14 @@ import pytest
 from crowdnav_mesrnn.data import load_recording
 from crowdnav_mesrnn.data.recordings import Recording
 from envs.crowd_nav import CrowdNavEnv
+from envs.forecasts import PredictorForecast
 
 #: one recording per scene: eth, hotel, univ, zara1, zara2
 SCENES = ("biwi_eth", "biwi_hotel", "students003", "crowds_zara01", "crowds_zara02")
 ARMS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("none", {}),
     ("cv", {}),
+    ("mesrnn", {}),  # the default path: chunks of frames, disk cache
     ("mesrnn", {"cache_forecasts": False}),
     ("mesrnn", {"forecast_memory": "carried"}),
 )
@@ -104,3 +106,34 @@ def test_perception_age_is_observed_on_request() -> None:
     t = 8.0 + 0.4 * np.arange(6)
     np.testing.assert_allclose(ages, t - np.floor(t / (2 / 3) + 1e-9) * (2 / 3), atol=1e-6)
     assert max(ages) > 0.5
+
+
+def truncated_after(rec: Recording, t_s: float) -> Recording:
+    """A copy without any annotation after ``t_s`` (the recording ends at ``t_s``)."""
+    keep = rec.times_s() <= t_s + 1e-9
+    cols = np.flatnonzero(rec.present[keep].any(axis=0))
+    return replace(
+        rec, frames=rec.frames[keep], ped_ids=rec.ped_ids[cols], positions=rec.positions[keep][:, cols],
+        present=rec.present[keep][:, cols],
+    )  # fmt: skip
+
+
+@pytest.mark.slow
+def test_cached_learned_forecasts_ignore_later_frames_of_their_chunk(data_dir: Path) -> None:
+    """The default path (forecasts computed per chunk of frames in batched passes) gives, at a frame, exactly what
+    that frame alone gives: a crowded frame later in the same chunk must not change the padding of earlier ones
+    (on students001 a wider padding moved forecasts by up to 1e-5 m, so data after t changed the observation)."""
+    rec = busy_slice(load_recording("students001", data_dir=data_dir), frames=80)
+    cut = float(rec.times_s()[16])
+    cached = CrowdNavEnv(crowd=rec, predictor="mesrnn", forecast_disk_cache=False).forecaster
+    cut_short = CrowdNavEnv(crowd=truncated_after(rec, cut), predictor="mesrnn", forecast_disk_cache=False).forecaster
+    single = CrowdNavEnv(crowd=rec, predictor="mesrnn", cache_forecasts=False).forecaster
+    assert isinstance(cached, PredictorForecast) and isinstance(cut_short, PredictorForecast)
+    assert isinstance(single, PredictorForecast)
+    short = truncated_after(rec, cut)
+    for i in range(17):
+        cols, fc = cached.frame_forecasts(rec, i)
+        np.testing.assert_array_equal(fc, single.frame_forecasts(rec, i)[1], err_msg=f"frame {i}: batched vs alone")
+        short_cols, short_fc = cut_short.frame_forecasts(short, i)
+        np.testing.assert_array_equal(rec.ped_ids[cols], short.ped_ids[short_cols])
+        np.testing.assert_array_equal(fc, short_fc, err_msg=f"frame {i}: depends on frames after it")
