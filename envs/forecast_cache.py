@@ -29,6 +29,7 @@ import contextlib
 import hashlib
 import json
 import os
+import tempfile
 import warnings
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
@@ -192,6 +193,30 @@ class ForecastStore:
 
     def __init__(self, root: str | os.PathLike[str]) -> None:
         self.root = Path(root)
+        #: why the folder cannot be written (None: writable so far); once set, nothing more is written
+        self.unwritable: str | None = None
+
+    def write_problem(self) -> str | None:
+        """Why files cannot be written into the folder (created if missing), or None when they can."""
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=self.root):
+                pass
+        except OSError as exc:
+            return f"{type(exc).__name__}: {exc}"
+        return None
+
+    def _cannot_write(self, exc: OSError) -> None:
+        """Warn once that the folder cannot be written; from then on forecasts stay in memory."""
+        if self.unwritable is None:
+            self.unwritable = f"{type(exc).__name__}: {exc}"
+            warnings.warn(
+                f"forecast cache folder {self.root} cannot be written ({self.unwritable}); this process computes "
+                f"its forecasts and keeps them in memory only (set forecast_cache_dir or ${CACHE_ENV_VAR} to a "
+                "writable folder to share them)",
+                CacheWarning,
+                stacklevel=5,
+            )
 
     def path(self, key: TableKey, chunk: int) -> Path:
         folder = self.root / f"{_safe(key.predictor)}-{_safe(key.memory)}"
@@ -199,21 +224,29 @@ class ForecastStore:
 
     @contextlib.contextmanager
     def locked(self, key: TableKey, chunk: int) -> Iterator[None]:
-        """Hold an exclusive lock on one chunk (so concurrent processes compute it once); a no-op where
-        file locks are unavailable."""
+        """Hold an exclusive lock on one chunk (so concurrent processes compute it once); a no-op where file
+        locks are unavailable, and (after one :class:`CacheWarning`) where the folder cannot be written."""
         path = self.path(key, chunk)
         try:
             import fcntl
         except ImportError:  # pragma: no cover (not POSIX)
             yield
             return
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path.with_name(path.name + ".lock"), "a+b") as fh:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        fh = None
+        if self.unwritable is None:
             try:
-                yield
-            finally:
-                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                fh = open(path.with_name(path.name + ".lock"), "a+b")  # closed in the finally below
+            except OSError as exc:
+                self._cannot_write(exc)
+        try:
+            if fh is not None:
+                with contextlib.suppress(OSError):  # a file system without locks: computed twice at worst
+                    fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+            yield
+        finally:
+            if fh is not None:
+                fh.close()  # releases the lock
 
     def load(self, key: TableKey, chunk: int, recording: Recording, quiet: bool = False) -> FrameTable | None:
         """The chunk, or None when it is missing; an unreadable or stale file gives a :class:`CacheWarning`
@@ -239,14 +272,20 @@ class ForecastStore:
             return None
         return out
 
-    def save(self, key: TableKey, chunk: int, data: FrameTable) -> Path:
-        """Write one chunk atomically."""
+    def save(self, key: TableKey, chunk: int, data: FrameTable) -> Path | None:
+        """Write one chunk atomically; None (after one :class:`CacheWarning`) when the folder cannot be written."""
+        if self.unwritable is not None:
+            return None
         meta = np.array(json.dumps(key.meta(), sort_keys=True))
 
         def write(fh: Any) -> None:
             np.savez(fh, meta=meta, offsets=data.offsets, columns=data.columns, forecasts=data.forecasts)
 
-        return atomic_write(self.path(key, chunk), write)
+        try:
+            return atomic_write(self.path(key, chunk), write)
+        except OSError as exc:  # read-only, full, or not a folder: keep going in memory
+            self._cannot_write(exc)
+            return None
 
     @staticmethod
     def _warn(path: Path, problem: str) -> None:

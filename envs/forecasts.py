@@ -731,10 +731,12 @@ def build_forecast_cache(
     names = cache_recordings(split, part)
     recordings = [load_recording(n, "all_data", data_dir) for n in names]
     root = cache_root(cache_dir)
+    store = ForecastStore(root)
+    problem = store.write_problem()
+    if problem is not None:
+        raise ValueError(f"the forecast cache folder {root} cannot be written ({problem}); choose another one")
     default_split = split if split is not None else "zara1"
-    source = make_forecast_source(
-        predictor, list(names), default_split, 0.4, 12, True, 0.0, memory, ForecastStore(root)
-    )
+    source = make_forecast_source(predictor, list(names), default_split, 0.4, 12, True, 0.0, memory, store)
     assert isinstance(source, PredictorForecast)
     total = sum(num_chunks(r) for r in recordings)
     bar: Any = None
@@ -750,6 +752,8 @@ def build_forecast_cache(
                 bar.update(1)
     if bar is not None:
         bar.close()
+    if store.unwritable is not None:
+        raise ValueError(f"the forecast cache folder {root} could not be written ({store.unwritable})")
     return {
         "predictor": predictor,
         "memory": memory,

@@ -187,3 +187,23 @@ def test_disk_cache_can_be_switched_off(data_dir: Path, tmp_path: Path, tiny_lea
     cv = CrowdNavEnv(predictor="cv", crowd=rec, forecast_cache_dir=str(tmp_path))
     cv.precompute_forecasts()
     assert source(cv).chunks_computed == 2 and not files(tmp_path)
+
+
+def test_a_cache_folder_that_cannot_be_written_falls_back_to_memory_with_a_warning(
+    data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable, lockstep: Callable
+) -> None:
+    """A cache folder that cannot be created or written (here: a path through a regular file; also a read-only or
+    full disk) must not stop the env: one CacheWarning naming the folder, forecasts computed in memory."""
+    rec = prefix(data_dir, "students003", 70)
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    with pytest.warns(CacheWarning, match=r"cannot be written .*NotADirectoryError.* in memory only") as caught:
+        env = CrowdNavEnv(predictor=tiny_learned_predictor(), crowd=rec, forecast_cache_dir=str(blocker / "cache"))
+        env.precompute_forecasts()
+    assert len([w for w in caught if issubclass(w.category, CacheWarning)]) == 1
+    assert source(env).chunks_computed == 2 and blocker.read_text() == "not a folder"
+    online = CrowdNavEnv(predictor=tiny_learned_predictor(), crowd=rec, cache_forecasts=False)
+    assert lockstep(env, online, [{"t0_s": 4.0, "start": (1.0, 1.0), "goal": (7.0, 3.0), "time_limit_s": 6.0}]) > 5
+    # filling the cache ahead into such a folder is an error (exit 2), not a silent in-memory computation
+    args = ["forecasts", "build", "--predictor", "mesrnn", "--split", "eth", "--part", "test", "--no-progress"]
+    assert main([*args, "--cache-dir", str(blocker / "cache")]) == 2
