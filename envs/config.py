@@ -179,57 +179,88 @@ class CrowdNavConfig:
         return self.horizon_steps * self.dt_s
 
     def validate(self) -> CrowdNavConfig:
-        """Check the type, finiteness and range of every value; raise :class:`ConfigError` naming the key, the
-        value and what is allowed (valid values are listed for choices). Returns self."""
-        _one_of("split", self.split, SPLITS)
-        _one_of("part", self.part, EPISODE_PARTS)
-        _one_of("crowd", self.crowd, CROWDS)
-        _one_of("predictor", self.predictor, FORECAST_SOURCES)
-        _one_of("kinematics", self.kinematics, KINEMATICS)
-        _one_of("forecast_memory", self.forecast_memory, FORECAST_MEMORIES)
-        _one_of("episode_time", self.episode_time, EPISODE_TIMES)
-        if not (isinstance(self.scenes, tuple) and all(isinstance(x, str) for x in self.scenes)):
-            raise ConfigError(f"config key 'scenes' must be a list of recording or scene names, got {self.scenes!r}")
+        """Check the type, finiteness and range of every value (:func:`check_value`) and how values go together;
+        raise :class:`ConfigError` naming the key, the value and what is allowed (valid values are listed for
+        choices). Returns self."""
+        for field in dataclasses.fields(self):
+            check_value(field.name, getattr(self, field.name))
         resolve_scenes(self.scenes, episode_recordings(self.split, self.part), self.split, self.part)
-        for key in ("data_dir", "forecast_cache_dir"):
-            value = getattr(self, key)
-            if value is not None and not (isinstance(value, str | os.PathLike) and str(value)):
-                raise ConfigError(f"config key {key!r} must be a folder path or null, got {value!r}")
-        for key in _FLAGS:
-            if not isinstance(getattr(self, key), bool | np.bool_):
-                raise ConfigError(f"config key {key!r} must be true or false, got {getattr(self, key)!r}")
-        for key, (lo, hi, lo_open, hi_open) in _NUMBERS.items():
-            _number(key, getattr(self, key), lo, hi, lo_open, hi_open)
-        for key, lo in _INTEGERS.items():
-            value = getattr(self, key)
-            if not (isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_) and value >= lo):
-                raise ConfigError(f"config key {key!r} must be an integer >= {lo}, got {value!r}")
-        dist = _pair("start_goal_distance_m", self.start_goal_distance_m, "(min, max) metres")
-        if not 0 < dist[0] <= dist[1]:
+        if self.start_goal_distance_m[0] <= self.goal_tolerance_m:
             raise ConfigError(
-                f"config key 'start_goal_distance_m' must be (min, max) with 0 < min <= max, got {self.start_goal_distance_m!r}"
+                f"config key 'start_goal_distance_m' = {self.start_goal_distance_m!r} must start above "
+                f"'goal_tolerance_m' = {self.goal_tolerance_m!r} (else the robot starts at its goal)"
             )
-        area = _pair("synthetic_area_m", self.synthetic_area_m, "(width, height) metres")
-        if min(area) < 4:
+        substeps = self.dt_s / self.physics_dt_s
+        if substeps > MAX_SUBSTEPS + 1e-9:
             raise ConfigError(
-                f"config key 'synthetic_area_m' must be (width, height) of at least 4 m, got {self.synthetic_area_m!r}"
-            )
-        size = _pair("render_size_px", self.render_size_px, "(width, height) pixels")
-        if min(size) < 16 or not all(float(v).is_integer() for v in size):
-            raise ConfigError(
-                f"config key 'render_size_px' must be (width, height) integers >= 16 px, got {self.render_size_px!r}"
+                f"config keys 'dt_s' = {self.dt_s!r} and 'physics_dt_s' = {self.physics_dt_s!r} give {substeps:.3g} "
+                f"substeps per control step; at most {MAX_SUBSTEPS} are allowed"
             )
         substep_s = self.dt_s / self.substeps
         closing_m = (1.5 + self.robot_pref_speed_mps) * substep_s
         if closing_m > self.robot_radius_m + self.pedestrian_radius_m:
             raise ConfigError(
-                f"config key 'physics_dt_s' = {self.physics_dt_s!r} is too long: a 1.5 m/s pedestrian and the robot close "
-                f"{closing_m:.2f} m per substep, more than the sum of radii "
-                f"{self.robot_radius_m + self.pedestrian_radius_m:.2f} m (contacts could be missed)"
+                f"config key 'physics_dt_s' = {self.physics_dt_s!r} is too long for 'robot_pref_speed_mps' = "
+                f"{self.robot_pref_speed_mps!r}: a 1.5 m/s pedestrian and the robot close {closing_m:.3g} m per substep, "
+                f"more than the sum of radii {self.robot_radius_m + self.pedestrian_radius_m:.3g} m (contacts could be "
+                "missed)"
             )
         return self
 
 
+def check_value(key: str, value: Any) -> None:
+    """Raise :class:`ConfigError` unless ``value`` is allowed for ``key`` on its own (type, finiteness, range;
+    how keys go together is checked by :meth:`CrowdNavConfig.validate`)."""
+    if key in _CHOICES:
+        _one_of(key, value, _CHOICES[key])
+    elif key == "scenes":
+        if not (isinstance(value, tuple) and all(isinstance(x, str) for x in value)):
+            raise ConfigError(f"config key 'scenes' must be a list of recording or scene names, got {value!r}")
+    elif key in ("data_dir", "forecast_cache_dir"):
+        if value is not None and not (isinstance(value, str | os.PathLike) and str(value)):
+            raise ConfigError(f"config key {key!r} must be a folder path or null, got {value!r}")
+    elif key in _FLAGS:
+        if not isinstance(value, bool | np.bool_):
+            raise ConfigError(f"config key {key!r} must be true or false, got {value!r}")
+    elif key in _NUMBERS:
+        _number(key, value, *_NUMBERS[key])
+    elif key in _INTEGERS:
+        lo, hi = _INTEGERS[key]
+        ok = isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)
+        if not (ok and value >= lo and (hi is None or value <= hi)):
+            what = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+            raise ConfigError(f"config key {key!r} must be an integer {what}, got {value!r}")
+    elif key == "start_goal_distance_m":
+        dist = _pair(key, value, "(min, max) metres")
+        if not 0 < dist[0] <= dist[1]:
+            raise ConfigError(f"config key {key!r} must be (min, max) with 0 < min <= max, got {value!r}")
+    elif key == "synthetic_area_m":
+        if min(_pair(key, value, "(width, height) metres")) < 4:
+            raise ConfigError(f"config key {key!r} must be (width, height) of at least 4 m, got {value!r}")
+    elif key == "render_size_px":
+        size = _pair(key, value, "(width, height) pixels")
+        if not (all(16 <= v <= MAX_RENDER_PX for v in size) and all(v.is_integer() for v in size)):
+            raise ConfigError(
+                f"config key {key!r} must be (width, height) integers in [16, {MAX_RENDER_PX}] px, got {value!r}"
+            )
+    else:  # pragma: no cover (a new field without a check)
+        raise ConfigError(f"config key {key!r} has no check")
+
+
+#: Longest physics substep count per control step (``dt_s / physics_dt_s``).
+MAX_SUBSTEPS: Final[int] = 1000
+#: Largest rendered frame side, pixels.
+MAX_RENDER_PX: Final[int] = 4096
+#: Keys with a fixed set of string values.
+_CHOICES: Final[dict[str, tuple[str, ...]]] = {
+    "split": SPLITS,
+    "part": EPISODE_PARTS,
+    "crowd": CROWDS,
+    "predictor": FORECAST_SOURCES,
+    "kinematics": KINEMATICS,
+    "forecast_memory": FORECAST_MEMORIES,
+    "episode_time": EPISODE_TIMES,
+}
 #: Boolean keys.
 _FLAGS: Final[tuple[str, ...]] = (
     "terminate_on_collision",
@@ -240,12 +271,12 @@ _FLAGS: Final[tuple[str, ...]] = (
     "cache_forecasts",
     "forecast_disk_cache",
 )
-#: Integer keys -> smallest allowed value.
-_INTEGERS: Final[dict[str, int]] = {
-    "num_pedestrians": 1,
-    "horizon_steps": 1,
-    "render_trail_steps": 1,
-    "synthetic_seed": 0,
+#: Integer keys -> (smallest, largest or None) allowed value.
+_INTEGERS: Final[dict[str, tuple[int, int | None]]] = {
+    "num_pedestrians": (1, 1000),
+    "horizon_steps": (1, 1000),
+    "render_trail_steps": (1, 10_000),
+    "synthetic_seed": (0, None),
 }
 #: Real keys -> (low, high, low open, high open); None = unbounded. Every one must also be finite.
 _NUMBERS: Final[dict[str, tuple[float | None, float | None, bool, bool]]] = {
@@ -271,7 +302,7 @@ _NUMBERS: Final[dict[str, tuple[float | None, float | None, bool, bool]]] = {
     "progress_gamma": (0.0, 1.0, True, False),
     "intrusion_penalty": (None, None, False, False),
     "time_penalty": (None, None, False, False),
-    "synthetic_duration_s": (0.0, None, True, False),
+    "synthetic_duration_s": (1.0, None, False, False),
     "synthetic_arrival_rate_per_s": (0.0, None, False, False),
     "render_px_per_m": (0.0, None, True, False),
 }
@@ -355,6 +386,11 @@ def config_from(
         base = load_yaml(config)
     else:
         raise ConfigError(f"config must be a mapping or a YAML path, got {type(config).__name__}")
+    # a value of ``config`` a keyword overrides (the id's predictor, say) is still checked: nonsense is refused,
+    # never silently dropped
+    for key in set(base) & set(overrides):
+        shadowed = replace_checked(CrowdNavConfig(), {key: base[key]}, where="env config")
+        check_value(key, getattr(shadowed, key))
     merged = {**base, **overrides}
     cfg = replace_checked(CrowdNavConfig(), merged, where="env config")
     return cfg.validate()

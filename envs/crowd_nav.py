@@ -95,7 +95,8 @@ def reset_options(options: Any, goal_tolerance_m: float) -> dict[str, Any]:
     for key in ("start", "goal"):
         if key in opts:
             try:
-                arr = np.asarray(opts[key], dtype=np.float64)
+                arr = np.asarray(opts[key])
+                arr = np.zeros(0) if arr.dtype.kind not in "iuf" else arr.astype(np.float64)  # no bools, strings
             except (TypeError, ValueError):
                 arr = np.zeros(0)
             if arr.shape != (2,) or not np.all(np.isfinite(arr)):

@@ -182,6 +182,17 @@ class EpisodeSampler:
             rec = self.recordings[int(rng.choice(len(self.recordings), p=self.weights))]
         times = rec.times_s()
         lo, hi = self.extents[rec.name]
+        for key, point in (("start", start), ("goal", goal)):
+            if (
+                point is not None
+                and (start is None or goal is None)
+                and not (np.all(point >= lo) and np.all(point <= hi))
+            ):
+                raise ValueError(
+                    f"reset option {key!r} {np.asarray(point).tolist()} lies outside the scene of {rec.name!r} (x in "
+                    f"[{lo[0]:.1f}, {hi[0]:.1f}], y in [{lo[1]:.1f}, {hi[1]:.1f}] m, where its pedestrians walk), where "
+                    "the other end is placed; give both 'start' and 'goal' to place the robot anywhere"
+                )
         if t0_s is not None and not 0.0 <= t0_s < float(times[-1]):
             raise ValueError(
                 f"reset option 't0_s' = {t0_s!r} lies outside the recording {rec.name!r}: valid [0, {times[-1]:.2f}) s"

@@ -19,6 +19,7 @@ Save an episode as a GIF::
 from __future__ import annotations
 
 import itertools
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -39,6 +40,8 @@ FORECAST = (240, 140, 20)
 TRUTH = (120, 120, 120)
 SENSOR = (225, 225, 240)
 TEXT = (30, 30, 30)
+#: Pixel coordinates and radii are clipped to this (Pillow overflows on huge ones, and slows down from ~1e5).
+FAR_PX = 1 << 16
 HUMAN_NEEDS_PYGAME = (
     'render_mode="human" needs pygame: pip install "crowdnav-mesrnn[render]" (render_mode="rgb_array" works without it)'
 )
@@ -122,9 +125,10 @@ class Renderer:
             self.font = None
 
     def to_px(self, p: np.ndarray, center: np.ndarray) -> tuple[int, int]:
+        """Pixel of a world point, clipped to :data:`FAR_PX` around the frame (Pillow overflows far beyond it)."""
         x = self.size[0] / 2 + (p[0] - center[0]) * self.scale
         y = self.size[1] / 2 - (p[1] - center[1]) * self.scale
-        return round(float(x)), round(float(y))
+        return round(min(max(float(x), -FAR_PX), FAR_PX)), round(min(max(float(y), -FAR_PX), FAR_PX))
 
     def draw(self, scene: Scene) -> np.ndarray | None:
         """Draw a frame: ``(H, W, 3)`` uint8 in ``rgb_array`` mode, None in ``human`` mode."""
@@ -137,20 +141,22 @@ class Renderer:
 
         def disk(p: np.ndarray, radius_m: float, colour: tuple[int, int, int], outline: int = 0) -> None:
             x, y = self.to_px(p, c)
-            r = max(1, round(radius_m * self.scale))
+            r = max(1, round(min(radius_m * self.scale, FAR_PX)))
             if outline:
                 pen.ellipse((x - r, y - r, x + r, y + r), outline=colour, width=outline)
             else:
                 pen.ellipse((x - r, y - r, x + r, y + r), fill=colour)
 
-        # 1 m grid
+        # 1 m grid (10 m, 100 m, ... when lines would be closer than 4 px; none when even 1 m is under a pixel)
+        step = 10.0 ** max(0, math.ceil(math.log10(4.0 / self.scale))) if self.scale < 4.0 else 1.0
         half_w, half_h = width / 2 / self.scale, height / 2 / self.scale
-        for gx in range(int(np.floor(c[0] - half_w)), int(np.ceil(c[0] + half_w)) + 1):
-            x = self.to_px(np.array([gx, c[1]]), c)[0]
-            pen.line((x, 0, x, height), fill=GRID)
-        for gy in range(int(np.floor(c[1] - half_h)), int(np.ceil(c[1] + half_h)) + 1):
-            y = self.to_px(np.array([c[0], gy]), c)[1]
-            pen.line((0, y, width, y), fill=GRID)
+        if width / 2 / step * self.scale >= 1.0 and math.isfinite(half_w + half_h + c[0] + c[1]):
+            for k in range(math.floor((c[0] - half_w) / step), math.ceil((c[0] + half_w) / step) + 1):
+                x = self.to_px(np.array([k * step, c[1]]), c)[0]
+                pen.line((x, 0, x, height), fill=GRID)
+            for k in range(math.floor((c[1] - half_h) / step), math.ceil((c[1] + half_h) / step) + 1):
+                y = self.to_px(np.array([c[0], k * step]), c)[1]
+                pen.line((0, y, width, y), fill=GRID)
         disk(scene.robot, scene.sensor_range_m, SENSOR, outline=1)
         disk(scene.goal, scene.goal_tolerance_m, GOAL, outline=2)
         gx, gy = self.to_px(scene.goal, c)
@@ -164,7 +170,7 @@ class Renderer:
                 pts = [self.to_px(p, c) for p in fc]
                 for a, b in itertools.pairwise(pts):
                     # dotted polyline: a dot every 4 px along each segment
-                    n = max(1, int(np.hypot(b[0] - a[0], b[1] - a[1]) // 4))
+                    n = max(1, min(int(np.hypot(b[0] - a[0], b[1] - a[1]) // 4), (width + height) // 2))
                     for i in range(n):
                         t = i / n
                         x, y = round(a[0] + t * (b[0] - a[0])), round(a[1] + t * (b[1] - a[1]))
