@@ -196,7 +196,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     ``reset(options=...)`` may fix ``recording``, ``t0_s``, ``start``, ``goal`` and ``time_limit_s``.
     The reset ``info`` holds ``recording``, ``crowd``, ``predictor``, ``t0_s``, ``start``, ``goal``,
     ``time_limit_s``, ``crowd_density`` (mean number of pedestrians within ``sensor_range_m`` of the
-    start-goal segment at the annotation times of the episode) and ``pedestrians_near_path``.
+    start-goal segment at the annotation times of the episode, frames the file skips counting as empty) and
+    ``pedestrians_near_path``.
 
     ## Episode End
 

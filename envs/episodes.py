@@ -27,7 +27,8 @@ class Episode:
         time_limit_s: truncation after this many seconds.
         max_steps: truncation after this many control steps.
         crowd_density: mean number of pedestrians within the sensor range of the straight start-goal segment,
-            over the annotation times of ``[t0_s, t0_s + time_limit_s]`` (policy-independent).
+            over the annotation times of ``[t0_s, t0_s + time_limit_s]`` (every ``step_s``; frames the file does
+            not list count as empty; policy-independent).
         pedestrians_near_path: distinct pedestrians within the sensor range of that segment at those times.
     """
 
@@ -45,12 +46,21 @@ def crowd_near_path(
     recording: Recording, t0_s: float, time_limit_s: float, start: np.ndarray, goal: np.ndarray, range_m: float
 ) -> tuple[float, int]:
     """``(mean count, distinct pedestrians)`` within ``range_m`` (centre distance) of the segment ``start``-``goal``
-    at the recording's annotation times in ``[t0_s, t0_s + time_limit_s]`` (0, 0 when there are none)."""
+    at the recording's annotation times in ``[t0_s, t0_s + time_limit_s]`` (0, 0 when there are none).
+
+    The mean is over every annotation time of the window (every ``step_s``), not only over the frames the
+    file lists: ETH/UCY files have no rows for a frame without pedestrians, so a gap in the frame numbers (or
+    time after the recording's end) is time when nobody was there, and counts as zero.
+    """
     times = recording.times_s()
     i0 = int(np.searchsorted(times, t0_s - TIME_TOL_S, "left"))
     i1 = int(np.searchsorted(times, t0_s + time_limit_s + TIME_TOL_S, "right"))
     if i1 <= i0:
         return 0.0, 0
+    step = float(recording.step_s)
+    first = math.ceil((t0_s - TIME_TOL_S) / step)
+    last = math.floor((t0_s + time_limit_s + TIME_TOL_S) / step)
+    slots = max(last - first + 1, i1 - i0)
     present = recording.present[i0:i1]
     seg = np.asarray(goal, dtype=np.float64) - np.asarray(start, dtype=np.float64)
     length2 = float(seg @ seg)
@@ -58,7 +68,7 @@ def crowd_near_path(
     along = np.clip((rel @ seg) / length2, 0.0, 1.0) if length2 > 0 else np.zeros(present.shape)
     dist = np.linalg.norm(rel - along[..., None] * seg, axis=-1)
     near = present & (dist <= range_m)
-    return float(near.sum(axis=1).mean()), int(near.any(axis=0).sum())
+    return float(near.sum()) / slots, int(near.any(axis=0).sum())
 
 
 def recording_extent(recording: Recording, margin_m: float = 0.5) -> tuple[np.ndarray, np.ndarray]:

@@ -63,6 +63,23 @@ def test_crowd_density_counts_pedestrians_near_the_segment() -> None:
     assert info["crowd_density"] == pytest.approx(1.5) and info["pedestrians_near_path"] == 2
 
 
+def test_crowd_density_counts_empty_frames_as_empty() -> None:
+    """ETH/UCY files list only frames with pedestrians: a gap in the frame numbers is time when nobody was
+    there, and counts as zero (averaging over the listed frames only called a mostly empty episode crowded)."""
+    from dataclasses import replace
+
+    crowd = scripted_recording([np.tile([4.0, 1.0], (40, 1))])  # one pedestrian near the path at every frame
+    keep = np.r_[0:10, 30:40]  # frames 10..29 (8 s) have no rows in the file: the scene is empty then
+    gappy = replace(crowd, frames=crowd.frames[keep], positions=crowd.positions[keep], present=crowd.present[keep])
+    density, near = crowd_near_path(gappy, 0.0, 15.6, np.zeros(2), np.array([8.0, 0.0]), 6.0)
+    assert near == 1 and density == pytest.approx(20 / 40)
+    # an episode inside the gap sees nobody; one running past the recording's end counts the time after it as empty
+    assert crowd_near_path(gappy, 5.2, 4.0, np.zeros(2), np.array([8.0, 0.0]), 6.0) == (0.0, 0)
+    # frames 30..39, then 10 empty annotation times after the recording's end
+    density, _ = crowd_near_path(gappy, 12.0, 7.6, np.zeros(2), np.array([8.0, 0.0]), 6.0)
+    assert density == pytest.approx(10 / 20)
+
+
 def test_episode_metrics_only_under_their_own_key() -> None:
     crowd = scripted_recording([np.tile([2.0, 1.0], (80, 1))])
     env = CrowdNavEnv(predictor="none", crowd=crowd, time_limit_factor=1.0)
