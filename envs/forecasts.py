@@ -244,6 +244,7 @@ class PredictorForecast(ForecastSource):
     ) -> None:
         self.name = name
         self.memory = "window"
+        self.whole_recording = False  # compute_chunks computes one chunk (True: every chunk of the recording)
         self.predictors = predictors
         self.default = default
         self.dt_s = dt_s
@@ -378,7 +379,9 @@ class PredictorForecast(ForecastSource):
         else:
             loaded = self.store.load(key, chunk, recording, quiet=True)  # files appear atomically: read unlocked
             if loaded is None:
-                with self.store.locked(key, chunk):  # whoever holds the lock computes; the others then load
+                # whoever holds the lock computes; the others then load (a source computing every chunk at once
+                # locks the whole recording, chunk 0's lock, so a process needing another chunk waits for that pass)
+                with self.store.locked(key, 0 if self.whole_recording else chunk):
                     loaded = self.store.load(key, chunk, recording)
                     if loaded is None:
                         tables = self.compute_chunks(recording, chunk)
@@ -538,6 +541,7 @@ class CarriedPredictorForecast(PredictorForecast):
     ) -> None:
         super().__init__(name, predictors, default, dt_s, horizon, cache, store)
         self.memory = "carried"
+        self.whole_recording = True
         for model in [*predictors.values(), *([default] if default is not None else [])]:
             if not callable(getattr(model, "online", None)):
                 raise ConfigError(

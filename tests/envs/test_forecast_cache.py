@@ -154,6 +154,52 @@ def test_processes_share_the_cache(tmp_path: Path) -> None:
     assert json.loads(out.strip().splitlines()[-1]) == {"calls": 0, "computed": 0, "loaded": 4}
 
 
+CARRIED = """
+import json, sys, time, numpy as np
+from envs.crowd_nav import CrowdNavEnv
+from envs.recordings import scripted_recording
+
+class Slow:  # a carried-memory predictor whose pass over the recording takes ~2 s (sleeping, not computing)
+    name, obs_len, pred_len = "slow", 8, 12
+    def cache_fingerprint(self):
+        return "slow-v1"
+    def forecast(self, history, mask):
+        return np.repeat(history[-1][:, None], 12, axis=1)
+    def online(self, num_slots):
+        return Walk(num_slots)
+
+class Walk:
+    def __init__(self, n):
+        self.last = np.zeros((n, 2), np.float32)
+    def observe(self, positions, present):
+        self.last = np.where(present[:, None], positions, self.last).astype(np.float32)
+    def forecast(self):
+        time.sleep(0.01)
+        return np.repeat(self.last[:, None], 12, axis=1)
+
+rng = np.random.default_rng(0)
+paths = [np.cumsum(rng.normal(0.0, 0.3, (200, 2)), axis=0) + 3.0 * k for k in range(3)]
+env = CrowdNavEnv(predictor=Slow(), crowd=scripted_recording(paths, name="carried"), forecast_memory="carried")
+env.forecaster.chunk(env.recordings[0], int(sys.argv[1]))
+f = env.forecaster
+print(json.dumps({"computed": f.chunks_computed, "loaded": f.chunks_loaded}))
+"""
+
+
+def test_carried_forecasts_are_computed_once_by_processes_started_together(tmp_path: Path) -> None:
+    """A carried-memory pass computes every chunk of a recording at once: a process needing another chunk must
+    wait for it rather than run the whole pass again (each SubprocVecEnv worker did)."""
+    env = {**os.environ, CACHE_ENV_VAR: str(tmp_path)}
+    pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    procs = [subprocess.Popen([sys.executable, "-c", CARRIED, c], cwd=REPO, env=env, **pipes) for c in ("0", "3")]
+    results = []
+    for proc in procs:
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 0, err
+        results.append(json.loads(out.strip().splitlines()[-1]))
+    assert sum(r["computed"] for r in results) == 4 and sum(r["loaded"] for r in results) == 1, results
+
+
 def test_build_command_fills_the_cache_for_envs(
     data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
