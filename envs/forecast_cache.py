@@ -333,8 +333,10 @@ def describe(root: str | os.PathLike[str] | None = None) -> list[dict[str, Any]]
     if not base.is_dir():
         return []
     for path in sorted(base.glob("*/*.npz")):
-        stem = path.stem  # <recording>-<digest>-cNNNN
-        recording, digest, _ = stem.rsplit("-", 2)
+        parts = path.stem.rsplit("-", 2)  # <recording>-<digest>-cNNNN
+        if len(parts) != 3 or len(parts[1]) != 20 or not parts[2].startswith("c"):
+            continue  # not a chunk file of this cache
+        recording, digest, _ = parts
         row = rows.setdefault(
             (path.parent.name, recording, digest),
             {"source": path.parent.name, "recording": recording, "key": digest, "chunks": 0, "bytes": 0},

@@ -253,3 +253,11 @@ def test_a_cache_folder_that_cannot_be_written_falls_back_to_memory_with_a_warni
     # filling the cache ahead into such a folder is an error (exit 2), not a silent in-memory computation
     args = ["forecasts", "build", "--predictor", "mesrnn", "--split", "eth", "--part", "test", "--no-progress"]
     assert main([*args, "--cache-dir", str(blocker / "cache")]) == 2
+
+
+def test_info_skips_files_it_did_not_write(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``forecasts info`` failed with 'not enough values to unpack' on any other .npz file in the folder."""
+    (tmp_path / "mesrnn-window").mkdir()
+    (tmp_path / "mesrnn-window" / "notes.npz").write_bytes(b"x")
+    assert main(["forecasts", "info", "--cache-dir", str(tmp_path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["entries"] == []
