@@ -14,7 +14,7 @@ SAC_YAML = REPO / "configs" / "agent" / "sac.yaml"
 
 def tiny_overrides(algo: str, predictor: str, steps: int = 128, **extra: Any) -> dict[str, Any]:
     """Overrides making a training run take a few seconds: one environment, tiny networks, the synthetic
-    crowd (no data needed), a 2-episode validation and a checkpoint every 64 steps."""
+    crowd (no data needed), a 2-episode validation, a checkpoint every 64 steps and (PPO) a tiny warm start."""
     out: dict[str, Any] = {
         "predictor": predictor,
         "n_envs": 1,
@@ -29,6 +29,17 @@ def tiny_overrides(algo: str, predictor: str, steps: int = 128, **extra: Any) ->
     }
     if algo == "ppo":
         out.update({"n_steps": 64, "batch_size": 32, "n_epochs": 1})
+        # the shipped recipe's DAgger warm start, shrunk to two teacher and two student episodes
+        out.update(
+            {
+                "pretrain.episodes": 2,
+                "pretrain.epochs": 1,
+                "pretrain.dagger_rounds": 1,
+                "pretrain.dagger_episodes": 2,
+                "pretrain.dagger_epochs": 1,
+                "pretrain.n_envs": 2,
+            }
+        )
     else:
         out.update({"learning_starts": 32, "buffer_size": 500, "batch_size": 32})
     out.update(extra)

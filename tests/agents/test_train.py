@@ -21,7 +21,7 @@ from agents.train import (
     policy_class,
     train,
 )
-from crowdnav_mesrnn.config import ConfigError
+from crowdnav_mesrnn.config import ConfigError, load_yaml
 
 ARMS = ("none", "cv", "mesrnn", "oracle")
 REPO = Path(__file__).resolve().parents[2]
@@ -75,7 +75,8 @@ def test_overrides_go_to_the_entry_or_the_project_section() -> None:
     assert (cfg.algo, cfg.env_id, cfg.predictor, cfg.split, cfg.seed) == ("ppo", "CrowdNav-CV-v0", "cv", "univ", 3)
     assert cfg.env["time_penalty"] == -0.01 and cfg.env["observe_time_left"] is True
     assert cfg.eval.episodes == 7 and cfg.policy_kwargs["net_arch"] == [32]
-    assert cfg.policy_kwargs["features_extractor_kwargs"]["hidden_dim"] == 64  # siblings kept
+    shipped = load_yaml(PPO_YAML)["CrowdNav-MESRNN-v0"]["policy_kwargs"]["features_extractor_kwargs"]
+    assert cfg.policy_kwargs["features_extractor_kwargs"] == shipped  # siblings of the overridden key kept
     assert cfg.pretrain is not None and cfg.pretrain.episodes == 5 and cfg.pretrain.teacher == "planner"
     kwargs = algorithm_kwargs(cfg)
     assert isinstance(kwargs["learning_rate"], LinearSchedule) and kwargs["learning_rate"](0.5) == 5e-4
@@ -87,7 +88,10 @@ def test_overrides_go_to_the_entry_or_the_project_section() -> None:
         "episode_time": "val",
     }
     # a second load is unaffected (the YAML aliases are copied, not shared)
-    assert load_train_config(PPO_YAML).policy_kwargs["net_arch"] == {"pi": [64, 64], "vf": [64, 64]}
+    assert (
+        load_train_config(PPO_YAML).policy_kwargs["net_arch"]
+        == load_yaml(PPO_YAML)["CrowdNav-MESRNN-v0"]["policy_kwargs"]["net_arch"]
+    )
     assert load_train_config(PPO_YAML, None, {"predictor": "srnn"}).env_id == "CrowdNav-MESRNN-v0"
 
 
@@ -147,15 +151,16 @@ def test_short_run_writes_a_complete_folder_and_resumes(tmp_path: Path, algo: st
     cfg = load_train_config(path, None, tiny(algo, predictor, steps=128))
     assert train(cfg, run, progress=False, command="pytest") == run
     _check_run_folder(run, 128, predictor)
-    evaluations = (run / "evaluations.csv").read_text().splitlines()
-    assert len(evaluations) == 1 + 2  # validations at 64 and 128 steps
+    warm = [0] if cfg.pretrain is not None else []  # the warm-started policy is validated before any RL step
+    with open(run / "evaluations.csv", newline="") as fh:
+        assert [int(r["step"]) for r in csv.DictReader(fh)] == [*warm, 64, 128]
 
     more = load_train_config(path, None, tiny(algo, predictor, steps=192))
     train(more, run, resume=True, progress=False, command="pytest --resume")
     _check_run_folder(run, 192, predictor)
     assert "resumed from step_0000000128" in (run / "command.txt").read_text()
     with open(run / "evaluations.csv", newline="") as fh:
-        assert [int(r["step"]) for r in csv.DictReader(fh)] == [64, 128, 192]
+        assert [int(r["step"]) for r in csv.DictReader(fh)] == [*warm, 64, 128, 192]
 
 
 def test_a_finished_or_foreign_folder_is_not_overwritten(tiny_ppo_run: Path, tmp_path: Path, tiny: Any) -> None:
@@ -187,7 +192,7 @@ def test_command_line_trains_and_resumes(tmp_path: Path, tiny: Any) -> None:
 
 
 def test_warm_start_runs_before_rl_and_is_validated_at_step_zero(tmp_path: Path, tiny: Any) -> None:
-    extra = {"pretrain.episodes": 3, "pretrain.epochs": 1, "pretrain.n_envs": 2}
+    extra = {"pretrain.episodes": 3, "pretrain.epochs": 1, "pretrain.n_envs": 2, "pretrain.dagger_rounds": 0}
     cfg = load_train_config(PPO_YAML, None, tiny("ppo", "cv", steps=64, **extra))
     run = train(cfg, tmp_path / "bc", progress=False)
     stats = json.loads((run / "pretrain.json").read_text())
