@@ -17,7 +17,11 @@ ENV = {"predictor": "cv", "crowd": "synthetic", "part": "train", "episode_time":
 def tiny_model(algo: str, config_of: Any, tiny: Any) -> Any:
     from stable_baselines3 import PPO, SAC
 
-    cfg = load_train_config(config_of(algo), None, tiny(algo, "cv", vec_env="dummy"))
+    # the regression on the environment's (world-frame) action, with the extractor in the world frame too
+    extra = (
+        {"action.kind": "continuous", "policy_kwargs.features_extractor_kwargs.frame": "world"} if algo == "ppo" else {}
+    )
+    cfg = load_train_config(config_of(algo), None, tiny(algo, "cv", vec_env="dummy", **extra))
     venv = make_vec_env(cfg)
     cls = {"ppo": PPO, "sac": SAC}[algo]
     return cls(policy_class(cfg.policy), venv, seed=0, device="cpu", **algorithm_kwargs(cfg))
