@@ -26,6 +26,7 @@ from typing import Any, Final
 
 import numpy as np
 import torch
+from gymnasium import spaces as gym_spaces
 from torch.nn import functional as F
 
 from agents.evaluate import run_episodes
@@ -267,6 +268,11 @@ def fit_policy(
     from stable_baselines3.common.policies import ActorCriticPolicy
 
     policy = model.policy
+    if actions is None and not isinstance(getattr(model, "action_space", None), gym_spaces.Box):
+        raise ValueError(
+            f"the policy's action space is {model.action_space}: pass the discrete action set (actions=...) to label "
+            "the teacher's continuous actions"
+        )
     obs_np = data.observations
     if vecnormalize is not None:
         for key in vecnormalize.norm_obs_keys or []:

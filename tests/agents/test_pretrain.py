@@ -92,3 +92,13 @@ def test_dagger_rounds_label_the_students_states_with_the_teachers_actions(confi
     np.testing.assert_allclose(data.actions, teacher.predict(data.observations)[0], atol=1e-6)
     with pytest.raises(Exception, match="dagger_rounds"):
         PretrainConfig(dagger_rounds=-1).validate()
+
+
+def test_a_discrete_policy_without_its_action_set_is_refused(config_of: Any, tiny: Any) -> None:
+    from stable_baselines3 import PPO
+
+    cfg = load_train_config(config_of("ppo"), None, tiny("ppo", "cv", vec_env="dummy"))  # discrete actions
+    model = PPO(policy_class(cfg.policy), make_vec_env(cfg), seed=0, device="cpu", **algorithm_kwargs(cfg))
+    pre = PretrainConfig(episodes=2, epochs=1)
+    with pytest.raises(ValueError, match="discrete action set"):
+        fit_policy(model, collect_teacher(pre, ENV, seed=0, gamma=0.99), pre, seed=0)
