@@ -203,26 +203,15 @@ def concatenate(parts: list[TeacherData]) -> TeacherData:
     )
 
 
-class _Student:
-    """The policy being warm-started, acting on plain environment observations (normalised for it when the
-    training uses ``VecNormalize``; discrete choices mapped to environment actions)."""
+def student_policy(model: Any, vecnormalize: Any = None, actions: Any = None) -> Any:
+    """The policy being warm-started, acting on plain environment observations like every policy of
+    :mod:`agents.evaluate` (normalised for it when training uses ``VecNormalize``; discrete choices mapped to
+    environment actions)."""
+    from agents.actions import DiscretePolicy
+    from agents.evaluate import SB3Policy
 
-    def __init__(self, model: Any, vecnormalize: Any = None, actions: Any = None) -> None:
-        self.model = model
-        self.vecnormalize = vecnormalize
-        self.actions = actions
-
-    def predict(
-        self, obs: Mapping[str, np.ndarray], state: Any = None, episode_start: Any = None, deterministic: bool = True
-    ) -> tuple[np.ndarray, None]:
-        seen = dict(obs) if self.vecnormalize is None else self.vecnormalize.normalize_obs(dict(obs))
-        out, _ = self.model.predict(seen, deterministic=deterministic)
-        if self.actions is not None:
-            single = np.ndim(obs["mask"]) == 1
-            robot = np.asarray(obs["robot"])
-            out = self.actions.to_env_actions(np.atleast_1d(out), robot[None] if single else robot)
-            out = out[0] if single else out
-        return out, None
+    policy = SB3Policy(model, vecnormalize, source="warm start")
+    return policy if actions is None else DiscretePolicy(policy, actions)
 
 
 def _action_loss(policy: Any, obs: dict[str, torch.Tensor], target: torch.Tensor, loss: str) -> torch.Tensor:
@@ -352,7 +341,7 @@ def pretrain(
     teacher_success = sum(o == "success" for o in data.outcomes) / max(len(data.outcomes), 1)
     losses = fit_policy(model, data, cfg, seed, vecnormalize, actions)
     rounds: list[dict[str, Any]] = []
-    student = _Student(model, vecnormalize, actions)
+    student = student_policy(model, vecnormalize, actions)
     for r in range(1, cfg.dagger_rounds + 1):
         new = collect_teacher(cfg, env_kwargs, seed, gamma, progress=progress, driver=student, round_=r)
         data = concatenate([data, new])

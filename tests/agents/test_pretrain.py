@@ -72,7 +72,7 @@ def test_dagger_rounds_label_the_students_states_with_the_teachers_actions(confi
 
     from agents.actions import GoalRelativeActions
     from agents.planners import SamplingPlanner
-    from agents.pretrain import _Student, pretrain
+    from agents.pretrain import pretrain, student_policy
     from envs.config import config_from
 
     cfg = load_train_config(config_of("ppo"), None, tiny("ppo", "cv", vec_env="dummy", **{"action.kind": "discrete"}))
@@ -87,7 +87,7 @@ def test_dagger_rounds_label_the_students_states_with_the_teachers_actions(confi
     sizes = [r["transitions"] for r in stats["dagger"]]
     assert sizes[0] < sizes[1] == stats["transitions"]  # every round adds to the aggregate
     # a round's data: observations the student met, labelled by the teacher (not by the student)
-    data = collect_teacher(pre, ENV, seed=0, gamma=0.99, driver=_Student(model, None, actions), round_=1)
+    data = collect_teacher(pre, ENV, seed=0, gamma=0.99, driver=student_policy(model, None, actions), round_=1)
     teacher = SamplingPlanner(config_from(ENV, {}))
     np.testing.assert_allclose(data.actions, teacher.predict(data.observations)[0], atol=1e-6)
     with pytest.raises(Exception, match="dagger_rounds"):
