@@ -1382,6 +1382,33 @@ def _pair_up(
     return [p[0] for p in pairs], sa, sb, ta, tb
 
 
+def _seed_level(
+    a: _Episodes,
+    b: _Episodes,
+    keys: Sequence[tuple[int | None, int]],
+    sa: np.ndarray,
+    sb: np.ndarray,
+    confidence: float,
+) -> dict[str, Any] | None:
+    """Welch's t-test on per-seed success rates over the paired episodes (the training seed as the unit);
+    a side without seeds (a planner) is one fixed rate. ``None`` when neither side has seeds."""
+    from agents.stats import welch_seed_test
+
+    a_seeded = any(s is not None for _, s, _ in a.keys)
+    b_seeded = any(s is not None for _, s, _ in b.keys)
+    if not (a_seeded or b_seeded):
+        return None
+    seeds = np.asarray([-1 if s is None else s for s, _ in keys])
+    groups = [seeds == s for s in np.unique(seeds)]
+
+    def rates(success: np.ndarray, seeded: bool) -> list[float]:
+        per = [float(success[g].mean()) for g in groups]
+        return per if seeded else per[:1]  # a seedless side repeats the same episodes for every seed
+
+    ra, rb = rates(sa, a_seeded), rates(sb, b_seeded)
+    return {**welch_seed_test(ra, rb, confidence), "rates_a": ra, "rates_b": rb}
+
+
 def paired_tests(
     cfg: AblationConfig, pooled: Mapping[tuple[str, str], _Episodes]
 ) -> tuple[list[dict[str, Any]], dict[str, int]]:
@@ -1405,12 +1432,13 @@ def paired_tests(
         if ea is None or eb is None:
             tests.append({**base, "endpoint": "success", "missing": True})
             continue
-        _, sa, sb, ta, tb = _pair_up(ea, eb, split)
+        keys, sa, sb, ta, tb = _pair_up(ea, eb, split)
         if sa.size == 0:
             tests.append({**base, "endpoint": "success", "missing": True})
             continue
         mc = mcnemar_exact(sa, sb)
-        tests.append({**base, "endpoint": "success", **mc})
+        seed_level = _seed_level(ea, eb, keys, sa, sb, 0.95)
+        tests.append({**base, "endpoint": "success", **mc, **({"seed_level": seed_level} if seed_level else {})})
         both = sa & sb
         wx = wilcoxon_paired(ta[both], tb[both])
         tests.append({**base, "endpoint": "navigation_time_s", "population": "episodes both finished", **wx})
@@ -1422,6 +1450,12 @@ def paired_tests(
             t["p_holm"] = adj
             t["family_size"] = len(members)
             t["significant"] = bool(adj <= cfg.alpha)
+    seed_tests = [t["seed_level"] for t in tests if t.get("seed_level") and math.isfinite(t["seed_level"]["p_value"])]
+    families["success_seed_level"] = len(seed_tests)
+    for st, adj in zip(seed_tests, holm([st["p_value"] for st in seed_tests]), strict=True):
+        st["p_holm"] = adj
+        st["family_size"] = len(seed_tests)
+        st["significant"] = bool(adj <= cfg.alpha)
     m = max(families.get("success", 0), 1)
     for t in tests:
         if t["endpoint"] == "success" and not t.get("missing"):
@@ -1668,6 +1702,34 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
             f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | {t['n']} | {t['b10']} | {t['b01']} | {diff} | "
             f"{_p(t['p_value'])} | {_p(t['p_holm'])}{star} | {mdd} | {mddh} |"
         )
+    seed_rows = [t for t in summary["tests"] if t["endpoint"] == "success" and t.get("seed_level")]
+    if seed_rows:
+        lines += [
+            "",
+            "Seed level (secondary): the McNemar test above is conditional on the trained policies, so it does not "
+            "count the variance between training seeds. Here each training seed's success rate over the same paired "
+            "episodes is one observation: Welch's t-test and 95 % t-interval on the difference of mean per-seed "
+            "rates (a policy without seeds is one fixed rate, which makes it a one-sample test), Holm-corrected over "
+            f"the {fam.get('success_seed_level', 0)} seed-level tests. With three seeds per arm these intervals are "
+            "wide: a difference can be clear episode by episode and still undetermined across training seeds.",
+            "",
+            "| split | a | b | per-seed rates a | per-seed rates b | diff a-b [95 % CI] | df | p | p Holm |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for t in seed_rows:
+            sl = t["seed_level"]
+            lo, hi = sl["difference_ci"]
+            diff = f"{100 * sl['difference']:+.1f}" + (
+                f" [{100 * lo:+.1f}, {100 * hi:+.1f}]" if lo is not None and hi is not None else ""
+            )
+            ra = " / ".join(f"{100 * r:.1f}" for r in sl["rates_a"])
+            rb = " / ".join(f"{100 * r:.1f}" for r in sl["rates_b"])
+            df = "-" if sl.get("df") is None else f"{sl['df']:.1f}"
+            star = " *" if sl.get("significant") else ""
+            lines.append(
+                f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | {ra} | {rb} | {diff} | {df} | "
+                f"{_p(sl.get('p_value'))} | {_p(sl.get('p_holm'))}{star} |"
+            )
     lines += [
         "",
         "Navigation time (s) of episodes both sides finished, a - b:",

@@ -25,6 +25,7 @@ __all__ = [
     "mcnemar_exact",
     "mcnemar_min_detectable_difference",
     "paired_bootstrap_diff_ci",
+    "welch_seed_test",
     "wilcoxon_paired",
     "wilson_interval",
 ]
@@ -180,6 +181,61 @@ def wilcoxon_paired(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.nda
         return out
     res = stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided")
     out.update(statistic=float(res.statistic), p_value=float(res.pvalue))
+    return out
+
+
+def welch_seed_test(
+    a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarray, confidence: float = 0.95
+) -> dict[str, Any]:
+    """Welch's t-test of ``mean(a) - mean(b)`` where each value is one training seed's rate.
+
+    The unit is the training seed, so the interval counts the variance between independently trained
+    policies that an episode-level test (McNemar over (seed, episode) pairs) leaves out. A side with a
+    single value is a fixed quantity (e.g. a deterministic planner evaluated once): it adds no variance
+    and no degrees of freedom, and the test becomes a one-sample t-test of the other side. Standard error
+    ``se = sqrt(var_a / n_a + var_b / n_b)`` (sample variances, ``ddof = 1``; 0 for a single value);
+    Welch-Satterthwaite degrees of freedom ``se**4 / sum((var_i / n_i)**2 / (n_i - 1))`` over the sides
+    with ``n_i >= 2``; interval ``difference +- t_{df, (1 + confidence) / 2} * se``. Without any seed
+    variance (fewer than two values on both sides, or identical values) there is nothing to test from:
+    ``p_value`` and the interval are ``nan`` and ``note`` says why.
+    """
+    _check_confidence(confidence)
+    x, y = _finite(a), _finite(b)
+    out: dict[str, Any] = {"test": "Welch t on per-seed rates", "n_a": int(x.size), "n_b": int(y.size)}
+    if x.size == 0 or y.size == 0:
+        out.update(
+            difference=math.nan,
+            difference_ci=[math.nan, math.nan],
+            p_value=math.nan,
+            df=math.nan,
+            note="a side has no seeds",
+        )
+        return out
+    diff = float(x.mean() - y.mean())
+    terms = [float(v.var(ddof=1)) / v.size for v in (x, y) if v.size >= 2]
+    dofs = [v.size - 1 for v in (x, y) if v.size >= 2]
+    se2 = sum(terms)
+    out["difference"] = diff
+    if se2 <= 0.0:
+        out.update(
+            difference_ci=[math.nan, math.nan],
+            p_value=math.nan,
+            df=math.nan,
+            statistic=math.nan,
+            note="no variance between seeds (fewer than two seeds, or identical rates)",
+        )
+        return out
+    df = se2**2 / sum(t * t / d for t, d in zip(terms, dofs, strict=True))
+    se = math.sqrt(se2)
+    t = diff / se
+    half = float(stats.t.ppf(0.5 + confidence / 2.0, df)) * se
+    out.update(
+        statistic=t,
+        df=df,
+        standard_error=se,
+        difference_ci=[diff - half, diff + half],
+        p_value=float(min(1.0, 2.0 * stats.t.sf(abs(t), df))),
+    )
     return out
 
 

@@ -370,7 +370,12 @@ def test_summary_statistics_on_hand_made_episodes(tmp_path: Path, fakes: Fakes) 
     assert bins[0]["success_rate"] == pytest.approx(2 / 4)  # episodes 0-3: S C C S
 
     tests = summary["tests"]
-    assert summary["multiple_comparisons"]["family_sizes"] == {"success": 2, "navigation_time_s": 2}
+    assert summary["multiple_comparisons"]["family_sizes"] == {
+        "success": 2,
+        "navigation_time_s": 2,
+        "success_seed_level": 0,  # a planner has no training seeds: no seed-level test
+    }
+    assert all("seed_level" not in t for t in summary["tests"])
     cv_vs_none = next(t for t in tests if t["a"]["arm"] == "cv" and t["endpoint"] == "success")
     # cv-only successes: episodes 1, 2, 5, 6, 10 (b10 = 5); none-only: none (b01 = 0)
     assert (cv_vs_none["b10"], cv_vs_none["b01"], cv_vs_none["n"]) == (5, 0, 12)
@@ -428,6 +433,17 @@ def test_summary_pairs_ppo_seeds_with_the_planner_and_counts_missing(tmp_path: P
     vs = next(t for t in summary["tests"] if t["comparison"] == "policies" and t["a"]["arm"] == "none")
     # 6 (seed, episode) pairs against the planner's 3 episodes; PPO fails where the planner succeeds 3 times
     assert (vs["n"], vs["b10"], vs["b01"]) == (6, 0, 3)
+    # seed level: per-seed rates 2/3 and 1/3 against the planner's fixed 1.0; difference -1/2, standard
+    # error sqrt(var / 2) = sqrt((1/18) / 2) = 1/6, t = -3 on 1 degree of freedom (a Cauchy distribution:
+    # two-sided p = 1 - 2 atan(3) / pi)
+    sl = vs["seed_level"]
+    assert sl["rates_a"] == pytest.approx([2 / 3, 1 / 3]) and sl["rates_b"] == pytest.approx([1.0])
+    assert sl["difference"] == pytest.approx(-0.5) and sl["df"] == pytest.approx(1.0)
+    assert sl["statistic"] == pytest.approx(-3.0)
+    assert sl["p_value"] == pytest.approx(1 - 2 * math.atan(3) / math.pi)
+    half = math.tan(math.pi * (0.975 - 0.5)) / 6  # t quantile on 1 df = Cauchy quantile
+    assert sl["difference_ci"] == pytest.approx([-0.5 - half, -0.5 + half])
+    assert sl["family_size"] == 1 and sl["p_holm"] == pytest.approx(sl["p_value"])
     missing = [t for t in summary["tests"] if t.get("missing")]
     assert {(t["a"]["policy"], t["a"]["arm"], t["b"]["policy"], t["b"]["arm"]) for t in missing} == {
         ("ppo", "mesrnn", "ppo", "none"),

@@ -15,6 +15,7 @@ from agents.stats import (
     mcnemar_exact,
     mcnemar_min_detectable_difference,
     paired_bootstrap_diff_ci,
+    welch_seed_test,
     wilcoxon_paired,
     wilson_interval,
 )
@@ -132,3 +133,29 @@ def test_min_detectable_difference_has_the_stated_power() -> None:
     assert 0.03 < delta < 0.045  # about (1.96 + 0.84) * sqrt(0.1 / 500) = 0.0396, a bit less
     assert math.isnan(mcnemar_min_detectable_difference(500, 0.0))
     assert mcnemar_min_detectable_difference(1500, psi) < delta
+
+
+def test_welch_seed_test_hand_value() -> None:
+    # means 0.85 and 0.6; sample variances 0.005 and 0.01; se^2 = 0.005/2 + 0.01/3
+    a, b = [0.80, 0.90], [0.5, 0.6, 0.7]
+    res = welch_seed_test(a, b)
+    se2 = 0.005 / 2 + 0.01 / 3
+    df = se2**2 / ((0.005 / 2) ** 2 / 1 + (0.01 / 3) ** 2 / 2)
+    assert res["difference"] == pytest.approx(0.25)
+    assert res["statistic"] == pytest.approx(0.25 / math.sqrt(se2))
+    assert res["df"] == pytest.approx(df) and res["df"] == pytest.approx(2.8824, abs=1e-3)
+    ref = sps.ttest_ind(a, b, equal_var=False)  # scipy's own Welch test
+    assert res["p_value"] == pytest.approx(ref.pvalue)
+    lo, hi = res["difference_ci"]
+    assert (lo + hi) / 2 == pytest.approx(0.25) and lo < 0.25 < hi
+
+
+def test_welch_seed_test_fixed_side_and_degenerate_inputs() -> None:
+    # one fixed value: a one-sample t-test of the other side against it
+    res = welch_seed_test([0.7, 0.8, 0.9], [0.95])
+    ref = sps.ttest_1samp([0.7, 0.8, 0.9], 0.95)
+    assert res["df"] == pytest.approx(2.0) and res["p_value"] == pytest.approx(ref.pvalue)
+    for a, b in (([0.5], [0.6]), ([0.5, 0.5], [0.5, 0.5])):
+        res = welch_seed_test(a, b)
+        assert math.isnan(res["p_value"]) and "no variance" in res["note"]
+    assert "no seeds" in welch_seed_test([], [0.5])["note"]
