@@ -1777,16 +1777,22 @@ def write_plots(summary: Mapping[str, Any], dest: Path) -> list[str]:
     written: list[str] = []
     colours = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:grey"}
 
-    fig, axes = plt.subplots(1, len(policies), figsize=(5 * len(policies), 3.6), squeeze=False, sharey=True)
-    for ax, (name, pol) in zip(axes[0], policies.items(), strict=True):
-        arms = list(pol["arms"])
-        x = np.arange(len(arms))
-        for j, o in enumerate(OUTCOMES):
-            vals = np.asarray([_err(pol["arms"][a], o) for a in arms])
-            ax.bar(x + (j - 1) * 0.27, vals[:, 0], 0.27, yerr=vals[:, 1:].T, color=colours[o], label=o, capsize=2)
-        ax.set_xticks(x, arms, rotation=30, ha="right")
-        ax.set_title(name)
-        ax.set_ylim(0, 1)
+    # one row pooled over splits, then one row per split (splits differ in difficulty, so pooling alone hides them)
+    views: list[str | None] = [None, *summary["splits"]] if len(summary["splits"]) > 1 else [None]
+    fig, axes = plt.subplots(
+        len(views), len(policies), figsize=(5 * len(policies), 3.6 * len(views)), squeeze=False, sharey=True
+    )
+    for row, view in enumerate(views):
+        for ax, (name, pol) in zip(axes[row], policies.items(), strict=True):
+            entries = {a: (e if view is None else e.get("by_split", {}).get(view)) for a, e in pol["arms"].items()}
+            arms = [a for a, e in entries.items() if e]
+            x = np.arange(len(arms))
+            for j, o in enumerate(OUTCOMES):
+                vals = np.asarray([_err(entries[a], o) for a in arms]).reshape(-1, 3)
+                ax.bar(x + (j - 1) * 0.27, vals[:, 0], 0.27, yerr=vals[:, 1:].T, color=colours[o], label=o, capsize=2)
+            ax.set_xticks(x, arms, rotation=30, ha="right")
+            ax.set_title(f"{name}, {'pooled over splits' if view is None else view}")
+            ax.set_ylim(0, 1)
     written.append(_finish(fig, axes, dest / "rates_by_arm.png"))
 
     fig, axes = plt.subplots(1, len(policies), figsize=(5 * len(policies), 3.6), squeeze=False, sharey=True)
@@ -1848,10 +1854,11 @@ def write_plots(summary: Mapping[str, Any], dest: Path) -> list[str]:
 
 
 def _finish(fig: Any, axes: Any, path: Path) -> str:
-    """Label and save a one-row figure of rates, then close it."""
+    """Label and save a figure of rates (legends in the first row), then close it."""
     import matplotlib.pyplot as plt
 
-    axes[0][0].set_ylabel("rate (95 % Wilson CI)")
+    for row in axes:
+        row[0].set_ylabel("rate (95 % Wilson CI)")
     for ax in axes[0]:
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
