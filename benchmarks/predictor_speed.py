@@ -119,20 +119,35 @@ def training_batches(windows: list, norm: MinMax, batch_size: int, count: int) -
     return out
 
 
-def latency_table(repeats: int) -> None:
+def latency_table(repeats: int, peak_fp32: float) -> None:
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
     print("\nForecast latency, shipped zara1 weights, 1 thread (ms, median of", repeats, "calls):")
     print("  from scratch = LearnedPredictor.forecast: 8 observed steps + 12-step rollout;")
+    print("  bf16         = the same under torch.autocast(bfloat16) (matmuls in bf16, states in fp32);")
     print("  incremental  = OnlineForecaster.observe (one step, carried states) + forecast;")
-    print("  first impl.  = the same from-scratch rollout through crowdnav_mesrnn.models.reference")
-    print(f"{'model':<8}{'N':>5}{'from scratch':>14}{'incremental':>13}{'first impl.':>13}{'speed-up':>10}")
+    print("  first impl.  = the same from-scratch rollout through crowdnav_mesrnn.models.reference;")
+    print(
+        f"  floor        = the from-scratch forecast's multiply-adds ({STEPS} steps) at the 1-thread fp32 matmul "
+        f"peak ({peak_fp32:.0f} GFLOP/s):\n                 no fp32 implementation on one thread can be faster"
+    )
+    print(
+        f"{'model':<8}{'N':>5}{'from scratch':>14}{'bf16':>8}{'incremental':>13}{'first impl.':>13}"
+        f"{'speed-up':>10}{'floor':>8}"
+    )
     for model in ("mesrnn", "srnn", "vlstm"):
         pred = load_pretrained(model, "zara1")
+        macs = macs_per_pedestrian_step(pred.net.cfg)
         for n in (1, 10, 50):
             hist = (np.cumsum(rng.normal(0, 0.3, (8, n, 2)), 0) + 5).astype(np.float32)
             mask = np.ones((8, n), bool)
             scratch = median_seconds(lambda h=hist, m=mask, p=pred: p.forecast(h, m), repeats) * 1e3
+
+            def scratch_bf16(h=hist, m=mask, p=pred) -> None:
+                with torch.autocast("cpu", dtype=torch.bfloat16):
+                    p.forecast(h, m)
+
+            bf16 = median_seconds(scratch_bf16, repeats) * 1e3
             online = pred.online(n)
             for t in range(8):
                 online.observe(hist[t], mask[t])
@@ -150,7 +165,11 @@ def latency_table(repeats: int) -> None:
                     reference_rollout(net, x, mt, PRED_LEN)
 
             ref = median_seconds(first, repeats) * 1e3
-            print(f"{model:<8}{n:>5}{scratch:>14.2f}{inc:>13.2f}{ref:>13.2f}{ref / scratch:>9.1f}x")
+            floor = n * STEPS * macs * 2 / (peak_fp32 * 1e9) * 1e3
+            print(
+                f"{model:<8}{n:>5}{scratch:>14.2f}{bf16:>8.2f}{inc:>13.2f}{ref:>13.2f}{ref / scratch:>9.1f}x"
+                f"{floor:>8.2f}"
+            )
 
 
 def main() -> None:
@@ -213,7 +232,9 @@ def main() -> None:
                     f"{r['bf16']:>16.1f}{100 * r['bf16'] * gflop / peaks[th][torch.bfloat16]:>12.0f}%"
                     f"{r['first']:>13.1f}{r['fp32'] / r['first']:>9.1f}x"
                 )
-    latency_table(9 if args.quick else 25)
+    if 1 not in peaks:
+        peaks[1] = {torch.float32: matmul_peak_gflops(torch.float32, 1, reps)}
+    latency_table(9 if args.quick else 25, peaks[1][torch.float32])
 
 
 if __name__ == "__main__":
