@@ -1734,16 +1734,17 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         "",
         "Navigation time (s) of episodes both sides finished, a - b:",
         "",
-        "| split | a | b | pairs | median diff | p | p Holm |",
-        "|---|---|---|---|---|---|---|",
+        "| split | a | b | pairs | median diff | mean diff | p | p Holm |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for t in summary["tests"]:
         if t["endpoint"] != "navigation_time_s":
             continue
         med = "-" if t.get("median_difference") is None else f"{t['median_difference']:+.2f}"
+        mean = "-" if t.get("mean_difference") is None else f"{t['mean_difference']:+.2f}"
         star = " *" if t.get("significant") else ""
         lines.append(
-            f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | {t['n']} | {med} | {_p(t['p_value'])} | "
+            f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | {t['n']} | {med} | {mean} | {_p(t['p_value'])} | "
             f"{_p(t['p_holm'])}{star} |"
         )
     lines.append("")

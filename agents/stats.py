@@ -163,8 +163,9 @@ def wilcoxon_paired(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.nda
 
     Pairs with a non-finite member are dropped first; ``n`` counts the pairs used, ``n_nonzero`` those with a
     non-zero difference. With no pair, or no non-zero difference, there is no evidence of a difference:
-    ``statistic = 0.0`` and ``p_value = 1.0`` (``note`` says which case). ``median_difference`` is the median
-    of ``a - b`` over all used pairs (``nan`` without pairs).
+    ``statistic = 0.0`` and ``p_value = 1.0`` (``note`` says which case). ``median_difference`` and
+    ``mean_difference`` are the median and mean of ``a - b`` over all used pairs (``nan`` without pairs;
+    the mean shows a shift the median hides when times are quantised to control steps).
     """
     x, y = _paired(a, b)
     d = x - y
@@ -175,6 +176,7 @@ def wilcoxon_paired(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.nda
         "n": n,
         "n_nonzero": nonzero,
         "median_difference": float(np.median(d)) if n else math.nan,
+        "mean_difference": float(np.mean(d)) if n else math.nan,
     }
     if nonzero == 0:
         out.update(statistic=0.0, p_value=1.0, note="no pairs" if n == 0 else "all differences are zero")

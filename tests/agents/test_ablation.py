@@ -389,6 +389,7 @@ def test_summary_statistics_on_hand_made_episodes(tmp_path: Path, fakes: Fakes) 
     # Wilcoxon on the 5 episodes both finished (0, 3, 7, 9, 11), cv faster by 1.0, 0.5, 0.5, 0.5, 0.5
     wx = next(t for t in tests if t["a"]["arm"] == "cv" and t["endpoint"] == "navigation_time_s")
     assert wx["n"] == 5 and wx["median_difference"] == pytest.approx(-0.5)
+    assert wx["mean_difference"] == pytest.approx(-3.0 / 5)
     assert wx["p_value"] == pytest.approx(sps.wilcoxon([-1.0, -0.5, -0.5, -0.5, -0.5]).pvalue)
 
     with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:

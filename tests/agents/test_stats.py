@@ -103,6 +103,7 @@ def test_wilcoxon_hand_worked() -> None:
     assert res["statistic"] == pytest.approx(4.0)
     assert res["p_value"] == pytest.approx(2 * 7 / 32)
     assert res["median_difference"] == pytest.approx(2.0)
+    assert res["mean_difference"] == pytest.approx((1 + 2 + 3 - 4 + 5) / 5)
 
 
 def test_wilcoxon_degenerate() -> None:
