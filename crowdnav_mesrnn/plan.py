@@ -11,15 +11,17 @@ candidate is applied to every model. Stages:
 
 Each run is a folder ``OUT/MODEL/SPLIT/CANDIDATE/seedK`` holding what ``predictor train`` writes plus
 ``done.json`` once finished; finished runs are skipped and interrupted ones resumed, so the same
-command can be re-run (or run as shards ``--shard i/n`` on several cores) until everything is done.
+command can be re-run (or run as shards ``--shard i/n`` on several cores) until everything is done. A run
+being trained holds a lock on its folder, so two processes never train the same run (one skips it).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -225,12 +227,53 @@ def summary(plan: Plan) -> dict[str, dict[str, Any]]:
 
 
 # ------------------------------------------------------------------ executing
-def shard_filter(runs: list[Run], shard: tuple[int, int]) -> list[Run]:
-    """Runs ``i, i+n, i+2n, ...`` of a stage's fixed order for ``shard = (i, n)``."""
+def _grid_index(plan: Plan, run: Run) -> int:
+    """Position of ``run`` in its stage's full grid, whatever has been selected so far: candidates by
+    (model, split, candidate), seeds by (model, split, seed). Stable while the seeds stage grows."""
+    m, s = plan.models.index(run.model), plan.splits.index(run.split)
+    if run.stage == "candidates":
+        inner, k = len(plan.candidates), [c.name for c in plan.candidates].index(run.candidate.name)
+    else:
+        inner, k = len(plan.seeds), plan.seeds.index(run.seed)
+    return (m * len(plan.splits) + s) * inner + k
+
+
+def shard_filter(runs: list[Run], shard: tuple[int, int], plan: Plan | None = None) -> list[Run]:
+    """The runs of ``shard = (i, n)``: those at positions ``i, i+n, i+2n, ...`` of the list, or, with
+    ``plan``, of the stage's full grid (so a run keeps its shard while other (model, split) pairs become
+    selected and the seeds stage grows)."""
     i, n = shard
     if not (n >= 1 and 0 <= i < n):
         raise ValueError(f"shard must be i/n with 0 <= i < n, got {i}/{n}")
-    return [r for j, r in enumerate(runs) if j % n == i]
+    if plan is None:
+        return [r for j, r in enumerate(runs) if j % n == i]
+    return [r for r in runs if _grid_index(plan, r) % n == i]
+
+
+@contextlib.contextmanager
+def run_lock(out: Path) -> Iterator[bool]:
+    """An exclusive, non-blocking lock on a run folder (``OUT/.plan.lock``): yields False when another
+    process holds it (that process is training the run). Released when the holder exits, even if killed;
+    a no-op (always True) where file locks are unavailable."""
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # not on POSIX
+        yield True
+        return
+    with open(out / ".plan.lock", "a+b") as fh:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        except OSError:  # a file system without locks
+            yield True
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
 
 def parse_shard(text: str) -> tuple[int, int]:
@@ -316,13 +359,20 @@ def execute(
     stages = ("candidates", "seeds") if stage == "all" else (stage,)
     for st in stages:
         runs, _ = stage_runs(plan, st)
-        for run in shard_filter(runs, shard):
-            state, _ = status(run)
-            if state == "done":
+        for run in shard_filter(runs, shard, plan):
+            if status(run)[0] == "done":
                 continue
-            log(f"[{st}] {run.model} {run.split} {run.candidate.name} seed {run.seed} -> {run.out}")
-            done = train_run(run, data_dir, log=log)
-            log(f"  done: best val ADE {done['best_val_ade_m']:.3f} m")
+            with run_lock(run.out) as mine:
+                if not mine:
+                    log(
+                        f"[{st}] {run.model} {run.split} {run.candidate.name} seed {run.seed}: another process is training it"
+                    )
+                    continue
+                if status(run)[0] == "done":  # finished while we waited for the lock
+                    continue
+                log(f"[{st}] {run.model} {run.split} {run.candidate.name} seed {run.seed} -> {run.out}")
+                done = train_run(run, data_dir, log=log)
+                log(f"  done: best val ADE {done['best_val_ade_m']:.3f} m")
     runs, waiting = stage_runs(plan, stage)
     missing = sum(status(r)[0] != "done" for r in runs) + len(waiting) * (len(plan.seeds) - 1)
     if missing:

@@ -18,6 +18,7 @@ from crowdnav_mesrnn.plan import (
     load_plan,
     parse_shard,
     run_dir,
+    run_lock,
     selected_candidate,
     shard_filter,
     stage_runs,
@@ -108,6 +109,38 @@ def test_selection_on_validation_then_seed_expansion_and_shards(tmp_path: Path) 
     shards = [shard_filter(every, (i, 3)) for i in range(3)]
     assert sorted(r.out for s in shards for r in s) == sorted(r.out for r in every)
     assert not set(r.out for r in shards[0]) & set(r.out for r in shards[1])
+
+
+def test_seed_shards_stay_put_while_selection_grows(tmp_path: Path) -> None:
+    text = SHIPPED.read_text().replace("out_dir: runs/predictor/plan", f"out_dir: {tmp_path}")
+    (tmp_path / "plan.yaml").write_text(text)
+    plan = load_plan(tmp_path / "plan.yaml")
+
+    def select(model: str, split: str) -> None:
+        for c in plan.candidates:
+            _fake_done(run_dir(plan, model, split, c.name, plan.selection_seed), 0.5)
+
+    def owners() -> dict[Path, int]:
+        runs, _ = stage_runs(plan, "seeds")
+        return {r.out: i for i in range(2) for r in shard_filter(runs, (i, 2), plan)}
+
+    select("srnn", "univ")
+    before = owners()
+    select("vlstm", "eth")  # a pair earlier in the grid becomes selected after srnn/univ
+    after = owners()
+    assert len(after) == 2 * len(before)
+    assert all(after[out] == shard for out, shard in before.items())  # nobody changed shard
+    assert sorted(after.values()) == [0, 0, 1, 1]  # and the work is split evenly
+
+
+def test_a_run_trained_elsewhere_is_skipped(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    with run_lock(out) as first:
+        assert first
+        with run_lock(out) as second:  # another open file description: as another process would be
+            assert not second
+    with run_lock(out) as again:  # released when the holder is done
+        assert again
 
 
 def test_execute_is_resumable_and_exports_the_best_seed(
