@@ -477,6 +477,45 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
     return Rate(seen / elapsed, val_rate, peds / seen)
 
 
+def observed_rates(
+    plan: Plan, sizes: dict[str, dict[str, float]], configs: dict[tuple[str, str], Any]
+) -> dict[tuple[str, str], tuple[float, int]]:
+    """Per (model, candidate): the training rate of the epochs already trained in this plan's run folders
+    (the ``windows_per_s`` of each epoch in ``last.pt``), converted to zara1-sized windows like the
+    measurement, and the number of epochs it comes from. Total windows over total seconds, so long epochs
+    weigh as much as they cost."""
+    import torch
+
+    windows: dict[tuple[str, str], float] = {}
+    seconds: dict[tuple[str, str], float] = {}
+    epochs: dict[tuple[str, str], int] = {}
+    for m in plan.models:
+        for c in plan.candidates:
+            if (m, c.name) not in configs:
+                continue
+            ref_peds = configs[(m, c.name)][2].mean_pedestrians
+            for s in plan.splits:
+                for k in plan.seeds:
+                    last = run_dir(plan, m, s, c.name, k) / "last.pt"
+                    if not last.is_file():
+                        continue
+                    try:
+                        history = torch.load(last, map_location="cpu", weights_only=True).get("history") or []
+                    except Exception:  # unreadable: the run itself will say so when resumed
+                        continue
+                    n = sizes[s]["train"]
+                    for h in history:
+                        rate = float(h.get("windows_per_s", 0.0))
+                        if rate > 0:
+                            # n windows of this split cost n / rate s; as zara1-sized windows: n * peds / ref
+                            equiv = n * sizes[s]["train_peds"] / ref_peds
+                            key = (m, c.name)
+                            windows[key] = windows.get(key, 0.0) + equiv
+                            seconds[key] = seconds.get(key, 0.0) + n / rate
+                            epochs[key] = epochs.get(key, 0) + 1
+    return {key: (windows[key] / seconds[key], epochs[key]) for key in windows}
+
+
 def _split_sizes(splits: Iterable[str], min_scored: int, data_dir: str | None) -> dict[str, dict[str, float]]:
     import numpy as np
 
@@ -532,10 +571,14 @@ def dry_run(
     if measured_now:
         atomic_write_json(cache_path, cache)
 
+    observed = observed_rates(plan, sizes, configs)
+
     def cpu_s(run: Run, candidate: Candidate) -> float:
         _, tcfg, rate = configs[(run.model, candidate.name)]
         sz = sizes[run.split]
-        train_rate = rate.train_windows_per_s * rate.mean_pedestrians / sz["train_peds"]
+        obs = observed.get((run.model, candidate.name))
+        train_zara1 = obs[0] if obs else rate.train_windows_per_s
+        train_rate = train_zara1 * rate.mean_pedestrians / sz["train_peds"]
         val_rate = rate.val_windows_per_s * rate.mean_pedestrians / sz["val_peds"]
         state, ep = status(run)
         left = 0 if state == "done" else tcfg.epochs - ep
@@ -549,10 +592,12 @@ def dry_run(
         f"{cache_path}{', measured now' if measured_now else ''}):",
     ]
     for (m, cname), (_, tcfg, rate) in configs.items():
+        obs = observed.get((m, cname))
+        seen = f"; trained so far: {obs[0]:.1f} over {obs[1]} epoch(s), used instead" if obs else ""
         lines.append(
             f"  {m:<7}{cname:<20}train {rate.train_windows_per_s:6.1f}  val {rate.val_windows_per_s:7.1f}  "
             f"({rate.mean_pedestrians:.1f} pedestrians/window; {tcfg.epochs} epochs, "
-            f"{'teacher forcing' if tcfg.teacher_forcing else 'own rollout'}, {tcfg.precision})"
+            f"{'teacher forcing' if tcfg.teacher_forcing else 'own rollout'}, {tcfg.precision}{seen})"
         )
     lines += [
         "",
@@ -600,8 +645,10 @@ def dry_run(
         f"(shards --shard 0/{cores} ... --shard {cores - 1}/{cores}, one thread each)"
     )
     lines.append(
-        "estimates scale the zara1 measurement by each split's mean pedestrians per window; measured on "
-        "whatever else was running on this machine"
+        "estimates scale the zara1 rate by each split's mean pedestrians per window; the training rate is the one "
+        "of the epochs this plan has already trained with that configuration where there are any (the short "
+        "measurement over-weights the largest windows), else the measurement; both on whatever else was "
+        "running on this machine"
     )
     return "\n".join(lines)
 

@@ -190,3 +190,23 @@ def test_dry_run_lists_every_run_with_a_cpu_estimate(tmp_path: Path, data_dir: P
     again = dry_run(plan, "candidates", data_dir=str(data_dir))  # rates come from the cache now
     assert "measured now" not in again
     assert any(" done " in line and line.startswith("candidates vlstm   zara1  a ") for line in again.splitlines())
+
+    def minutes(text: str, prefix: str) -> float:
+        return float(next(line for line in text.splitlines() if line.startswith(prefix)).split()[6])
+
+    # An epoch already trained with candidate a of vlstm (hotel, partial) replaces the short measurement:
+    # at a rate 1000x the measured one the estimate for the other vlstm/a runs shrinks accordingly.
+    import torch
+
+    measured = json.loads((tmp_path / "runs" / "rates.json").read_text())
+    before = minutes(again, "candidates vlstm   hotel  a ")
+    partial = run_dir(plan, "vlstm", "hotel", "a", 0)
+    partial.mkdir(parents=True)
+    rate = 1000 * min(v["train_windows_per_s"] for v in measured.values())
+    torch.save({"epoch": 1, "history": [{"epoch": 1, "windows_per_s": rate}]}, partial / "last.pt")
+    after = dry_run(plan, "candidates", data_dir=str(data_dir))
+    assert "trained so far" in after and "over 1 epoch(s)" in after
+    assert minutes(after, "candidates vlstm   hotel  a ") < before / 2  # one epoch of two left, and faster
+    assert minutes(after, "candidates srnn    hotel  a ") == pytest.approx(
+        minutes(again, "candidates srnn    hotel  a ")
+    )
