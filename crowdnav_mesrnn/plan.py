@@ -238,15 +238,13 @@ def _grid_index(plan: Plan, run: Run) -> int:
     return (m * len(plan.splits) + s) * inner + k
 
 
-def shard_filter(runs: list[Run], shard: tuple[int, int], plan: Plan | None = None) -> list[Run]:
-    """The runs of ``shard = (i, n)``: those at positions ``i, i+n, i+2n, ...`` of the list, or, with
-    ``plan``, of the stage's full grid (so a run keeps its shard while other (model, split) pairs become
-    selected and the seeds stage grows)."""
+def shard_filter(runs: list[Run], shard: tuple[int, int], plan: Plan) -> list[Run]:
+    """The runs of ``shard = (i, n)``: those at positions ``i, i+n, i+2n, ...`` of the stage's full grid
+    of ``plan`` (so a run keeps its shard while other (model, split) pairs become selected and the seeds
+    stage grows)."""
     i, n = shard
     if not (n >= 1 and 0 <= i < n):
         raise ValueError(f"shard must be i/n with 0 <= i < n, got {i}/{n}")
-    if plan is None:
-        return [r for j, r in enumerate(runs) if j % n == i]
     return [r for r in runs if _grid_index(plan, r) % n == i]
 
 
@@ -491,8 +489,6 @@ def observed_rates(
     epochs: dict[tuple[str, str], int] = {}
     for m in plan.models:
         for c in plan.candidates:
-            if (m, c.name) not in configs:
-                continue
             ref_peds = configs[(m, c.name)][2].mean_pedestrians
             for s in plan.splits:
                 for k in plan.seeds:

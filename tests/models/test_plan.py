@@ -106,7 +106,7 @@ def test_selection_on_validation_then_seed_expansion_and_shards(tmp_path: Path) 
     row = summary(plan)["srnn/hotel"]
     assert row["selected"] == "residual_rotation" and row["shipped_seed"] == 1
     every = candidate_runs(plan)
-    shards = [shard_filter(every, (i, 3)) for i in range(3)]
+    shards = [shard_filter(every, (i, 3), plan) for i in range(3)]
     assert sorted(r.out for s in shards for r in s) == sorted(r.out for r in every)
     assert not set(r.out for r in shards[0]) & set(r.out for r in shards[1])
 
