@@ -21,9 +21,9 @@ from crowdnav_mesrnn.models.learned import load_predictor
 from crowdnav_mesrnn.stats import (
     DEFAULT_BLOCK_LEN,
     DEFAULT_RESAMPLES,
-    PairedErrors,
-    average_ci,
-    block_bootstrap_ci,
+    SeededErrors,
+    seeded_average_ci,
+    seeded_bootstrap_ci,
     verdict,
 )
 
@@ -132,8 +132,21 @@ def _label(key: str) -> str:
 
 
 # ------------------------------------------------------------------ computing
+#: Per-window errors of one model on one split (:func:`crowdnav_mesrnn.evaluation.window_errors`), or a
+#: list of them, one per training seed.
+WindowErrors = dict[str, np.ndarray] | list[dict[str, np.ndarray]]
+
+
+def _seeded(errs: WindowErrors, metric: str) -> SeededErrors:
+    runs = errs if isinstance(errs, list) else [errs]
+    counts = [r["pedestrians"] for r in runs]
+    if any(not np.array_equal(c, counts[0]) for c in counts):
+        raise ValueError("seeds of one model were evaluated on different windows")
+    return SeededErrors(np.stack([r[metric] for r in runs]), counts[0])
+
+
 def compare(
-    errors: dict[str, dict[str, dict[str, np.ndarray]]],
+    errors: dict[str, dict[str, WindowErrors]],
     pairs: tuple[tuple[str, str], ...] = PAIRS,
     block_len: int = DEFAULT_BLOCK_LEN,
     n_resamples: int = DEFAULT_RESAMPLES,
@@ -141,7 +154,11 @@ def compare(
     seed: int = 0,
 ) -> dict[str, Any]:
     """Paired ADE/FDE differences ``A − B`` per split and over the five-split average, with
-    block-bootstrap intervals and verdicts, from per-window errors ``model -> split -> window_errors``."""
+    block-bootstrap intervals and verdicts, from per-window errors ``model -> split -> window_errors``.
+
+    A value may be a list of per-window errors, one per training seed: the difference is then between
+    seed-averaged errors and the interval also resamples seeds (:func:`~crowdnav_mesrnn.stats.seeded_bootstrap_ci`).
+    With one seed per model this is exactly the block bootstrap of the paired difference."""
     out: dict[str, Any] = {}
     for a, b in pairs:
         if a not in errors or b not in errors:
@@ -150,16 +167,16 @@ def compare(
         entry: dict[str, Any] = {}
         for metric in ("ade_m", "fde_m"):
             per: dict[str, Any] = {}
-            paired: dict[str, PairedErrors] = {}
+            paired: dict[str, tuple[SeededErrors, SeededErrors]] = {}
             for s in splits:
-                ea, eb = errors[a][s], errors[b][s]
-                if not np.array_equal(ea["pedestrians"], eb["pedestrians"]):
+                ea, eb = _seeded(errors[a][s], metric), _seeded(errors[b][s], metric)
+                if not np.array_equal(ea.count, eb.count):
                     raise ValueError(f"{a} and {b} were evaluated on different windows of {s}")
-                paired[s] = PairedErrors(ea[metric] - eb[metric], ea["pedestrians"])
-                ci = block_bootstrap_ci(paired[s], block_len, n_resamples, confidence, seed)
-                per[s] = {"diff": paired[s].estimate, "ci": list(ci), "verdict": _verdict(ci, a, b)}
+                paired[s] = (ea, eb)
+                est, ci = seeded_bootstrap_ci(ea, eb, block_len, n_resamples, confidence, seed)
+                per[s] = {"diff": est, "ci": list(ci), "verdict": _verdict(ci, a, b), "seeds": [ea.seeds, eb.seeds]}
             if len(paired) == len(SPLITS):
-                est, ci = average_ci(paired, block_len, n_resamples, confidence, seed)
+                est, ci = seeded_average_ci(list(paired.values()), block_len, n_resamples, confidence, seed)
                 per["average"] = {"diff": est, "ci": list(ci), "verdict": _verdict(ci, a, b)}
             entry[metric] = per
         out[f"{a}-{b}"] = entry
@@ -171,24 +188,39 @@ def _verdict(ci: tuple[float, float], a: str, b: str) -> str:
     return {"A better": f"{NAMES[a]} better", "B better": f"{NAMES[b]} better"}.get(v, v)
 
 
-def seed_results(plan_path: str | os.PathLike[str], data_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
-    """Test ADE/FDE of every finished seed of the plan's selected candidates; mean ± std over seeds."""
+def seed_results(
+    plan_path: str | os.PathLike[str],
+    data_dir: str | os.PathLike[str] | None = None,
+    cv_errors: dict[str, dict[str, np.ndarray]] | None = None,
+    block_len: int = DEFAULT_BLOCK_LEN,
+    n_resamples: int = DEFAULT_RESAMPLES,
+) -> dict[str, Any]:
+    """Test ADE/FDE of every finished seed of the plan's selected candidates; mean ± std over seeds;
+    and, where every seed of a (model, split) has finished, the paired differences of seed-averaged
+    errors with intervals over windows and seeds (against ``cv_errors``, constant velocity's, if given)."""
     from crowdnav_mesrnn.plan import load_plan, summary
 
     plan = load_plan(plan_path)
     rows = summary(plan)
+    complete: dict[str, dict[str, WindowErrors]] = {}
     for key, row in rows.items():
         model, split = key.split("/")
+        runs = []
         for info in row["seeds"].values():
+            window_sums: dict[str, dict[str, np.ndarray]] = {}
             res = evaluate_model(
                 model,
                 [split],
                 data_dir=data_dir,
                 checkpoint_for=lambda s, c=info["checkpoint"], m=model: load_predictor(c, m, s),
+                window_sums=window_sums,
             )
             info["test"] = {m: res["splits"][split][m] for m in ("ade_m", "fde_m")}
+            runs.append(window_sums[split])
         if row["seeds"]:
             row["test"] = _mean_std([info["test"] for info in row["seeds"].values()])
+        if len(row["seeds"]) == len(plan.seeds):
+            complete.setdefault(model, {})[split] = runs
     average: dict[str, Any] = {}
     for model in plan.models:
         per_seed = []
@@ -198,7 +230,16 @@ def seed_results(plan_path: str | os.PathLike[str], data_dir: str | os.PathLike[
                 per_seed.append({m: float(np.mean([c["test"][m] for c in cells])) for m in ("ade_m", "fde_m")})
         if per_seed:
             average[model] = _mean_std(per_seed)
-    return {"plan": str(plan_path), "seeds": list(plan.seeds), "rows": rows, "average": average}
+    if cv_errors is not None:
+        complete["cv"] = dict(cv_errors)
+    comparisons = compare(complete, block_len=block_len, n_resamples=n_resamples)
+    return {
+        "plan": str(plan_path),
+        "seeds": list(plan.seeds),
+        "rows": rows,
+        "average": average,
+        "comparisons": comparisons,
+    }
 
 
 def _mean_std(values: list[dict[str, float]]) -> dict[str, Any]:
@@ -247,7 +288,7 @@ def build_report(
         "seed": 0,
     }
     if plan is not None:
-        results["seeds"] = seed_results(plan, data_dir)
+        results["seeds"] = seed_results(plan, data_dir, errors["cv"], block_len, n_resamples)
     return render(results), results
 
 
@@ -315,8 +356,16 @@ def render(results: dict[str, Any]) -> str:
     for name, vals in PUBLISHED_SGAN.items():
         lines.append(f"| {name} | " + " | ".join(f"{vals[s][0]:.2f} / {vals[s][1]:.2f}" for s in COLS) + " |")
     lines += ["", *render_seeds(results.get("seeds"))]
+    seeded = (results.get("seeds") or {}).get("comparisons")
+    if results.get("seeds"):
+        lines += ["", *render_comparisons(seeded or {}, results["bootstrap"], over_seeds=True)]
     lines += ["", *render_comparisons(results["comparisons"], results["bootstrap"])]
-    lines += ["", "## Does the paper's ordering hold?", "", *ordering(results["comparisons"])]
+    read_from, source = (
+        (seeded, "the differences over seeds")
+        if _has_averages(seeded)
+        else (results["comparisons"], "the shipped predictors (one seed each; the plan's seeds are not all finished)")
+    )
+    lines += ["", "## Does the paper's ordering hold?", "", f"Read from {source}, ADE:", "", *ordering(read_from)]
     lines += [
         "",
         "## ADE / FDE in the paper's min-max-normalised units",
@@ -384,18 +433,33 @@ def render_seeds(seeds: dict[str, Any] | None) -> list[str]:
     return lines
 
 
-def render_comparisons(comparisons: dict[str, Any], boot: dict[str, Any]) -> list[str]:
+def render_comparisons(comparisons: dict[str, Any], boot: dict[str, Any], over_seeds: bool = False) -> list[str]:
     head = "| difference | " + " | ".join(COLS) + " |\n|---|" + "---|" * len(COLS)
-    lines = [
-        "## Paired differences with 95 % intervals (shipped predictors)",
-        "",
-        "Each cell: A − B in metres over the same test windows and pedestrians (negative: A is better)",
-        "and a 95 % percentile interval from a moving-block bootstrap over consecutive test windows. Test",
-        f"windows slide by one step and overlap, so blocks of {boot['block_len_windows']} consecutive windows "
-        "(the window length in steps)",
-        f"are resampled, {boot['resamples']} times; the average column resamples the five splits",
-        "independently. An interval that includes 0 reads *no detectable difference*.",
-    ]
+    if over_seeds:
+        lines = [
+            "## Paired differences over seeds, with 95 % intervals over windows and seeds",
+            "",
+            "The same comparisons between the seed-averaged errors of every seed of the selected candidates",
+            "(constant velocity has one). A bootstrap replicate draws blocks of consecutive test windows, as",
+            "below, shared by both models, and for each model as many of its seeds as it has, with",
+            "replacement; so the interval includes how much the difference depends on which seeds were",
+            "trained. With three seeds, resampling them understates their variance by a third: these",
+            "intervals are still somewhat optimistic. This is the comparison the ordering below is read from.",
+        ]
+        if not comparisons:
+            return [*lines, "", "Not computed: no (model, split) has all its seeds finished."]
+    else:
+        lines = [
+            "## Paired differences with 95 % intervals (shipped predictors)",
+            "",
+            "Each cell: A − B in metres over the same test windows and pedestrians (negative: A is better)",
+            "and a 95 % percentile interval from a moving-block bootstrap over consecutive test windows. Test",
+            f"windows slide by one step and overlap, so blocks of {boot['block_len_windows']} consecutive windows "
+            "(the window length in steps)",
+            f"are resampled, {boot['resamples']} times; the average column resamples the five splits",
+            "independently. An interval that includes 0 reads *no detectable difference*. One trained seed",
+            "per model: these intervals do not include seed-to-seed variation.",
+        ]
     for metric, name in (("ade_m", "ADE"), ("fde_m", "FDE")):
         lines += ["", f"{name} difference, metres:", "", head]
         for key, entry in comparisons.items():
@@ -409,6 +473,11 @@ def render_comparisons(comparisons: dict[str, Any], boot: dict[str, Any]) -> lis
         cells = [entry["ade_m"].get(c, {}).get("verdict", "–") for c in COLS]
         lines.append(f"| {NAMES[a]} vs {NAMES[b]} | " + " | ".join(cells) + " |")
     return lines
+
+
+def _has_averages(comparisons: dict[str, Any] | None) -> bool:
+    """Whether every pair of :data:`PAIRS` has a five-split average (all seeds of every split finished)."""
+    return bool(comparisons) and all("average" in comparisons.get(f"{a}-{b}", {}).get("ade_m", {}) for a, b in PAIRS)
 
 
 def ordering(comparisons: dict[str, Any]) -> list[str]:

@@ -8,9 +8,13 @@ from scipy import stats as sps
 
 from crowdnav_mesrnn.stats import (
     PairedErrors,
+    SeededErrors,
     average_ci,
     block_bootstrap_ci,
     block_bootstrap_replicates,
+    seeded_average_ci,
+    seeded_bootstrap_ci,
+    seeded_bootstrap_replicates,
     verdict,
 )
 
@@ -92,3 +96,54 @@ def test_verdicts_and_errors() -> None:
         PairedErrors(np.array([1.0]), np.array([0]))
     # A block longer than the series uses the whole series: every replicate is the estimate.
     assert block_bootstrap_ci(unit([1.0, 3.0]), block_len=20, n_resamples=50) == (2.0, 2.0)
+
+
+# ------------------------------------------------------------------ over training seeds
+def test_one_seed_each_is_the_block_bootstrap_of_the_paired_difference() -> None:
+    rng = np.random.default_rng(4)
+    counts = rng.integers(1, 6, 137)
+    a, b = rng.normal(0.5, 0.1, 137) * counts, rng.normal(0.45, 0.1, 137) * counts
+    seeded = seeded_bootstrap_replicates(SeededErrors(a, counts), SeededErrors(b, counts), 20, 3000, seed=7)
+    plain = block_bootstrap_replicates(PairedErrors(a - b, counts), 20, 3000, seed=7)
+    np.testing.assert_allclose(seeded, plain, rtol=1e-12, atol=1e-12)
+
+
+def test_hand_checked_seed_draws() -> None:
+    """A has two seeds whose errors are 1 and 3 on every window, B one seed at 0: the windows drawn do
+    not matter and a replicate is the mean of two seeds drawn with replacement, 1, 2 or 3 with odds 1:2:1."""
+    w = 30
+    a = SeededErrors(np.array([np.full(w, 1.0), np.full(w, 3.0)]), np.ones(w))
+    b = SeededErrors(np.zeros((1, w)), np.ones(w))
+    assert a.seeds == 2 and a.estimate == 2.0
+    reps = seeded_bootstrap_replicates(a, b, block_len=5, n_resamples=40_000, seed=0)
+    values, counts = np.unique(np.round(reps, 9), return_counts=True)
+    np.testing.assert_allclose(values, [1.0, 2.0, 3.0])
+    np.testing.assert_allclose(counts / counts.sum(), [0.25, 0.5, 0.25], atol=0.01)
+    est, (lo, hi) = seeded_bootstrap_ci(a, b, block_len=5, n_resamples=4000)
+    assert est == 2.0 and lo == 1.0 and hi == 3.0
+
+
+def test_seed_spread_widens_the_interval_and_the_average_combines_splits() -> None:
+    rng = np.random.default_rng(1)
+    w = 400
+    noise = np.convolve(rng.normal(0, 0.05, w + 19), np.ones(20) / 20, mode="valid")
+    counts = np.full(w, 2.0)
+    b = SeededErrors(((0.5 + noise) * counts)[None], counts)
+    same = SeededErrors(np.stack([(0.45 + noise) * counts] * 3), counts)
+    spread = SeededErrors(np.stack([(0.45 + d + noise) * counts for d in (-0.04, 0.0, 0.04)]), counts)
+    est1, ci1 = seeded_bootstrap_ci(same, b, n_resamples=3000)
+    est2, ci2 = seeded_bootstrap_ci(spread, b, n_resamples=3000)
+    assert est1 == pytest.approx(-0.05) and est2 == pytest.approx(-0.05)
+    assert ci1[0] == pytest.approx(-0.05) and ci1[1] == pytest.approx(-0.05)  # same noise: zero width
+    assert ci2[1] - ci2[0] > 0.03  # the seeds' spread (±0.04) is in the interval
+    est, (lo, hi) = seeded_average_ci([(same, b), (spread, b)], n_resamples=3000)
+    assert est == pytest.approx(-0.05) and lo < -0.05 < hi and hi - lo < ci2[1] - ci2[0]
+
+
+def test_seeded_errors_are_checked() -> None:
+    with pytest.raises(ValueError, match="different windows"):
+        seeded_bootstrap_ci(SeededErrors(np.ones((2, 3)), np.ones(3)), SeededErrors(np.ones(3), np.array([1, 2, 1])))
+    with pytest.raises(ValueError, match="seeds, windows"):
+        SeededErrors(np.ones((2, 3)), np.ones(4))
+    with pytest.raises(ValueError, match="positive pedestrian count"):
+        SeededErrors(np.ones(2), np.array([1, 0]))

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.report import compare, ordering, render, render_seeds
@@ -85,3 +86,31 @@ def test_seed_table() -> None:
     seeds = {"plan": "p.yaml", "seeds": [0, 1, 2], "rows": rows, "average": {"mesrnn": t}}
     text = "\n".join(render_seeds(seeds))
     assert "0.450 ± 0.010 / 0.950 ± 0.020 (n=3)" in text and "| mesrnn | zara2 | residual 0.400 | residual |" in text
+
+
+def test_seeds_enter_the_interval_and_the_ordering_is_read_from_them() -> None:
+    """The best of three MESRNN seeds beats CV clearly on eth; the three together (−0.2, +0.1, +0.1
+    against CV) do not, and the ordering section then reads from the comparison over seeds."""
+    errors, results = fake_results()
+    base = dict.fromkeys(SPLITS, 0.0)
+    seeds = {
+        m: {s: [fake_errors({**base, s: d}, seed=1)[s] for d in shifts] for s in SPLITS}
+        for m, shifts in (("mesrnn", (-0.2, 0.1, 0.1)), ("srnn", (0.0, 0.0, 0.0)), ("vlstm", (0.3, 0.3, 0.3)))
+    }
+    seeds["cv"] = errors["cv"]
+    over = compare(seeds, n_resamples=2000)
+    best = compare({"mesrnn": {s: v[0] for s, v in seeds["mesrnn"].items()}, "cv": errors["cv"]}, n_resamples=2000)
+    assert best["mesrnn-cv"]["ade_m"]["eth"]["verdict"] == "MESRNN better"
+    eth = over["mesrnn-cv"]["ade_m"]["eth"]
+    assert eth["seeds"] == [3, 1] and eth["diff"] == pytest.approx(0.0, abs=1e-12)
+    assert eth["verdict"] == "no detectable difference" and eth["ci"][0] < -0.1 and eth["ci"][1] > 0.05
+    assert over["vlstm-cv"]["ade_m"]["average"]["verdict"] == "CV better"  # no seed spread: a zero-width interval
+    results["comparisons"] = compare(errors, n_resamples=200)
+    results["bootstrap"] = {"block_len_windows": 20, "resamples": 200}
+    results["seeds"] = {"plan": "p.yaml", "seeds": [0, 1, 2], "rows": {}, "average": {}, "comparisons": over}
+    page = render(results)
+    assert "## Paired differences over seeds" in page and "Read from the differences over seeds" in page
+    results["seeds"]["comparisons"] = {}
+    page = render(results)
+    assert "Not computed: no (model, split) has all its seeds finished." in page
+    assert "Read from the shipped predictors" in page
