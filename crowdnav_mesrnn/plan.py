@@ -31,7 +31,7 @@ import yaml
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS, check_split
 from crowdnav_mesrnn.models.base import LEARNED_MODELS
-from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text, code_version
+from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text, code_version, file_lock
 
 STAGES = ("candidates", "seeds", "all", "export")
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -254,24 +254,8 @@ def run_lock(out: Path) -> Iterator[bool]:
     process holds it (that process is training the run). Released when the holder exits, even if killed;
     a no-op (always True) where file locks are unavailable."""
     out.mkdir(parents=True, exist_ok=True)
-    try:
-        import fcntl
-    except ImportError:  # not on POSIX
-        yield True
-        return
-    with open(out / ".plan.lock", "a+b") as fh:
-        try:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            yield False
-            return
-        except OSError:  # a file system without locks
-            yield True
-            return
-        try:
-            yield True
-        finally:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+    with file_lock(out / ".plan.lock", blocking=False) as held:
+        yield held
 
 
 def parse_shard(text: str) -> tuple[int, int]:

@@ -2,13 +2,39 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
+
+
+@contextlib.contextmanager
+def file_lock(path: str | os.PathLike[str], blocking: bool = True) -> Iterator[bool]:
+    """An exclusive ``flock`` on ``path`` (created if missing) for the duration of the block.
+
+    Yields True while the lock is held, or False when ``blocking`` is False and another process holds it.
+    The lock goes with the open file, so it is released when the holder exits, even if killed. Where file
+    locks are unavailable (not POSIX, or a file system without them) yields True without locking. An
+    ``OSError`` from creating the file propagates (for callers that fall back when a folder is unwritable).
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover (not POSIX)
+        yield True
+        return
+    with open(path, "a+b") as fh:  # closing it releases the lock
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
+        except BlockingIOError:
+            yield False
+            return
+        except OSError:  # a file system without locks
+            pass
+        yield True
 
 
 def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], None]) -> Path:

@@ -39,7 +39,7 @@ from typing import Any, Final
 import numpy as np
 
 from crowdnav_mesrnn.data.recordings import Recording
-from crowdnav_mesrnn.utils import atomic_write
+from crowdnav_mesrnn.utils import atomic_write, file_lock
 
 #: Bump when the content or layout of the files changes (old files then no longer match and are rebuilt).
 #: 2: one predictor call per frame (no cross-frame batching), so a chunk equals its frames computed alone.
@@ -227,26 +227,14 @@ class ForecastStore:
         """Hold an exclusive lock on one chunk (so concurrent processes compute it once); a no-op where file
         locks are unavailable, and (after one :class:`CacheWarning`) where the folder cannot be written."""
         path = self.path(key, chunk)
-        try:
-            import fcntl
-        except ImportError:  # pragma: no cover (not POSIX)
+        with contextlib.ExitStack() as stack:
+            if self.unwritable is None:
+                try:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    stack.enter_context(file_lock(path.with_name(path.name + ".lock")))
+                except OSError as exc:
+                    self._cannot_write(exc)
             yield
-            return
-        fh = None
-        if self.unwritable is None:
-            try:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                fh = open(path.with_name(path.name + ".lock"), "a+b")  # closed in the finally below
-            except OSError as exc:
-                self._cannot_write(exc)
-        try:
-            if fh is not None:
-                with contextlib.suppress(OSError):  # a file system without locks: computed twice at worst
-                    fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
-            yield
-        finally:
-            if fh is not None:
-                fh.close()  # releases the lock
 
     def load(self, key: TableKey, chunk: int, recording: Recording, quiet: bool = False) -> FrameTable | None:
         """The chunk, or None when it is missing; an unreadable or stale file gives a :class:`CacheWarning`
