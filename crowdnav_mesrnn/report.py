@@ -21,9 +21,10 @@ from crowdnav_mesrnn.models.learned import load_predictor
 from crowdnav_mesrnn.stats import (
     DEFAULT_BLOCK_LEN,
     DEFAULT_RESAMPLES,
+    SeededDifference,
     SeededErrors,
     seeded_average_ci,
-    seeded_bootstrap_ci,
+    seeded_difference_ci,
     verdict,
 )
 
@@ -157,8 +158,9 @@ def compare(
     block-bootstrap intervals and verdicts, from per-window errors ``model -> split -> window_errors``.
 
     A value may be a list of per-window errors, one per training seed: the difference is then between
-    seed-averaged errors and the interval also resamples seeds (:func:`~crowdnav_mesrnn.stats.seeded_bootstrap_ci`).
-    With one seed per model this is exactly the block bootstrap of the paired difference."""
+    seed-averaged errors and the interval also counts the seeds' variance
+    (:func:`~crowdnav_mesrnn.stats.seeded_difference_ci`). With one seed per model this is exactly the
+    block bootstrap of the paired difference."""
     out: dict[str, Any] = {}
     for a, b in pairs:
         if a not in errors or b not in errors:
@@ -173,14 +175,25 @@ def compare(
                 if not np.array_equal(ea.count, eb.count):
                     raise ValueError(f"{a} and {b} were evaluated on different windows of {s}")
                 paired[s] = (ea, eb)
-                est, ci = seeded_bootstrap_ci(ea, eb, block_len, n_resamples, confidence, seed)
-                per[s] = {"diff": est, "ci": list(ci), "verdict": _verdict(ci, a, b), "seeds": [ea.seeds, eb.seeds]}
+                d = seeded_difference_ci(ea, eb, block_len, n_resamples, confidence, seed)
+                per[s] = _entry(d, a, b) | {"seeds": [ea.seeds, eb.seeds]}
             if len(paired) == len(SPLITS):
-                est, ci = seeded_average_ci(list(paired.values()), block_len, n_resamples, confidence, seed)
-                per["average"] = {"diff": est, "ci": list(ci), "verdict": _verdict(ci, a, b)}
+                d = seeded_average_ci(list(paired.values()), block_len, n_resamples, confidence, seed)
+                per["average"] = _entry(d, a, b)
             entry[metric] = per
         out[f"{a}-{b}"] = entry
     return out
+
+
+def _entry(d: SeededDifference, a: str, b: str) -> dict[str, Any]:
+    return {
+        "diff": d.estimate,
+        "ci": list(d.interval),
+        "verdict": _verdict(d.interval, a, b),
+        "window_se": d.window_se,
+        "seed_se": d.seed_se,
+        "df": d.df if np.isfinite(d.df) else None,
+    }
 
 
 def _verdict(ci: tuple[float, float], a: str, b: str) -> str:
@@ -198,35 +211,48 @@ def seed_results(
     """Test ADE/FDE of every finished seed of the plan's selected candidates; mean ± std over seeds;
     and, where every seed of a (model, split) has finished, the paired differences of seed-averaged
     errors with intervals over windows and seeds (against ``cv_errors``, constant velocity's, if given)."""
-    from crowdnav_mesrnn.plan import load_plan, summary
+    from crowdnav_mesrnn.plan import load_plan, read_done, run_dir, summary
 
     plan = load_plan(plan_path)
     rows = summary(plan)
     complete: dict[str, dict[str, WindowErrors]] = {}
+
+    def test_errors(model: str, split: str, checkpoint: str) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+        window_sums: dict[str, dict[str, np.ndarray]] = {}
+        res = evaluate_model(
+            model,
+            [split],
+            data_dir=data_dir,
+            checkpoint_for=lambda s: load_predictor(checkpoint, model, s),
+            window_sums=window_sums,
+        )
+        return {m: res["splits"][split][m] for m in ("ade_m", "fde_m")}, window_sums[split]
+
     for key, row in rows.items():
         model, split = key.split("/")
         runs = []
         for info in row["seeds"].values():
-            window_sums: dict[str, dict[str, np.ndarray]] = {}
-            res = evaluate_model(
-                model,
-                [split],
-                data_dir=data_dir,
-                checkpoint_for=lambda s, c=info["checkpoint"], m=model: load_predictor(c, m, s),
-                window_sums=window_sums,
-            )
-            info["test"] = {m: res["splits"][split][m] for m in ("ade_m", "fde_m")}
-            runs.append(window_sums[split])
+            info["test"], errs = test_errors(model, split, info["checkpoint"])
+            runs.append(errs)
         if row["seeds"]:
             row["test"] = _mean_std([info["test"] for info in row["seeds"].values()])
         if len(row["seeds"]) == len(plan.seeds):
             complete.setdefault(model, {})[split] = runs
+        # Every finished candidate on test, for orientation only (the choice above used validation ADE).
+        row["candidates_test"] = {}
+        for cand in plan.candidates:
+            if cand.name == row["selected"] and plan.selection_seed in row["seeds"]:
+                row["candidates_test"][cand.name] = row["seeds"][plan.selection_seed]["test"]
+                continue
+            folder = run_dir(plan, model, split, cand.name, plan.selection_seed)
+            if read_done(folder) is not None:
+                row["candidates_test"][cand.name] = test_errors(model, split, str(folder / "best.pt"))[0]
     average: dict[str, Any] = {}
-    for model in plan.models:
+    for model in plan.models if set(plan.splits) == set(SPLITS) else ():
         per_seed = []
         for k in plan.seeds:
             cells = [rows[f"{model}/{s}"]["seeds"].get(k) for s in SPLITS]
-            if all(c is not None for c in cells) and set(plan.splits) == set(SPLITS):
+            if all(c is not None for c in cells):
                 per_seed.append({m: float(np.mean([c["test"][m] for c in cells])) for m in ("ade_m", "fde_m")})
         if per_seed:
             average[model] = _mean_std(per_seed)
@@ -356,16 +382,12 @@ def render(results: dict[str, Any]) -> str:
     for name, vals in PUBLISHED_SGAN.items():
         lines.append(f"| {name} | " + " | ".join(f"{vals[s][0]:.2f} / {vals[s][1]:.2f}" for s in COLS) + " |")
     lines += ["", *render_seeds(results.get("seeds"))]
-    seeded = (results.get("seeds") or {}).get("comparisons")
-    if results.get("seeds"):
-        lines += ["", *render_comparisons(seeded or {}, results["bootstrap"], over_seeds=True)]
+    seeds = results.get("seeds")
+    if seeds:
+        lines += ["", *render_comparisons(seeds.get("comparisons"), results["bootstrap"], n_seeds=len(seeds["seeds"]))]
     lines += ["", *render_comparisons(results["comparisons"], results["bootstrap"])]
-    read_from, source = (
-        (seeded, "the differences over seeds")
-        if _has_averages(seeded)
-        else (results["comparisons"], "the shipped predictors (one seed each; the plan's seeds are not all finished)")
-    )
-    lines += ["", "## Does the paper's ordering hold?", "", f"Read from {source}, ADE:", "", *ordering(read_from)]
+    chosen, sources, source_line = _ordering_source(results)
+    lines += ["", "## Does the paper's ordering hold?", "", source_line, "", *ordering(chosen, sources)]
     lines += [
         "",
         "## ADE / FDE in the paper's min-max-normalised units",
@@ -430,22 +452,62 @@ def render_seeds(seeds: dict[str, Any] | None) -> list[str]:
         lines.append(
             f"| {model} | {split} | {cands} | {row['selected'] or '–'} | {seed_vals} | {row.get('shipped_seed', '–')} |"
         )
+    return [*lines, "", *render_candidates_test(seeds)]
+
+
+def render_candidates_test(seeds: dict[str, Any]) -> list[str]:
+    """Every candidate's selection-seed run on test: for orientation only, marked where selected."""
+    rows = seeds["rows"]
+    names = list(dict.fromkeys(c for row in rows.values() for c in row.get("candidates_val_ade_m", {})))
+    if not any(row.get("candidates_test") for row in rows.values()):
+        return []
+    head = "| model | candidate | " + " | ".join(COLS) + " |\n|---|---|" + "---|" * len(COLS)
+    lines = [
+        "Every candidate on test (ADE / FDE, metres; the run of the selection seed). For orientation",
+        "only: the choice was made on validation ADE before these were computed; * marks the candidate",
+        "selected on that split. The *paper* rows are the paper's configuration on every split.",
+        "",
+        head,
+    ]
+    for model in ("vlstm", "srnn", "mesrnn"):
+        for name in names:
+            cells, ades, fdes = [], [], []
+            for s in SPLITS:
+                row = rows.get(f"{model}/{s}") or {}
+                t = (row.get("candidates_test") or {}).get(name)
+                if t is None:
+                    cells.append("–")
+                    continue
+                ades.append(t["ade_m"])
+                fdes.append(t["fde_m"])
+                cells.append(f"{t['ade_m']:.3f} / {t['fde_m']:.3f}" + (" *" if row.get("selected") == name else ""))
+            cells.append(f"{np.mean(ades):.3f} / {np.mean(fdes):.3f}" if len(ades) == len(SPLITS) else "–")
+            if ades:
+                lines.append(f"| {NAMES[model]} | {name} | " + " | ".join(cells) + " |")
     return lines
 
 
-def render_comparisons(comparisons: dict[str, Any], boot: dict[str, Any], over_seeds: bool = False) -> list[str]:
+def render_comparisons(
+    comparisons: dict[str, Any] | None, boot: dict[str, Any], n_seeds: int | None = None
+) -> list[str]:
+    """The table of paired differences: of the shipped predictors, or (``n_seeds`` given) over the
+    plan's seeds."""
     head = "| difference | " + " | ".join(COLS) + " |\n|---|" + "---|" * len(COLS)
-    if over_seeds:
+    if n_seeds is not None:
         lines = [
             "## Paired differences over seeds, with 95 % intervals over windows and seeds",
             "",
-            "The same comparisons between the seed-averaged errors of every seed of the selected candidates",
-            "(constant velocity has one). A bootstrap replicate draws blocks of consecutive test windows, as",
-            "below, shared by both models, and for each model as many of its seeds as it has, with",
-            "replacement; so the interval includes how much the difference depends on which seeds were",
-            "trained. With three seeds, resampling them understates their variance by a third: these",
-            "intervals are still somewhat optimistic. This is the comparison the ordering below is read from.",
+            f"The same comparisons between seed-averaged errors: the {n_seeds} seeds of the configuration each",
+            "(model, split) selected on validation (constant velocity has one). The interval adds two sources:",
+            "the test windows (variance of the block bootstrap below, applied to the seed-averaged difference)",
+            "and the training seeds (each model's per-seed errors: s²/S, with Welch-Satterthwaite degrees of",
+            f"freedom; {n_seeds} seeds against constant velocity give {n_seeds - 1}). Resampling so few seeds",
+            "instead would be far too narrow. The five-split average takes each seed's mean over the splits.",
+            "These intervals are conditional on the selected configuration: the choice of candidate, made",
+            "with one seed, is not resampled. The ordering below is read from this table where it is complete.",
         ]
+        if comparisons is None:
+            return [*lines, "", "Not computed: these results predate the comparison over seeds; re-run the report."]
         if not comparisons:
             return [*lines, "", "Not computed: no (model, split) has all its seeds finished."]
     else:
@@ -475,13 +537,31 @@ def render_comparisons(comparisons: dict[str, Any], boot: dict[str, Any], over_s
     return lines
 
 
-def _has_averages(comparisons: dict[str, Any] | None) -> bool:
-    """Whether every pair of :data:`PAIRS` has a five-split average (all seeds of every split finished)."""
-    return bool(comparisons) and all("average" in comparisons.get(f"{a}-{b}", {}).get("ade_m", {}) for a, b in PAIRS)
+def _ordering_source(results: dict[str, Any]) -> tuple[dict[str, Any], dict[str, str], str]:
+    """Per pair, the comparison over seeds where it has its five-split average, else the shipped
+    predictors'; and a line saying which and why."""
+    seeds = results.get("seeds")
+    seeded = (seeds or {}).get("comparisons") or {}
+    chosen: dict[str, Any] = {}
+    sources: dict[str, str] = {}
+    for key, entry in results["comparisons"].items():
+        over = seeded.get(key)
+        if over is not None and "average" in over["ade_m"]:
+            chosen[key], sources[key] = over, "over seeds"
+        else:
+            chosen[key], sources[key] = entry, "shipped predictors, one seed each"
+    if all(v == "over seeds" for v in sources.values()):
+        return chosen, sources, "Read from the differences over seeds (ADE):"
+    if not seeds:
+        why = "the report was run without `--plan`"
+    else:
+        why = "not every seed of the plan has finished on all five splits"
+    return chosen, sources, f"Read, where marked, from the shipped predictors (one seed each) because {why} (ADE):"
 
 
-def ordering(comparisons: dict[str, Any]) -> list[str]:
-    """Plain statements read from the intervals (ADE): never a win where the interval includes 0."""
+def ordering(comparisons: dict[str, Any], sources: dict[str, str] | None = None) -> list[str]:
+    """Plain statements read from the intervals (ADE): never a win where the interval includes 0;
+    ``sources`` names, per pair, which comparison a line was read from."""
     out = []
 
     def summary_line(a: str, b: str) -> str | None:
@@ -496,7 +576,8 @@ def ordering(comparisons: dict[str, Any]) -> list[str]:
         parts = [f"{v} on {', '.join(ss)}" for v, ss in groups.items()]
         avg = per.get("average")
         head = f"average ADE difference {_ci_cell(avg)} m → **{avg['verdict']}**" if avg else "no five-split average"
-        return f"- {NAMES[a]} − {NAMES[b]}: {head}; per split: {'; '.join(parts)}."
+        src = f" ({sources[f'{a}-{b}']})" if sources and f"{a}-{b}" in sources else ""
+        return f"- {NAMES[a]} − {NAMES[b]}{src}: {head}; per split: {'; '.join(parts)}."
 
     for a, b in (("mesrnn", "srnn"), ("srnn", "vlstm"), ("mesrnn", "cv"), ("srnn", "cv"), ("vlstm", "cv")):
         line = summary_line(a, b)

@@ -14,12 +14,15 @@ the mean of per-window means. The five-split average is the unweighted mean of t
 figures (as on the results page); its interval resamples each split independently (the five test
 sets are different recordings) and averages the five resampled statistics.
 
-Comparisons over training seeds (:func:`seeded_bootstrap_ci`) add a second level: a replicate draws
-the blocks of windows (shared by both models: the comparison stays paired) and, independently for each
-model, as many seeds as it has, with replacement; the statistic is the difference of the two models'
-seed-averaged errors. The interval then covers how much the difference depends on which seeds were
-trained as well as on which windows were recorded. With few seeds (three in the plan) resampling seeds
-understates their variance by a factor ``(S − 1) / S``, so such an interval is still optimistic.
+Comparisons over training seeds (:func:`seeded_difference_ci`) add the seeds' variance. Resampling
+three seeds with replacement would be far too optimistic (a percentile interval of a mean of three
+seeds cannot reach beyond them: about 75 % coverage where 95 % is claimed), so the two sources are
+combined in a t interval instead: the window part is the variance of the block-bootstrap replicates of
+the seed-averaged difference; the seed part is ``s_A² / S_A + s_B² / S_B``, the sample variances of
+each model's per-seed errors; the degrees of freedom are Welch-Satterthwaite's, with the window part
+counted as known exactly. Three seeds against constant velocity have 2 degrees of freedom (t = 4.30).
+The five-split average takes each seed's average over the splits (seed ``k`` of every split together),
+so seed effects shared across splits are counted. With one seed each this is the block bootstrap above.
 
 Randomness comes from :class:`numpy.random.Generator` only; intervals are percentile intervals.
 """
@@ -31,6 +34,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import stats as sps
 
 #: Default block length in windows: one window spans 20 annotation steps.
 DEFAULT_BLOCK_LEN = 20
@@ -191,47 +195,62 @@ def _check_pair(a: SeededErrors, b: SeededErrors) -> None:
         raise ValueError("the two models were scored on different windows or pedestrians")
 
 
-def _seeded_replicates(
-    a: SeededErrors, b: SeededErrors, block_len: int, n_resamples: int, rng: np.random.Generator
-) -> np.ndarray:
-    starts = _block_starts(len(a.count), block_len, n_resamples, rng)
-    count = _block_totals(a.count[None], starts, block_len)[0]
-    cols = np.arange(n_resamples)[:, None]
-    means = []
-    for e in (a, b):
-        totals = _block_totals(e.sums, starts, block_len)  # (S, n)
-        draws = rng.integers(0, e.seeds, size=(n_resamples, e.seeds))
-        means.append(totals.T[cols, draws].mean(1))
-    return (means[0] - means[1]) / count
+@dataclass(frozen=True)
+class SeededDifference:
+    """A seed-averaged difference ``A − B`` and its interval (:func:`seeded_difference_ci`)."""
+
+    estimate: float
+    interval: tuple[float, float]
+    window_se: float
+    """Standard error from the test windows (block bootstrap of the seed-averaged difference)."""
+    seed_se: float
+    """Standard error from the training seeds, ``sqrt(s_A² / S_A + s_B² / S_B)`` (0 with one seed each)."""
+    df: float
+    """Welch-Satterthwaite degrees of freedom of the t quantile (``inf``: a percentile interval)."""
 
 
-def seeded_bootstrap_replicates(
-    a: SeededErrors,
-    b: SeededErrors,
-    block_len: int = DEFAULT_BLOCK_LEN,
-    n_resamples: int = DEFAULT_RESAMPLES,
-    seed: int = 0,
-) -> np.ndarray:
-    """``(n_resamples,)`` two-level bootstrap replicates of ``A − B`` (seed-averaged): blocks of windows
-    shared by both, seeds drawn with replacement for each model separately. With one seed each, the
-    replicates are exactly :func:`block_bootstrap_replicates` of the paired difference."""
-    _check(block_len, n_resamples, 0.5)
-    _check_pair(a, b)
-    return _seeded_replicates(a, b, block_len, n_resamples, np.random.default_rng(seed))
+def _seed_means(e: SeededErrors) -> np.ndarray:
+    """Each seed's pedestrian-weighted error on the whole split."""
+    return e.sums.sum(1) / e.count.sum()
 
 
-def seeded_bootstrap_ci(
+def _combine(
+    estimate: float, replicates: np.ndarray, seed_means: Sequence[np.ndarray], confidence: float
+) -> SeededDifference:
+    """A t interval whose variance adds the window replicates' variance and each side's ``s² / S``."""
+    window_var = float(np.var(replicates, ddof=1)) if len(replicates) > 1 else 0.0
+    terms = [(float(np.var(m, ddof=1)) / len(m), len(m) - 1) for m in seed_means if len(m) > 1]
+    seed_var = sum(v for v, _ in terms)
+    total = window_var + seed_var
+    den = sum(v * v / k for v, k in terms)
+    df = total * total / den if den > 0 else math.inf
+    q = float(sps.t.ppf(0.5 + confidence / 2, df)) if math.isfinite(df) else float(sps.norm.ppf(0.5 + confidence / 2))
+    half = q * math.sqrt(total)
+    return SeededDifference(
+        estimate, (estimate - half, estimate + half), math.sqrt(window_var), math.sqrt(seed_var), df
+    )
+
+
+def seeded_difference_ci(
     a: SeededErrors,
     b: SeededErrors,
     block_len: int = DEFAULT_BLOCK_LEN,
     n_resamples: int = DEFAULT_RESAMPLES,
     confidence: float = 0.95,
     seed: int = 0,
-) -> tuple[float, tuple[float, float]]:
-    """The seed-averaged difference ``A − B`` on one split and its two-level percentile interval."""
+) -> SeededDifference:
+    """The seed-averaged difference ``A − B`` on one split, with an interval over windows and seeds
+    (module docstring). With one seed each: exactly :func:`block_bootstrap_ci` of the paired difference.
+    A model with one seed contributes no seed variance (right for constant velocity, which has none)."""
     _check(block_len, n_resamples, confidence)
-    reps = seeded_bootstrap_replicates(a, b, block_len, n_resamples, seed)
-    return a.estimate - b.estimate, _percentile_interval(reps, confidence)
+    _check_pair(a, b)
+    paired = PairedErrors(a.sums.mean(0) - b.sums.mean(0), a.count)
+    reps = block_bootstrap_replicates(paired, block_len, n_resamples, seed)
+    if a.seeds == 1 and b.seeds == 1:
+        return SeededDifference(
+            paired.estimate, _percentile_interval(reps, confidence), float(np.std(reps, ddof=1)), 0.0, math.inf
+        )
+    return _combine(paired.estimate, reps, [_seed_means(a), _seed_means(b)], confidence)
 
 
 def seeded_average_ci(
@@ -240,20 +259,29 @@ def seeded_average_ci(
     n_resamples: int = DEFAULT_RESAMPLES,
     confidence: float = 0.95,
     seed: int = 0,
-) -> tuple[float, tuple[float, float]]:
-    """The unweighted mean over splits of the seed-averaged differences, and its interval (each split's
-    windows and seeds resampled independently: each split's models were trained separately)."""
+) -> SeededDifference:
+    """The unweighted mean over splits of the seed-averaged differences, with an interval: each split's
+    windows resampled independently (as :func:`average_ci`), and the seed part from each seed's average
+    over the splits, so each model needs the same number of seeds, in the same order, on every split.
+    With one seed each: exactly :func:`average_ci`."""
     _check(block_len, n_resamples, confidence)
     if not pairs:
         raise ValueError("need at least one split")
     for a, b in pairs:
         _check_pair(a, b)
+    for side in (0, 1):
+        if len({p[side].seeds for p in pairs}) != 1:
+            raise ValueError("a model needs the same seeds on every split for a five-split average")
+    paired = [PairedErrors(a.sums.mean(0) - b.sums.mean(0), a.count) for a, b in pairs]
     rngs = np.random.default_rng(seed).spawn(len(pairs))
-    reps = np.mean(
-        [_seeded_replicates(a, b, block_len, n_resamples, r) for (a, b), r in zip(pairs, rngs, strict=True)], axis=0
-    )
-    estimate = float(np.mean([a.estimate - b.estimate for a, b in pairs]))
-    return estimate, _percentile_interval(reps, confidence)
+    reps = np.mean([_replicates(e, block_len, n_resamples, r) for e, r in zip(paired, rngs, strict=True)], axis=0)
+    estimate = float(np.mean([e.estimate for e in paired]))
+    if pairs[0][0].seeds == 1 and pairs[0][1].seeds == 1:
+        return SeededDifference(
+            estimate, _percentile_interval(reps, confidence), float(np.std(reps, ddof=1)), 0.0, math.inf
+        )
+    seed_means = [np.mean([_seed_means(p[side]) for p in pairs], axis=0) for side in (0, 1)]
+    return _combine(estimate, reps, seed_means, confidence)
 
 
 def verdict(interval: tuple[float, float], lower_is_better: bool = True) -> str:

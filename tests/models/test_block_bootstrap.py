@@ -13,8 +13,7 @@ from crowdnav_mesrnn.stats import (
     block_bootstrap_ci,
     block_bootstrap_replicates,
     seeded_average_ci,
-    seeded_bootstrap_ci,
-    seeded_bootstrap_replicates,
+    seeded_difference_ci,
     verdict,
 )
 
@@ -99,50 +98,89 @@ def test_verdicts_and_errors() -> None:
 
 
 # ------------------------------------------------------------------ over training seeds
-def test_one_seed_each_is_the_block_bootstrap_of_the_paired_difference() -> None:
+def per_seed(values: list[float], counts: np.ndarray) -> SeededErrors:
+    """Seed k's error is values[k] for every pedestrian of every window: no window variance."""
+    return SeededErrors(np.array([v * counts for v in values]), counts)
+
+
+def test_one_seed_each_is_the_block_bootstrap() -> None:
     rng = np.random.default_rng(4)
-    counts = rng.integers(1, 6, 137)
-    a, b = rng.normal(0.5, 0.1, 137) * counts, rng.normal(0.45, 0.1, 137) * counts
-    seeded = seeded_bootstrap_replicates(SeededErrors(a, counts), SeededErrors(b, counts), 20, 3000, seed=7)
-    plain = block_bootstrap_replicates(PairedErrors(a - b, counts), 20, 3000, seed=7)
-    np.testing.assert_allclose(seeded, plain, rtol=1e-12, atol=1e-12)
+    pairs, paired = [], {}
+    for s in range(5):
+        counts = rng.integers(1, 6, 137 + s)
+        a, b = rng.normal(0.5, 0.1, len(counts)) * counts, rng.normal(0.45, 0.1, len(counts)) * counts
+        pairs.append((SeededErrors(a, counts), SeededErrors(b, counts)))
+        paired[s] = PairedErrors(a - b, counts)
+    d = seeded_difference_ci(*pairs[0], 20, 3000, seed=7)
+    assert d.interval == block_bootstrap_ci(paired[0], 20, 3000, seed=7) and d.seed_se == 0.0
+    assert d.estimate == pytest.approx(paired[0].estimate) and d.df == float("inf") and d.window_se > 0
+    avg = seeded_average_ci(pairs, 20, 3000, seed=2)
+    est, ci = average_ci(paired, 20, 3000, seed=2)
+    assert avg.interval == ci and avg.estimate == pytest.approx(est)
 
 
-def test_hand_checked_seed_draws() -> None:
-    """A has two seeds whose errors are 1 and 3 on every window, B one seed at 0: the windows drawn do
-    not matter and a replicate is the mean of two seeds drawn with replacement, 1, 2 or 3 with odds 1:2:1."""
-    w = 30
-    a = SeededErrors(np.array([np.full(w, 1.0), np.full(w, 3.0)]), np.ones(w))
-    b = SeededErrors(np.zeros((1, w)), np.ones(w))
-    assert a.seeds == 2 and a.estimate == 2.0
-    reps = seeded_bootstrap_replicates(a, b, block_len=5, n_resamples=40_000, seed=0)
-    values, counts = np.unique(np.round(reps, 9), return_counts=True)
-    np.testing.assert_allclose(values, [1.0, 2.0, 3.0])
-    np.testing.assert_allclose(counts / counts.sum(), [0.25, 0.5, 0.25], atol=0.01)
-    est, (lo, hi) = seeded_bootstrap_ci(a, b, block_len=5, n_resamples=4000)
-    assert est == 2.0 and lo == 1.0 and hi == 3.0
+def test_seed_part_is_welch_on_the_per_seed_errors() -> None:
+    counts = np.array([1, 4, 2, 7, 3, 3, 5, 1, 1, 2])
+    # Two seeds at 1 and 3 against a deterministic 0: mean 2, s² = 2, se = 1, one degree of freedom.
+    d = seeded_difference_ci(per_seed([1.0, 3.0], counts), per_seed([0.0], counts), n_resamples=500)
+    assert d.estimate == pytest.approx(2.0) and d.seed_se == pytest.approx(1.0) and d.window_se == 0.0
+    assert d.df == pytest.approx(1.0)
+    assert d.interval[1] - 2.0 == pytest.approx(12.7062, abs=1e-4)  # t(1) quantile 0.975
+    # Three seeds each: exactly scipy's Welch interval on the per-seed errors.
+    a, b = [0.41, 0.44, 0.43], [0.47, 0.45, 0.52]
+    d = seeded_difference_ci(per_seed(a, counts), per_seed(b, counts), n_resamples=500)
+    ref = sps.ttest_ind(a, b, equal_var=False).confidence_interval(0.95)
+    assert d.interval == pytest.approx((ref.low, ref.high)) and d.estimate == pytest.approx(np.mean(a) - np.mean(b))
 
 
-def test_seed_spread_widens_the_interval_and_the_average_combines_splits() -> None:
-    rng = np.random.default_rng(1)
-    w = 400
-    noise = np.convolve(rng.normal(0, 0.05, w + 19), np.ones(20) / 20, mode="valid")
-    counts = np.full(w, 2.0)
-    b = SeededErrors(((0.5 + noise) * counts)[None], counts)
-    same = SeededErrors(np.stack([(0.45 + noise) * counts] * 3), counts)
-    spread = SeededErrors(np.stack([(0.45 + d + noise) * counts for d in (-0.04, 0.0, 0.04)]), counts)
-    est1, ci1 = seeded_bootstrap_ci(same, b, n_resamples=3000)
-    est2, ci2 = seeded_bootstrap_ci(spread, b, n_resamples=3000)
-    assert est1 == pytest.approx(-0.05) and est2 == pytest.approx(-0.05)
-    assert ci1[0] == pytest.approx(-0.05) and ci1[1] == pytest.approx(-0.05)  # same noise: zero width
-    assert ci2[1] - ci2[0] > 0.03  # the seeds' spread (±0.04) is in the interval
-    est, (lo, hi) = seeded_average_ci([(same, b), (spread, b)], n_resamples=3000)
-    assert est == pytest.approx(-0.05) and lo < -0.05 < hi and hi - lo < ci2[1] - ci2[0]
+def test_per_seed_errors_are_pedestrian_weighted() -> None:
+    """Seed 0: window 0 (one pedestrian) error 2, window 1 (three) error 0 -> 0.5, not the mean 1."""
+    counts = np.array([1, 3])
+    a = SeededErrors(np.array([[2.0, 0.0], [0.5, 1.5]]), counts)
+    assert a.estimate == pytest.approx(0.5)
+    d = seeded_difference_ci(a, per_seed([0.0], counts), n_resamples=200)
+    assert d.estimate == pytest.approx(0.5) and d.seed_se == 0.0  # both seeds are at 0.5 overall
+
+
+def test_the_average_counts_seed_effects_shared_across_splits() -> None:
+    counts = np.full(40, 2)
+    shared = [(per_seed([0.4, 0.5, 0.6], counts), per_seed([0.5], counts)) for _ in range(5)]
+    one = seeded_difference_ci(*shared[0], n_resamples=300)
+    avg = seeded_average_ci(shared, n_resamples=300)
+    # Seed 0 is the best on every split: averaging over splits does not shrink the seed part.
+    assert avg.seed_se == pytest.approx(one.seed_se) and avg.df == pytest.approx(2.0)
+    rotated = [(per_seed(list(np.roll([0.4, 0.5, 0.6], k)), counts), per_seed([0.5], counts)) for k in range(5)]
+    assert seeded_average_ci(rotated, n_resamples=300).seed_se < one.seed_se / 3
+    with pytest.raises(ValueError, match="same seeds on every split"):
+        seeded_average_ci([shared[0], (per_seed([0.4, 0.5], counts), per_seed([0.5], counts))])
+
+
+@pytest.mark.parametrize(("seeds_b", "splits"), [(1, 1), (3, 1), (3, 5)])
+def test_coverage_when_seeds_dominate(seeds_b: int, splits: int) -> None:
+    """No true difference; seed noise (sd 0.05) dominates window noise. Resampling three seeds covered
+    about 75-87 % here; the t interval must cover about 95 %."""
+    rng = np.random.default_rng(11)
+    w, trials, hits = 60, 300, 0
+    counts = rng.integers(1, 5, w)
+    for _ in range(trials):
+        pairs = []
+        for _ in range(splits):
+            window = np.convolve(rng.normal(0, 0.01, w + 19), np.ones(20) / 20, mode="valid")
+            a = [(0.5 + rng.normal(0, 0.05) + window) * counts for _ in range(3)]
+            b = [(0.5 + rng.normal(0, 0.05 if seeds_b > 1 else 0.0) + window) * counts for _ in range(seeds_b)]
+            pairs.append((SeededErrors(np.array(a), counts), SeededErrors(np.array(b), counts)))
+        d = (
+            seeded_difference_ci(*pairs[0], n_resamples=200)
+            if splits == 1
+            else seeded_average_ci(pairs, n_resamples=200)
+        )
+        hits += d.interval[0] <= 0.0 <= d.interval[1]
+    assert 0.9 <= hits / trials <= 0.99
 
 
 def test_seeded_errors_are_checked() -> None:
     with pytest.raises(ValueError, match="different windows"):
-        seeded_bootstrap_ci(SeededErrors(np.ones((2, 3)), np.ones(3)), SeededErrors(np.ones(3), np.array([1, 2, 1])))
+        seeded_difference_ci(SeededErrors(np.ones((2, 3)), np.ones(3)), SeededErrors(np.ones(3), np.array([1, 2, 1])))
     with pytest.raises(ValueError, match="seeds, windows"):
         SeededErrors(np.ones((2, 3)), np.ones(4))
     with pytest.raises(ValueError, match="positive pedestrian count"):

@@ -167,6 +167,28 @@ def test_execute_is_resumable_and_exports_the_best_seed(
     assert note.startswith("lowest val ADE") and f"seed {row['shipped_seed']})" in note
     assert f"candidate {row['selected']} selected on val ADE" in note
 
+    # The report's seed section, end to end on these runs: every seed and candidate on test, and the
+    # comparison over seeds against constant velocity.
+    from crowdnav_mesrnn.evaluation import evaluate_model
+    from crowdnav_mesrnn.report import render_seeds, seed_results
+
+    cv: dict = {}
+    evaluate_model("cv", ["zara1"], data_dir=str(data_dir), window_sums=cv)
+    res = seed_results(tmp_path / "plan.yaml", str(data_dir), cv, n_resamples=200)
+    got = res["rows"]["vlstm/zara1"]
+    assert set(got["seeds"]) == {0, 1} and got["test"]["n"] == 2 and set(got["candidates_test"]) == {"a", "b"}
+    assert got["candidates_test"][got["selected"]] == got["seeds"][0]["test"]
+    diff = res["comparisons"]["vlstm-cv"]["ade_m"]["zara1"]
+    assert diff["seeds"] == [2, 1] and diff["ci"][0] <= diff["diff"] <= diff["ci"][1]
+    assert (
+        abs(
+            diff["diff"]
+            - (got["test"]["ade_m"]["mean"] - cv["zara1"]["ade_m"].sum() / cv["zara1"]["pedestrians"].sum())
+        )
+        < 1e-9
+    )
+    assert "| VLSTM | a |" in "\n".join(render_seeds(res))
+
 
 def test_dry_run_lists_every_run_with_a_cpu_estimate(tmp_path: Path, data_dir: Path) -> None:
     from crowdnav_mesrnn.plan import dry_run

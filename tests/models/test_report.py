@@ -113,4 +113,32 @@ def test_seeds_enter_the_interval_and_the_ordering_is_read_from_them() -> None:
     results["seeds"]["comparisons"] = {}
     page = render(results)
     assert "Not computed: no (model, split) has all its seeds finished." in page
-    assert "Read from the shipped predictors" in page
+    assert "Read, where marked, from the shipped predictors (one seed each) because not every seed" in page
+    assert "- MESRNN − SRNN (shipped predictors, one seed each):" in page
+    del results["seeds"]["comparisons"]  # a results file from before the comparison over seeds
+    assert "these results predate the comparison over seeds" in render(results)
+    del results["seeds"]
+    page = render(results)
+    assert "## Paired differences over seeds" not in page and "run without `--plan`" in page
+    eth = over["mesrnn-cv"]["ade_m"]["eth"]
+    assert eth["seed_se"] == pytest.approx(0.1) and eth["df"] == pytest.approx(2.0)  # sd of (-.2, .1, .1) / sqrt 3
+
+
+def test_candidates_on_test_are_marked_where_selected() -> None:
+    t = {"ade_m": 0.5, "fde_m": 1.0}
+    rows = {
+        f"{m}/{s}": {
+            "candidates_val_ade_m": {"paper": 0.6, "residual": 0.4},
+            "selected": "residual",
+            "seeds": {},
+            "candidates_test": {"paper": {"ade_m": 0.7, "fde_m": 1.4}, "residual": t},
+        }
+        for m in ("vlstm", "srnn", "mesrnn")
+        for s in SPLITS
+    }
+    del rows["srnn/eth"]["candidates_test"]["paper"]
+    text = "\n".join(render_seeds({"plan": "p.yaml", "seeds": [0, 1, 2], "rows": rows, "average": {}}))
+    assert "| MESRNN | paper | 0.700 / 1.400 | 0.700 / 1.400 |" in text
+    assert "| MESRNN | residual | 0.500 / 1.000 * |" in text and "| 0.500 / 1.000 |\n" in text  # average unmarked
+    assert "| SRNN | paper | – | 0.700 / 1.400 |" in text and text.count("| SRNN | paper |") == 1
+    assert "| 0.700 / 1.400 | – |" in text  # no average over four splits
