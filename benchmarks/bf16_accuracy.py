@@ -1,0 +1,158 @@
+"""Does bf16 autocast keep validation ADE within 1 % of fp32? Full training runs, several seeds each.
+
+Run: ``python benchmarks/bf16_accuracy.py --model mesrnn --split univ --config configs/predictor/mesrnn.yaml``
+(``--shard 0/2`` and ``--shard 1/2`` in two processes to use both cores; then once more without
+``--shard`` to print the table). Trains ``--seeds`` seeds of one configuration in fp32 and in bf16
+(``--set precision=bf16``) into ``--out`` (default ``runs/predictor/bf16/MODEL/SPLIT``); finished runs are
+skipped and interrupted ones resume, as in ``predictor plan``. An fp32 run of the same configuration and
+seed in ``--fp32-from`` (a folder template with ``{seed}``, e.g. a plan run) is used instead of training
+it again. Prints each run's best validation ADE and training rate, the mean ± std per precision, and
+the difference bf16 − fp32 with a Welch t interval, as metres and as a fraction of fp32. The 1 % criterion
+counts as shown only when the whole interval lies below +1 %: with three seeds a seed-to-seed spread of a
+few millimetres already makes that interval wider than 1 %.
+
+Validation ADE only (the ``_val`` pieces of the training scenes): test data are not read.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+from scipy import stats as sps
+
+from crowdnav_mesrnn.models.base import LEARNED_MODELS
+from crowdnav_mesrnn.plan import Candidate, Run, parse_shard, read_done, run_lock, train_run
+
+
+def runs_for(args: argparse.Namespace) -> dict[str, list[Run]]:
+    out = Path(args.out or f"runs/predictor/bf16/{args.model}/{args.split}")
+    sets = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.set or [])}
+    runs: dict[str, list[Run]] = {}
+    for precision in ("fp32", "bf16"):
+        cand = Candidate(precision, args.config, {**sets, "precision": precision})
+        runs[precision] = []
+        for seed in args.seeds:
+            folder = out / precision / f"seed{seed}"
+            if precision == "fp32" and args.fp32_from:
+                given = Path(args.fp32_from.format(seed=seed))
+                if read_done(given) is not None:
+                    check_same_recipe(given, args.model, cand, seed)
+                    folder = given
+            runs[precision].append(Run("bf16-check", args.model, args.split, cand, seed, folder))
+    return runs
+
+
+def check_same_recipe(folder: Path, model: str, cand: Candidate, seed: int) -> None:
+    """A reused fp32 run must have been trained with exactly this configuration and seed."""
+    from crowdnav_mesrnn.training import load_configs
+
+    recorded = yaml.safe_load((folder / "run.yaml").read_text())
+    mcfg, tcfg = load_configs(model, cand.config_path(model), {**cand.overrides, "seed": seed})
+    want = {"model": mcfg.to_dict(), "train": tcfg.__dict__}
+    for part in ("model", "train"):
+        for key, value in want[part].items():
+            if key not in ("split", "data_dir") and recorded[part].get(key) != value:
+                raise SystemExit(
+                    f"{folder}/run.yaml: {part}.{key} is {recorded[part].get(key)!r}, this check trains with "
+                    f"{value!r}; pass a matching --config/--set or drop --fp32-from"
+                )
+
+
+def rate(folder: Path) -> float | None:
+    """Mean training windows/s over the run's epochs (``history`` of ``last.pt``)."""
+    last = folder / "last.pt"
+    if not last.is_file():
+        return None
+    history = torch.load(last, map_location="cpu", weights_only=True).get("history") or []
+    rates = [float(h["windows_per_s"]) for h in history if h.get("windows_per_s")]
+    return float(np.mean(rates)) if rates else None
+
+
+def report(runs: dict[str, list[Run]]) -> dict:
+    vals: dict[str, list[float]] = {}
+    print(f"{'precision':<10}{'seed':>5}{'best val ADE m':>16}{'windows/s':>11}  folder")
+    for precision, group in runs.items():
+        vals[precision] = []
+        for run in group:
+            done = read_done(run.out)
+            ade = float(done["best_val_ade_m"]) if done else None
+            r = rate(run.out)
+            if ade is not None:
+                vals[precision].append(ade)
+            print(
+                f"{precision:<10}{run.seed:>5}{(f'{ade:.4f}' if ade is not None else 'not done'):>16}"
+                f"{(f'{r:.1f}' if r else '–'):>11}  {run.out}"
+            )
+    out: dict = {"val_ade_m": vals}
+    a, b = np.array(vals["bf16"]), np.array(vals["fp32"])
+    if len(a) < 2 or len(b) < 2:
+        print("need at least two finished seeds per precision for an interval")
+        return out
+    diff = float(a.mean() - b.mean())
+    se = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
+    if se > 0:
+        df = se**4 / ((a.var(ddof=1) / len(a)) ** 2 / (len(a) - 1) + (b.var(ddof=1) / len(b)) ** 2 / (len(b) - 1))
+        half = float(sps.t.ppf(0.975, df)) * se
+    else:
+        df, half = math.inf, 0.0
+    rel = [x / b.mean() for x in (diff, diff - half, diff + half)]
+    print(
+        f"fp32 {b.mean():.4f} ± {b.std(ddof=1):.4f} m (n={len(b)}); bf16 {a.mean():.4f} ± {a.std(ddof=1):.4f} m (n={len(a)})"
+    )
+    print(
+        f"bf16 − fp32: {diff:+.4f} m [{diff - half:+.4f}, {diff + half:+.4f}] (Welch t, df {df:.1f}) = "
+        f"{100 * rel[0]:+.2f} % [{100 * rel[1]:+.2f}, {100 * rel[2]:+.2f}] of fp32"
+    )
+    shown = rel[2] < 0.01
+    print(
+        "within 1 %: "
+        + ("shown (the interval lies below +1 %)" if shown else "not shown (the interval reaches +1 % or beyond)")
+    )
+    out.update(diff_m=diff, ci_m=[diff - half, diff + half], relative=rel, df=df if math.isfinite(df) else None)
+    out["within_1_percent_shown"] = shown
+    return out
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--model", choices=LEARNED_MODELS, default="mesrnn")
+    p.add_argument("--split", default="univ")
+    p.add_argument("--config", default="configs/predictor/mesrnn.yaml", help="YAML (may contain {model})")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="extra model/train keys (YAML values)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--out", default=None)
+    p.add_argument("--fp32-from", default=None, help="folder template with {seed} of finished fp32 runs to reuse")
+    p.add_argument("--shard", default=None, help="i/n: train only every n-th run from the i-th (one per core)")
+    p.add_argument("--data-dir", default=None)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--json", default=None, help="also write the table's figures to this file")
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    runs = runs_for(args)
+    every = [r for group in runs.values() for r in group]
+    shard = parse_shard(args.shard) if args.shard else (0, 1)
+    for i, run in enumerate(every):
+        if i % shard[1] != shard[0] or read_done(run.out) is not None:
+            continue
+        with run_lock(run.out) as held:
+            if not held:
+                print(f"{run.out}: being trained by another process; skipped")
+                continue
+            print(f"[{run.candidate.name} seed {run.seed}] -> {run.out}")
+            train_run(run, data_dir=args.data_dir)
+    result = report(runs)
+    if args.json:
+        from crowdnav_mesrnn.utils import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
