@@ -7,9 +7,11 @@ Run: ``python benchmarks/bf16_accuracy.py --model mesrnn --split univ --config c
 skipped and interrupted ones resume, as in ``predictor plan``. An fp32 run of the same configuration and
 seed in ``--fp32-from`` (a folder template with ``{seed}``, e.g. a plan run) is used instead of training
 it again. Prints each run's best validation ADE and training rate, the mean ± std per precision, and
-the difference bf16 − fp32 with a Welch t interval, as metres and as a fraction of fp32. The 1 % criterion
-counts as shown only when the whole interval lies below +1 %: with three seeds a seed-to-seed spread of a
-few millimetres already makes that interval wider than 1 %.
+the difference bf16 − fp32 with a t interval, as metres and as a fraction of fp32: paired by seed (a
+seed fixes the initial weights and the data order in both precisions, so only the precision differs),
+and unpaired (Welch) for reference. The 1 % criterion counts as shown only when the whole paired
+interval lies below +1 %. The training rates come from each run's own epochs: runs made under
+different loads do not compare; ``benchmarks/predictor_speed.py`` measures the rates like for like.
 
 Validation ADE only (the ``_val`` pieces of the training scenes): test data are not read.
 """
@@ -75,48 +77,54 @@ def rate(folder: Path) -> float | None:
 
 
 def report(runs: dict[str, list[Run]]) -> dict:
-    vals: dict[str, list[float]] = {}
+    vals: dict[str, dict[int, float]] = {}
     print(f"{'precision':<10}{'seed':>5}{'best val ADE m':>16}{'windows/s':>11}  folder")
     for precision, group in runs.items():
-        vals[precision] = []
+        vals[precision] = {}
         for run in group:
             done = read_done(run.out)
             ade = float(done["best_val_ade_m"]) if done else None
             r = rate(run.out)
             if ade is not None:
-                vals[precision].append(ade)
+                vals[precision][run.seed] = ade
             print(
                 f"{precision:<10}{run.seed:>5}{(f'{ade:.4f}' if ade is not None else 'not done'):>16}"
                 f"{(f'{r:.1f}' if r else '–'):>11}  {run.out}"
             )
     out: dict = {"val_ade_m": vals}
-    a, b = np.array(vals["bf16"]), np.array(vals["fp32"])
-    if len(a) < 2 or len(b) < 2:
-        print("need at least two finished seeds per precision for an interval")
+    seeds = sorted(set(vals["bf16"]) & set(vals["fp32"]))
+    if len(seeds) < 2:
+        print("need at least two seeds finished in both precisions for an interval")
         return out
-    diff = float(a.mean() - b.mean())
-    se = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
-    if se > 0:
-        df = se**4 / ((a.var(ddof=1) / len(a)) ** 2 / (len(a) - 1) + (b.var(ddof=1) / len(b)) ** 2 / (len(b) - 1))
-        half = float(sps.t.ppf(0.975, df)) * se
-    else:
-        df, half = math.inf, 0.0
-    rel = [x / b.mean() for x in (diff, diff - half, diff + half)]
+    a = np.array([vals["bf16"][k] for k in seeds])
+    b = np.array([vals["fp32"][k] for k in seeds])
+    ref = float(b.mean())
+    print(f"seeds {seeds}: fp32 {ref:.4f} ± {b.std(ddof=1):.4f} m; bf16 {a.mean():.4f} ± {a.std(ddof=1):.4f} m")
+    # Paired by seed (same initial weights and data order; only the precision differs): the design's test.
+    d = a - b
+    paired = _t_interval(float(d.mean()), float(d.std(ddof=1)) / math.sqrt(len(d)), len(d) - 1)
+    # Unpaired (Welch), for reference: ignores that the seeds match.
+    va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
+    den = va**2 / (len(a) - 1) + vb**2 / (len(b) - 1)
+    welch = _t_interval(float(a.mean() - b.mean()), math.sqrt(va + vb), (va + vb) ** 2 / den if den > 0 else math.inf)
+    for name, (est, lo, hi, df) in (("paired by seed", paired), ("Welch, unpaired", welch)):
+        print(
+            f"bf16 − fp32, {name}: {est:+.4f} m [{lo:+.4f}, {hi:+.4f}] (t, df {df:.1f}) = "
+            f"{100 * est / ref:+.2f} % [{100 * lo / ref:+.2f}, {100 * hi / ref:+.2f}] of fp32"
+        )
+        out[name] = {"diff_m": est, "ci_m": [lo, hi], "relative": [est / ref, lo / ref, hi / ref], "df": df}
+    shown = bool(paired[2] / ref < 0.01)
     print(
-        f"fp32 {b.mean():.4f} ± {b.std(ddof=1):.4f} m (n={len(b)}); bf16 {a.mean():.4f} ± {a.std(ddof=1):.4f} m (n={len(a)})"
+        "within 1 % (paired interval below +1 %): "
+        + ("shown" if shown else "not shown (the paired interval reaches +1 % or beyond)")
     )
-    print(
-        f"bf16 − fp32: {diff:+.4f} m [{diff - half:+.4f}, {diff + half:+.4f}] (Welch t, df {df:.1f}) = "
-        f"{100 * rel[0]:+.2f} % [{100 * rel[1]:+.2f}, {100 * rel[2]:+.2f}] of fp32"
-    )
-    shown = rel[2] < 0.01
-    print(
-        "within 1 %: "
-        + ("shown (the interval lies below +1 %)" if shown else "not shown (the interval reaches +1 % or beyond)")
-    )
-    out.update(diff_m=diff, ci_m=[diff - half, diff + half], relative=rel, df=df if math.isfinite(df) else None)
     out["within_1_percent_shown"] = shown
     return out
+
+
+def _t_interval(est: float, se: float, df: float) -> tuple[float, float, float, float]:
+    half = float(sps.t.ppf(0.975, df)) * se if se > 0 and math.isfinite(df) else 0.0
+    return est, est - half, est + half, float(df) if math.isfinite(df) else float("nan")
 
 
 def main() -> int:
