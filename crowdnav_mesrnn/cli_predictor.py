@@ -131,12 +131,22 @@ def _report(args: argparse.Namespace) -> int:
     from crowdnav_mesrnn.report import build_report
     from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text
 
+    out = Path(args.out)
+    if args.render_only:
+        from crowdnav_mesrnn.report import render
+
+        source = out.with_suffix(".json")
+        if not source.is_file():
+            print(f"error: --render-only needs {source} from an earlier report", file=sys.stderr)
+            return 2
+        atomic_write_text(out, render(json.loads(source.read_text())))
+        print(f"wrote {out} from {source} (nothing re-evaluated)")
+        return 0
     torch.set_num_threads(args.threads)
     extra = dict(item.split("=", 1) for item in (args.extra or []))
     text, results = build_report(
         extra, data_dir=args.data_dir, plan=args.plan, block_len=args.block_len, n_resamples=args.resamples
     )
-    out = Path(args.out)
     atomic_write_text(out, text)
     atomic_write_json(out.with_suffix(".json"), results)
     print(text)
@@ -208,6 +218,9 @@ def add_parser(sub: Any) -> None:
     r.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
     r.add_argument("--data-dir", default=None)
     r.add_argument("--threads", type=int, default=1)
+    r.add_argument(
+        "--render-only", action="store_true", help="rewrite the page from its .json (after a change of wording only)"
+    )
     r.set_defaults(func=_report)
 
     pl = psub.add_parser(

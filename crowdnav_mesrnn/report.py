@@ -349,10 +349,15 @@ def _shipped_protocol(results: dict[str, Any]) -> str:
     if len(by_plan) == len(notes):
         return "All 15 shipped predictors were exported by the comparison plan (`predictor plan ... --stage export`)."
     if not by_plan:
+        later = (
+            "the sections on seeds below describe the plan's runs, which are not exported yet "
+            "(`predictor plan ... --stage export`)"
+            if results.get("seeds")
+            else "the seed and plan sections below are empty until `predictor plan` has run and exported"
+        )
         return (
             "**The shipped predictors predate the comparison plan**: they were selected under the earlier "
-            "protocol (the selection table at the end says among what); the seed and plan sections below are "
-            "empty until `predictor plan` has run and exported."
+            f"protocol (the selection table at the end says among what), and the rows marked *shipped* describe them; {later}."
         )
     return (
         f"{len(by_plan)} of 15 shipped predictors were exported by the comparison plan ({', '.join(by_plan)}); "
@@ -388,6 +393,7 @@ def render(results: dict[str, Any]) -> str:
     lines += ["", *render_comparisons(results["comparisons"], results["bootstrap"])]
     chosen, sources, source_line = _ordering_source(results)
     lines += ["", "## Does the paper's ordering hold?", "", source_line, "", *ordering(chosen, sources)]
+    lines += candidate_confounds(seeds)
     lines += [
         "",
         "## ADE / FDE in the paper's min-max-normalised units",
@@ -596,6 +602,30 @@ def ordering(comparisons: dict[str, Any], sources: dict[str, str] | None = None)
             state = "**is not established** (at least one average difference is not detectable)"
         out.append(f"- The paper's ordering MESRNN < SRNN < VLSTM (average ADE) {state}.")
     out.append("- The paper reports MESRNN over 32 % better than SRNN at long horizons; compare the MESRNN − SRNN row.")
+    return out
+
+
+def candidate_confounds(seeds: dict[str, Any] | None) -> list[str]:
+    """Where two compared models were selected with different candidates, their difference there is
+    partly the candidate's, not the architecture's: name those splits."""
+    if not seeds:
+        return []
+    rows = seeds["rows"]
+    out = []
+    for a, b in (("mesrnn", "srnn"), ("srnn", "vlstm"), ("mesrnn", "vlstm")):
+        diff = [
+            f"{s} ({rows[f'{a}/{s}']['selected']} vs {rows[f'{b}/{s}']['selected']})"
+            for s in SPLITS
+            if f"{a}/{s}" in rows
+            and f"{b}/{s}" in rows
+            and rows[f"{a}/{s}"]["selected"] != rows[f"{b}/{s}"]["selected"]
+        ]
+        if diff:
+            out.append(
+                f"- {NAMES[a]} and {NAMES[b]} were selected with different candidates on {', '.join(diff)}: "
+                "there their difference is partly the candidate's, not the architecture's (the table of every "
+                "candidate on test, above, shows each on the same candidate, one seed)."
+            )
     return out
 
 

@@ -142,3 +142,30 @@ def test_candidates_on_test_are_marked_where_selected() -> None:
     assert "| MESRNN | residual | 0.500 / 1.000 * |" in text and "| 0.500 / 1.000 |\n" in text  # average unmarked
     assert "| SRNN | paper | – | 0.700 / 1.400 |" in text and text.count("| SRNN | paper |") == 1
     assert "| 0.700 / 1.400 | – |" in text  # no average over four splits
+
+
+def test_candidate_confounds_name_the_splits_where_selections_differ() -> None:
+    from crowdnav_mesrnn.report import candidate_confounds
+
+    rows = {f"{m}/{s}": {"selected": "residual"} for m in ("vlstm", "srnn", "mesrnn") for s in SPLITS}
+    rows["mesrnn/hotel"]["selected"] = "residual_rotation"
+    lines = candidate_confounds({"rows": rows})
+    assert len(lines) == 2 and "MESRNN and SRNN were selected with different candidates on hotel" in lines[0]
+    assert "(residual_rotation vs residual)" in lines[0] and "MESRNN and VLSTM" in lines[1]
+    assert candidate_confounds(None) == []
+
+
+def test_render_only_rewrites_the_page_from_its_json(tmp_path) -> None:
+    import json
+
+    from crowdnav_mesrnn.cli import main
+
+    errors, results = fake_results()
+    results["comparisons"] = compare(errors, n_resamples=100)
+    results["bootstrap"] = {"block_len_windows": 20, "resamples": 100}
+    out = tmp_path / "page.md"
+    assert main(["predictor", "report", "--render-only", "--out", str(out)]) == 2  # no .json yet: nothing written
+    assert not out.exists()
+    out.with_suffix(".json").write_text(json.dumps(results))
+    assert main(["predictor", "report", "--render-only", "--out", str(out)]) == 0
+    assert out.read_text() == render(json.loads(out.with_suffix(".json").read_text()))
