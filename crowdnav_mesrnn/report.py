@@ -392,7 +392,11 @@ def render(results: dict[str, Any]) -> str:
         lines += ["", *render_comparisons(seeds.get("comparisons"), results["bootstrap"], n_seeds=len(seeds["seeds"]))]
     lines += ["", *render_comparisons(results["comparisons"], results["bootstrap"])]
     chosen, sources, source_line = _ordering_source(results)
-    lines += ["", "## Does the paper's ordering hold?", "", source_line, "", *ordering(chosen, sources)]
+    if sources.get("mesrnn-srnn") == "over seeds":
+        srnn_fde = ((seeds or {}).get("average", {}).get("srnn") or {}).get("fde_m", {}).get("mean")
+    else:
+        srnn_fde = (results.get("srnn", {}).get("splits", {}).get("average") or {}).get("fde_m")
+    lines += ["", "## Does the paper's ordering hold?", "", source_line, "", *ordering(chosen, sources, srnn_fde)]
     lines += candidate_confounds(seeds)
     lines += [
         "",
@@ -507,7 +511,7 @@ def render_comparisons(
             "(model, split) selected on validation (constant velocity has one). The interval adds two sources:",
             "the test windows (variance of the block bootstrap below, applied to the seed-averaged difference)",
             "and the training seeds (each model's per-seed errors: s²/S, with Welch-Satterthwaite degrees of",
-            f"freedom; {n_seeds} seeds against constant velocity give {n_seeds - 1}). Resampling so few seeds",
+            f"freedom; {n_seeds} seeds against constant velocity give at least {n_seeds - 1}). Resampling so few seeds",
             "instead would be far too narrow. The five-split average takes each seed's mean over the splits.",
             "These intervals are conditional on the selected configuration: the choice of candidate, made",
             "with one seed, is not resampled. The ordering below is read from this table where it is complete.",
@@ -565,9 +569,12 @@ def _ordering_source(results: dict[str, Any]) -> tuple[dict[str, Any], dict[str,
     return chosen, sources, f"Read, where marked, from the shipped predictors (one seed each) because {why} (ADE):"
 
 
-def ordering(comparisons: dict[str, Any], sources: dict[str, str] | None = None) -> list[str]:
+def ordering(
+    comparisons: dict[str, Any], sources: dict[str, str] | None = None, srnn_fde: float | None = None
+) -> list[str]:
     """Plain statements read from the intervals (ADE): never a win where the interval includes 0;
-    ``sources`` names, per pair, which comparison a line was read from."""
+    ``sources`` names, per pair, which comparison a line was read from; ``srnn_fde`` (SRNN's average
+    FDE in the same comparison) puts the MESRNN − SRNN FDE difference beside the paper's claim."""
     out = []
 
     def summary_line(a: str, b: str) -> str | None:
@@ -601,7 +608,16 @@ def ordering(comparisons: dict[str, Any], sources: dict[str, str] | None = None)
         else:
             state = "**is not established** (at least one average difference is not detectable)"
         out.append(f"- The paper's ordering MESRNN < SRNN < VLSTM (average ADE) {state}.")
-    out.append("- The paper reports MESRNN over 32 % better than SRNN at long horizons; compare the MESRNN − SRNN row.")
+    fde = comparisons.get("mesrnn-srnn", {}).get("fde_m", {}).get("average")
+    line = "- The paper reports MESRNN over 32 % better than SRNN at long horizons"
+    if fde is not None and srnn_fde:
+        line += (
+            f"; here the average FDE difference MESRNN − SRNN is {_ci_cell(fde)} m, "
+            f"{100 * -fde['diff'] / srnn_fde:.0f} % of SRNN's {srnn_fde:.3f} m."
+        )
+    else:
+        line += "; compare the MESRNN − SRNN row."
+    out.append(line)
     return out
 
 
@@ -623,8 +639,8 @@ def candidate_confounds(seeds: dict[str, Any] | None) -> list[str]:
         if diff:
             out.append(
                 f"- {NAMES[a]} and {NAMES[b]} were selected with different candidates on {', '.join(diff)}: "
-                "there their difference is partly the candidate's, not the architecture's (the table of every "
-                "candidate on test, above, shows each on the same candidate, one seed)."
+                "there their difference may be partly the candidate's, not the architecture's. The test table of "
+                "every candidate above (one seed, orientation only) is suggestive, not evidence."
             )
     return out
 
