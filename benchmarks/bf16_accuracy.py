@@ -29,7 +29,7 @@ import yaml
 from scipy import stats as sps
 
 from crowdnav_mesrnn.models.base import LEARNED_MODELS
-from crowdnav_mesrnn.plan import Candidate, Run, parse_shard, read_done, run_lock, train_run
+from crowdnav_mesrnn.plan import Candidate, Run, epoch_rates, parse_shard, read_done, run_lock, train_run
 
 
 def runs_for(args: argparse.Namespace) -> dict[str, list[Run]]:
@@ -67,12 +67,8 @@ def check_same_recipe(folder: Path, model: str, cand: Candidate, seed: int) -> N
 
 
 def rate(folder: Path) -> float | None:
-    """Mean training windows/s over the run's epochs (``history`` of ``last.pt``)."""
-    last = folder / "last.pt"
-    if not last.is_file():
-        return None
-    history = torch.load(last, map_location="cpu", weights_only=True).get("history") or []
-    rates = [float(h["windows_per_s"]) for h in history if h.get("windows_per_s")]
+    """Mean training windows/s over the run's epochs."""
+    rates = epoch_rates(folder)
     return float(np.mean(rates)) if rates else None
 
 

@@ -459,6 +459,21 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
     return Rate(seen / elapsed, val_rate, peds / seen)
 
 
+def epoch_rates(out: Path) -> list[float]:
+    """The training windows/s of every epoch trained in run folder ``out`` (``history`` of its
+    ``last.pt``); empty when there is none or it cannot be read (the run itself says so when resumed)."""
+    import torch
+
+    last = out / "last.pt"
+    if not last.is_file():
+        return []
+    try:
+        history = torch.load(last, map_location="cpu", weights_only=True).get("history") or []
+    except Exception:
+        return []
+    return [float(h["windows_per_s"]) for h in history if float(h.get("windows_per_s", 0.0)) > 0]
+
+
 def observed_rates(
     plan: Plan, sizes: dict[str, dict[str, float]], configs: dict[tuple[str, str], Any]
 ) -> dict[tuple[str, str], tuple[float, int]]:
@@ -466,8 +481,6 @@ def observed_rates(
     (the ``windows_per_s`` of each epoch in ``last.pt``), converted to zara1-sized windows like the
     measurement, and the number of epochs it comes from. Total windows over total seconds, so long epochs
     weigh as much as they cost."""
-    import torch
-
     windows: dict[tuple[str, str], float] = {}
     seconds: dict[tuple[str, str], float] = {}
     epochs: dict[tuple[str, str], int] = {}
@@ -476,23 +489,14 @@ def observed_rates(
             ref_peds = configs[(m, c.name)][2].mean_pedestrians
             for s in plan.splits:
                 for k in plan.seeds:
-                    last = run_dir(plan, m, s, c.name, k) / "last.pt"
-                    if not last.is_file():
-                        continue
-                    try:
-                        history = torch.load(last, map_location="cpu", weights_only=True).get("history") or []
-                    except Exception:  # unreadable: the run itself will say so when resumed
-                        continue
                     n = sizes[s]["train"]
-                    for h in history:
-                        rate = float(h.get("windows_per_s", 0.0))
-                        if rate > 0:
-                            # n windows of this split cost n / rate s; as zara1-sized windows: n * peds / ref
-                            equiv = n * sizes[s]["train_peds"] / ref_peds
-                            key = (m, c.name)
-                            windows[key] = windows.get(key, 0.0) + equiv
-                            seconds[key] = seconds.get(key, 0.0) + n / rate
-                            epochs[key] = epochs.get(key, 0) + 1
+                    for rate in epoch_rates(run_dir(plan, m, s, c.name, k)):
+                        # n windows of this split cost n / rate s; as zara1-sized windows: n * peds / ref
+                        equiv = n * sizes[s]["train_peds"] / ref_peds
+                        key = (m, c.name)
+                        windows[key] = windows.get(key, 0.0) + equiv
+                        seconds[key] = seconds.get(key, 0.0) + n / rate
+                        epochs[key] = epochs.get(key, 0) + 1
     return {key: (windows[key] / seconds[key], epochs[key]) for key in windows}
 
 

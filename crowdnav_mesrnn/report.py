@@ -211,7 +211,7 @@ def seed_results(
     """Test ADE/FDE of every finished seed of the plan's selected candidates; mean ± std over seeds;
     and, where every seed of a (model, split) has finished, the paired differences of seed-averaged
     errors with intervals over windows and seeds (against ``cv_errors``, constant velocity's, if given)."""
-    from crowdnav_mesrnn.plan import load_plan, read_done, run_dir, summary
+    from crowdnav_mesrnn.plan import load_plan, run_dir, summary
 
     plan = load_plan(plan_path)
     rows = summary(plan)
@@ -240,13 +240,12 @@ def seed_results(
             complete.setdefault(model, {})[split] = runs
         # Every finished candidate on test, for orientation only (the choice above used validation ADE).
         row["candidates_test"] = {}
-        for cand in plan.candidates:
-            if cand.name == row["selected"] and plan.selection_seed in row["seeds"]:
-                row["candidates_test"][cand.name] = row["seeds"][plan.selection_seed]["test"]
+        for name in row["candidates_val_ade_m"]:  # the finished candidates
+            if name == row["selected"] and plan.selection_seed in row["seeds"]:
+                row["candidates_test"][name] = row["seeds"][plan.selection_seed]["test"]
                 continue
-            folder = run_dir(plan, model, split, cand.name, plan.selection_seed)
-            if read_done(folder) is not None:
-                row["candidates_test"][cand.name] = test_errors(model, split, str(folder / "best.pt"))[0]
+            folder = run_dir(plan, model, split, name, plan.selection_seed)
+            row["candidates_test"][name] = test_errors(model, split, str(folder / "best.pt"))[0]
     average: dict[str, Any] = {}
     for model in plan.models if set(plan.splits) == set(SPLITS) else ():
         per_seed = []

@@ -24,7 +24,8 @@ counted as known exactly. Three seeds against constant velocity have 2 degrees o
 The five-split average takes each seed's average over the splits (seed ``k`` of every split together),
 so seed effects shared across splits are counted. With one seed each this is the block bootstrap above.
 
-Randomness comes from :class:`numpy.random.Generator` only; intervals are percentile intervals.
+Randomness comes from :class:`numpy.random.Generator` only; intervals are percentile intervals, except
+the t intervals over seeds.
 """
 
 from __future__ import annotations
@@ -217,7 +218,12 @@ def _seed_means(e: SeededErrors) -> np.ndarray:
 def _combine(
     estimate: float, replicates: np.ndarray, seed_means: Sequence[np.ndarray], confidence: float
 ) -> SeededDifference:
-    """A t interval whose variance adds the window replicates' variance and each side's ``s² / S``."""
+    """A t interval whose variance adds the window replicates' variance and each side's ``s² / S``; with
+    one seed on every side, the percentile interval of the replicates (the plain block bootstrap)."""
+    if all(len(m) == 1 for m in seed_means):
+        return SeededDifference(
+            estimate, _percentile_interval(replicates, confidence), float(np.std(replicates, ddof=1)), 0.0, math.inf
+        )
     window_var = float(np.var(replicates, ddof=1)) if len(replicates) > 1 else 0.0
     terms = [(float(np.var(m, ddof=1)) / len(m), len(m) - 1) for m in seed_means if len(m) > 1]
     seed_var = sum(v for v, _ in terms)
@@ -246,10 +252,6 @@ def seeded_difference_ci(
     _check_pair(a, b)
     paired = PairedErrors(a.sums.mean(0) - b.sums.mean(0), a.count)
     reps = block_bootstrap_replicates(paired, block_len, n_resamples, seed)
-    if a.seeds == 1 and b.seeds == 1:
-        return SeededDifference(
-            paired.estimate, _percentile_interval(reps, confidence), float(np.std(reps, ddof=1)), 0.0, math.inf
-        )
     return _combine(paired.estimate, reps, [_seed_means(a), _seed_means(b)], confidence)
 
 
@@ -276,10 +278,6 @@ def seeded_average_ci(
     rngs = np.random.default_rng(seed).spawn(len(pairs))
     reps = np.mean([_replicates(e, block_len, n_resamples, r) for e, r in zip(paired, rngs, strict=True)], axis=0)
     estimate = float(np.mean([e.estimate for e in paired]))
-    if pairs[0][0].seeds == 1 and pairs[0][1].seeds == 1:
-        return SeededDifference(
-            estimate, _percentile_interval(reps, confidence), float(np.std(reps, ddof=1)), 0.0, math.inf
-        )
     seed_means = [np.mean([_seed_means(p[side]) for p in pairs], axis=0) for side in (0, 1)]
     return _combine(estimate, reps, seed_means, confidence)
 
