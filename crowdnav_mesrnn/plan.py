@@ -67,6 +67,9 @@ class Plan:
     out_dir: Path = Path("runs/predictor/plan")
     source: str = ""
     """The plan file (for messages and reproduce commands)."""
+    export: bool = True
+    """Whether stage ``export`` may ship this plan's weights (``export: false`` for a plan that only
+    measures, e.g. a fixed-candidate comparison that reuses another plan's runs)."""
 
 
 @dataclass(frozen=True)
@@ -104,7 +107,10 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
     """Read and check a plan file; unknown keys, models, splits or missing configs are errors."""
     path = Path(path)
     raw = load_yaml(path)
-    check_keys(raw, ["models", "splits", "candidates", "selection_seed", "seeds", "out_dir"], path.name)
+    check_keys(raw, ["models", "splits", "candidates", "selection_seed", "seeds", "out_dir", "export"], path.name)
+    ships = raw.get("export", True)
+    if not isinstance(ships, bool):
+        raise ConfigError(f"{path}: 'export' is {ships!r}; allowed: true or false")
     models = tuple(raw.get("models") or LEARNED_MODELS)
     for m in models:
         if m not in LEARNED_MODELS:
@@ -143,6 +149,7 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
         seeds,
         Path(raw.get("out_dir", "runs/predictor/plan")),
         str(path),
+        ships,
     )
 
 
@@ -369,6 +376,11 @@ def export(plan: Plan, log: Callable[[str], None] = print) -> int:
     """Ship, per (model, split) with every seed finished, the seed with the lowest validation ADE."""
     from crowdnav_mesrnn.models.pretrained import export_checkpoint
 
+    if not plan.export:
+        raise ConfigError(
+            f"{plan.source}: 'export' is false, so this plan never ships weights; export the plan that selected "
+            "the shipped configuration instead"
+        )
     missing = 0
     for key, row in summary(plan).items():
         model, split = key.split("/")

@@ -62,6 +62,7 @@ def test_every_candidate_is_applied_to_every_model() -> None:
         ("candidates: {a: {config: 'nowhere/{model}.yaml'}}\n", "no config"),
         ("seeds: [1, 2]\ncandidates: {a: {config: 'configs/predictor/{model}.yaml'}}\n", "selection_seed 0 must be"),
         ("candidates: {a: {config: 'configs/predictor/{model}.yaml'}}\nepochs: 3\n", "valid keys"),
+        ("candidates: {a: {config: 'configs/predictor/{model}.yaml'}}\nexport: 'no'\n", "'export' is 'no'"),
     ],
 )
 def test_plan_errors(tmp_path: Path, text: str, message: str) -> None:
@@ -237,4 +238,33 @@ def test_dry_run_lists_every_run_with_a_cpu_estimate(tmp_path: Path, data_dir: P
     assert minutes(after, "candidates vlstm   hotel  a ") <= before  # one epoch of two left, and faster
     assert minutes(after, "candidates srnn    hotel  a ") == pytest.approx(
         minutes(again, "candidates srnn    hotel  a ")
+    )
+
+
+def test_a_plan_with_export_false_never_ships(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "shipped")
+    (tmp_path / "plan.yaml").write_text(
+        f"models: [vlstm]\nsplits: [zara1]\nseeds: [0]\nout_dir: {tmp_path / 'runs'}\nexport: false\n"
+        "candidates: {a: {config: 'configs/predictor/{model}.yaml'}}\n"
+    )
+    plan = load_plan(tmp_path / "plan.yaml")
+    _fake_done(tmp_path / "runs" / "vlstm" / "zara1" / "a" / "seed0", 0.5)
+    with pytest.raises(ConfigError, match="'export' is false"):
+        execute(plan, "export")
+    assert not (tmp_path / "shipped").exists()
+
+
+def test_fixed_rotation_plan_reuses_the_comparison_runs() -> None:
+    """The fixed-candidate plan trains every model with the comparison's ``residual_rotation`` candidate
+    in the same run folders (so its seed-0 runs are the comparison's), and cannot ship weights."""
+    fixed = load_plan(REPO_ROOT / "configs" / "predictor" / "fixed_rotation.yaml")
+    main = load_plan(SHIPPED)
+    assert not fixed.export and main.export
+    (only,) = fixed.candidates
+    assert only == next(c for c in main.candidates if c.name == only.name)
+    assert (fixed.models, fixed.splits, fixed.seeds, fixed.out_dir) == (
+        main.models,
+        main.splits,
+        main.seeds,
+        main.out_dir,
     )
