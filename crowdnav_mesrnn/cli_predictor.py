@@ -128,25 +128,30 @@ def _select(args: argparse.Namespace) -> int:
 def _report(args: argparse.Namespace) -> int:
     import torch
 
-    from crowdnav_mesrnn.report import build_report
+    from crowdnav_mesrnn.report import build_plan_report, build_report, render, render_plan
     from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text
 
     out = Path(args.out)
     if args.render_only:
-        from crowdnav_mesrnn.report import render
-
         source = out.with_suffix(".json")
         if not source.is_file():
             print(f"error: --render-only needs {source} from an earlier report", file=sys.stderr)
             return 2
-        atomic_write_text(out, render(json.loads(source.read_text())))
+        saved = json.loads(source.read_text())
+        atomic_write_text(out, (render_plan if saved.get("plan_only") else render)(saved))
         print(f"wrote {out} from {source} (nothing re-evaluated)")
         return 0
     torch.set_num_threads(args.threads)
-    extra = dict(item.split("=", 1) for item in (args.extra or []))
-    text, results = build_report(
-        extra, data_dir=args.data_dir, plan=args.plan, block_len=args.block_len, n_resamples=args.resamples
-    )
+    if args.plan_only:
+        if args.plan is None or args.extra:
+            print("error: --plan-only needs --plan and takes no --extra rows", file=sys.stderr)
+            return 2
+        text, results = build_plan_report(args.plan, args.data_dir, args.block_len, args.resamples)
+    else:
+        extra = dict(item.split("=", 1) for item in (args.extra or []))
+        text, results = build_report(
+            extra, data_dir=args.data_dir, plan=args.plan, block_len=args.block_len, n_resamples=args.resamples
+        )
     atomic_write_text(out, text)
     atomic_write_json(out.with_suffix(".json"), results)
     print(text)
@@ -220,6 +225,11 @@ def add_parser(sub: Any) -> None:
     r.add_argument("--threads", type=int, default=1)
     r.add_argument(
         "--render-only", action="store_true", help="rewrite the page from its .json (after a change of wording only)"
+    )
+    r.add_argument(
+        "--plan-only",
+        action="store_true",
+        help="a page for the --plan's runs alone (constant velocity and the plan's seeds; no shipped weights)",
     )
     r.set_defaults(func=_report)
 

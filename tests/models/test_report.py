@@ -169,3 +169,50 @@ def test_render_only_rewrites_the_page_from_its_json(tmp_path) -> None:
     out.with_suffix(".json").write_text(json.dumps(results))
     assert main(["predictor", "report", "--render-only", "--out", str(out)]) == 0
     assert out.read_text() == render(json.loads(out.with_suffix(".json").read_text()))
+
+
+def test_plan_only_page_reads_the_ordering_from_the_plan_seeds(tmp_path) -> None:
+    """``report --plan-only``: constant velocity and one plan's seeds, nothing about shipped weights; the
+    ordering comes from the differences over seeds, and --render-only rewrites the same page."""
+    import json
+
+    from crowdnav_mesrnn.cli import main
+    from crowdnav_mesrnn.report import render_plan
+
+    errors, results = fake_results()
+    base = dict.fromkeys(SPLITS, 0.0)
+    seeds = {
+        m: {s: [fake_errors({**base, s: d}, seed=1)[s] for d in shifts] for s in SPLITS}
+        for m, shifts in (("mesrnn", (-0.2, -0.2, -0.2)), ("srnn", (0.0, 0.0, 0.0)), ("vlstm", (0.3, 0.3, 0.3)))
+    }
+    seeds["cv"] = errors["cv"]
+    t = {"n": 3, "ade_m": {"mean": 0.45, "std": 0.01}, "fde_m": {"mean": 0.95, "std": 0.02}}
+    rows = {
+        f"{m}/{s}": {"candidates_val_ade_m": {"rot": 0.4}, "selected": "rot", "seeds": {}, "test": t}
+        for m in ("vlstm", "srnn", "mesrnn")
+        for s in SPLITS
+    }
+    plan_results = {
+        "plan_only": True,
+        "cv": results["cv"],
+        "bootstrap": {"block_len_windows": 20, "resamples": 300},
+        "seeds": {
+            "plan": "fixed.yaml",
+            "seeds": [0, 1, 2],
+            "export": False,
+            "rows": rows,
+            "average": {"srnn": t},
+            "comparisons": compare(seeds, n_resamples=300),
+        },
+    }
+    page = render_plan(plan_results)
+    assert "(shipped)" not in page and "never ships weights" in page and "best val seed (not shipped)" in page
+    assert "one candidate: every model is trained with the same configuration" in page
+    assert "Every candidate on test" not in page  # one candidate: nothing to orient by
+    assert "- MESRNN − SRNN (over seeds):" in page and "**MESRNN better**" in page
+    assert "The paper's ordering MESRNN < SRNN < VLSTM (average ADE) **holds**" in page
+    out = tmp_path / "fixed.md"
+    out.with_suffix(".json").write_text(json.dumps(plan_results))
+    assert main(["predictor", "report", "--render-only", "--out", str(out)]) == 0
+    assert out.read_text() == page
+    assert main(["predictor", "report", "--plan-only", "--out", str(out)]) == 2  # needs --plan
