@@ -1,7 +1,7 @@
 """The planning-aid ablation: forecast arms x policies x seeds x held-out splits, run as resumable cells.
 
 ``python -m agents.ablation configs/ablation/planning_aid.yaml [--dry-run] [--workers N]
-[--backend local|ray] [--address ADDR] [--only PATTERN] [--summarize-only]`` (also
+[--backend local|ray] [--address ADDR] [--only PATTERN] [--summarize-only] [--replicate DIR]`` (also
 ``crowdnav-mesrnn ablation ...``).
 
 The grid
@@ -26,6 +26,9 @@ Cells and their state
     ``train(..., resume=True)``, an evaluation cell is redone) or ``todo``. Re-running the grid skips done
     cells. ``--dry-run`` lists every cell with its state and an estimated time from measured throughputs
     (finished cells' ``cell.json``), falling back to the config's ``estimates``.
+    ``--replicate DIR --only PATTERN`` runs the selected cells afresh in the scratch folder ``DIR`` and
+    compares each replicated evaluation with the grid's, episode by episode (:func:`replicate`): cells are
+    seeded, so a difference means nondeterminism or a change of behaviour since the grid's cell ran.
 
 Backends
     ``local`` (default): a process pool (forkserver) of ``--workers`` processes (default: cores // the
@@ -1876,6 +1879,55 @@ def _save(fig: Any, path: Path) -> Path:
 # ============================================================================ command line
 
 
+def replicate(
+    cfg: AblationConfig,
+    only: str,
+    into: str | os.PathLike[str],
+    workers: int | None = None,
+    out: Callable[[str], None] = print,
+) -> int:
+    """Run the cells ``only`` selects (with the training runs their evaluations need) afresh in the scratch
+    folder ``into``, then compare every replicated evaluation with the grid's own, episode by episode.
+
+    Training and evaluation are seeded, so a replicate at the same code, seed and forecasts should give
+    identical outcomes; a difference points at nondeterminism or at a change of behaviour between the code
+    that ran the grid's cell (``cells.json``) and this one. Returns the number of evaluations that differ.
+    """
+    cells = select(expand(cfg), only)
+    if not cells:
+        raise ConfigError(f"--only {only!r} selects no cell of grid {cfg.name!r}")
+    names = {c.name for c in cells}  # select() adds the training run of every selected evaluation
+    into = Path(into)
+    if into.resolve() in (cfg.runs_path().resolve(), cfg.out_path().resolve()):
+        raise ConfigError(f"--replicate {str(into)!r} is the grid's own folder; give a scratch folder")
+    scratch = dataclasses.replace(cfg, runs_dir=str(into / "runs"), out_dir=str(into / "results"))
+    result = run_grid(scratch, workers=workers, only=",".join(sorted(names)), out=out)
+    differing = len(result["failed"])
+    for cell in expand(cfg):
+        if cell.kind != "eval" or cell.name not in names:
+            continue
+        ours = {(r.get("seed"), r["episode"]): r for r in read_episodes(cell_dir(scratch, cell) / "episodes.csv")}
+        theirs = {(r.get("seed"), r["episode"]): r for r in read_episodes(cell_dir(cfg, cell) / "episodes.csv")}
+        if not theirs or not ours:
+            out(
+                f"{cell.name}: nothing to compare ({'the grid has' if not theirs else 'the replicate has'} no episodes)"
+            )
+            continue
+        keys = sorted(set(ours) & set(theirs))
+        same = sum(ours[k]["outcome"] == theirs[k]["outcome"] for k in keys)
+        returns = sum(ours[k].get("return") == theirs[k].get("return") for k in keys)
+        rate = {
+            n: sum(e["outcome"] == "success" for e in side.values()) / len(side)
+            for n, side in (("o", ours), ("t", theirs))
+        }
+        out(
+            f"{cell.name}: {same}/{len(keys)} outcomes and {returns}/{len(keys)} returns identical; success "
+            f"{100 * rate['o']:.1f} % here, {100 * rate['t']:.1f} % in the grid"
+        )
+        differing += same != len(keys) or returns != len(keys) or len(keys) != len(theirs)
+    return differing
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``python -m agents.ablation`` and ``crowdnav-mesrnn ablation``."""
     p.add_argument("config", help="grid YAML, e.g. configs/ablation/planning_aid.yaml")
@@ -1894,6 +1946,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--only", default=None, help="comma-separated globs of cell names, e.g. 'eval/zara1/planner/*'")
     p.add_argument("--summarize-only", action="store_true", help="write summary.json/.md and plots from finished cells")
+    p.add_argument(
+        "--replicate",
+        metavar="DIR",
+        default=None,
+        help="run the --only cells (and the training runs they need) afresh in scratch folder DIR and compare "
+        "their evaluations with the grid's, episode by episode (a determinism and code-change check)",
+    )
 
 
 def run_from_args(args: argparse.Namespace) -> int:
@@ -1910,6 +1969,10 @@ def run_from_args(args: argparse.Namespace) -> int:
     if args.summarize_only:
         summarize(cfg)
         return 0
+    if args.replicate:
+        if not args.only:
+            raise ConfigError("--replicate needs --only (the cells to replicate, e.g. 'eval/zara1/ppo/cv/seed1')")
+        return 1 if replicate(cfg, args.only, args.replicate, args.workers) else 0
     result = run_grid(cfg, backend=args.backend, workers=args.workers, address=args.address, only=args.only)
     for name, error in result["failed"].items():
         print(f"failed: {name}\n{error}", file=sys.stderr)

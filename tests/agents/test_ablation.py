@@ -485,3 +485,42 @@ def test_forecast_cache_built_once_per_learned_source_and_split(
     built = ab.build_forecast_caches(cfg, ab.expand(cfg), out=lambda s: None)
     assert built == [("mesrnn", "univ"), ("mesrnn", "zara1")]
     assert calls == [("mesrnn", "univ", "all"), ("mesrnn", "zara1", "all")]
+
+
+def test_replicate_reruns_cells_in_a_scratch_folder_and_compares_episodes(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    grid_files = {p: p.read_bytes() for p in cfg.runs_path().rglob("*") if p.is_file()}
+    fakes.train_calls.clear()
+    lines: list[str] = []
+    scratch = tmp_path / "replica"
+    assert ab.replicate(cfg, "eval/zara1/ppo/mesrnn/seed1", scratch, workers=1, out=lines.append) == 0
+    assert [name for name, _ in fakes.train_calls] == ["train/zara1/ppo/mesrnn/seed1"]  # retrained, not reused
+    assert (scratch / "runs" / "eval" / "zara1" / "ppo" / "mesrnn" / "seed1" / "episodes.csv").is_file()
+    assert "eval/zara1/ppo/mesrnn/seed1: 4/4 outcomes and 4/4 returns identical" in "\n".join(lines)
+    assert {p: p.read_bytes() for p in cfg.runs_path().rglob("*") if p.is_file()} == grid_files  # grid untouched
+
+    # A replicate that behaves differently is reported and counted.
+    original = fakes.evaluate
+
+    def flipped(task: ab.CellTask, folder: Path) -> dict[str, Any]:
+        info = original(task, folder)
+        rows = ab.read_episodes(folder / "episodes.csv")
+        rows[0]["outcome"] = "timeout"
+        _write_csv(folder / "episodes.csv", rows)
+        return info
+
+    monkeypatch.setattr(ab, "_run_eval", flipped)
+    lines.clear()
+    assert ab.replicate(cfg, "eval/zara1/planner/none", tmp_path / "replica2", workers=1, out=lines.append) == 1
+    assert "eval/zara1/planner/none: 3/4 outcomes" in "\n".join(lines)
+    with pytest.raises(ConfigError, match="scratch folder"):
+        ab.replicate(cfg, "eval/zara1/planner/none", cfg.runs_path(), workers=1)
+    (tmp_path / "g.yaml").write_text(json.dumps(_raw(tmp_path)), encoding="utf-8")  # JSON is YAML
+    args = {"workers": None, "address": None, "backend": "local", "dry_run": False, "summarize_only": False}
+    with pytest.raises(ConfigError, match="--replicate needs --only"):
+        ab.run_from_args(
+            ab.argparse.Namespace(config=str(tmp_path / "g.yaml"), replicate=str(scratch), only=None, **args)
+        )
