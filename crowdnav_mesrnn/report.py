@@ -505,7 +505,8 @@ def render_seeds(seeds: dict[str, Any] | None) -> list[str]:
         ]
     head = "| model | " + " | ".join(COLS) + " |\n|---|" + "---|" * len(COLS)
     lines += [
-        f"Seeds {seeds['seeds']} of the candidate each (model, split) selected on validation data (plan `{seeds['plan']}`);",
+        f"Seeds {seeds['seeds']} of the candidate each (model, split) uses, selected on validation data where the plan "
+        f"has several (plan `{seeds['plan']}`);",
         "cells: ADE / FDE; n = finished seeds.",
         "",
         head,
