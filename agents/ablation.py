@@ -28,7 +28,8 @@ Cells and their state
     (finished cells' ``cell.json``), falling back to the config's ``estimates``.
     ``--replicate DIR --only PATTERN`` runs the selected cells afresh in the scratch folder ``DIR`` and
     compares each replicated evaluation with the grid's, episode by episode (:func:`replicate`): cells are
-    seeded, so a difference means nondeterminism or a change of behaviour since the grid's cell ran.
+    seeded, so a difference means nondeterminism or a change of behaviour since the grid's cell ran (only grid
+    cells that are ``done`` are compared; the folder must be new or empty).
 
 Backends
     ``local`` (default): a process pool (forkserver) of ``--workers`` processes (default: cores // the
@@ -1886,45 +1887,61 @@ def replicate(
     workers: int | None = None,
     out: Callable[[str], None] = print,
 ) -> int:
-    """Run the cells ``only`` selects (with the training runs their evaluations need) afresh in the scratch
-    folder ``into``, then compare every replicated evaluation with the grid's own, episode by episode.
+    """Run the cells ``only`` selects (with the training runs their evaluations need) afresh in the empty
+    scratch folder ``into``, then compare every replicated evaluation with the grid's own, episode by episode
+    and column by column (outcome, times, distances, return, ...).
 
     Training and evaluation are seeded, so a replicate at the same code, seed and forecasts should give
-    identical outcomes; a difference points at nondeterminism or at a change of behaviour between the code
-    that ran the grid's cell (``cells.json``) and this one. Returns the number of evaluations that differ.
+    identical episodes; a difference points at nondeterminism or at a change of behaviour between the code
+    that ran the grid's cell (``cells.json``) and this one. Only grid cells that are ``done`` (spec and
+    weights as now) are compared. Returns the number of selected evaluations that failed, could not be
+    compared, or differ.
     """
-    cells = select(expand(cfg), only)
-    if not cells:
-        raise ConfigError(f"--only {only!r} selects no cell of grid {cfg.name!r}")
-    names = {c.name for c in cells}  # select() adds the training run of every selected evaluation
-    into = Path(into)
-    if into.resolve() in (cfg.runs_path().resolve(), cfg.out_path().resolve()):
-        raise ConfigError(f"--replicate {str(into)!r} is the grid's own folder; give a scratch folder")
+    cells = select(expand(cfg), only)  # adds the training run of every selected evaluation
+    evals = [c for c in cells if c.kind == "eval"]
+    if not evals:
+        raise ConfigError(f"--only {only!r} selects no evaluation cell: there would be nothing to compare")
+    into = Path(into).resolve()
+    for own in (cfg.runs_path().resolve(), cfg.out_path().resolve()):
+        if into.is_relative_to(own) or own.is_relative_to(into):
+            raise ConfigError(
+                f"--replicate {str(into)!r} overlaps the grid's folder {str(own)!r}; give a scratch folder"
+            )
+    if into.exists() and any(into.iterdir()):
+        raise ConfigError(
+            f"--replicate {str(into)!r} is not empty; give a new or empty folder (a replicate starts afresh)"
+        )
+    states = {st.cell.name: st for st in plan(cfg)}
     scratch = dataclasses.replace(cfg, runs_dir=str(into / "runs"), out_dir=str(into / "results"))
-    result = run_grid(scratch, workers=workers, only=",".join(sorted(names)), out=out)
-    differing = len(result["failed"])
-    for cell in expand(cfg):
-        if cell.kind != "eval" or cell.name not in names:
-            continue
+    result = run_grid(scratch, workers=workers, only=",".join(c.name for c in cells), summarize_after=False, out=out)
+    for name, error in result["failed"].items():
+        out(f"failed: {name}\n{error}")
+    differing = 0
+    for cell in evals:
+        grid = states[cell.name]
         ours = {(r.get("seed"), r["episode"]): r for r in read_episodes(cell_dir(scratch, cell) / "episodes.csv")}
         theirs = {(r.get("seed"), r["episode"]): r for r in read_episodes(cell_dir(cfg, cell) / "episodes.csv")}
-        if not theirs or not ours:
+        if grid.state != "done" or not theirs or not ours:
+            why = f"the grid's cell is {grid.state}" + (f" ({grid.reason})" if grid.reason else "")
             out(
-                f"{cell.name}: nothing to compare ({'the grid has' if not theirs else 'the replicate has'} no episodes)"
+                f"{cell.name}: not compared: " + (why if grid.state != "done" or not theirs else "the replicate failed")
             )
+            differing += 1
             continue
-        keys = sorted(set(ours) & set(theirs))
-        same = sum(ours[k]["outcome"] == theirs[k]["outcome"] for k in keys)
-        returns = sum(ours[k].get("return") == theirs[k].get("return") for k in keys)
+        columns = sorted(set(next(iter(ours.values()))) | set(next(iter(theirs.values()))))
+        shared = sorted(set(ours) & set(theirs))
+        same = sum(ours[k] == theirs[k] for k in shared)
+        outcomes = sum(ours[k].get("outcome") == theirs[k].get("outcome") for k in shared)
         rate = {
             n: sum(e["outcome"] == "success" for e in side.values()) / len(side)
             for n, side in (("o", ours), ("t", theirs))
         }
         out(
-            f"{cell.name}: {same}/{len(keys)} outcomes and {returns}/{len(keys)} returns identical; success "
-            f"{100 * rate['o']:.1f} % here, {100 * rate['t']:.1f} % in the grid"
+            f"{cell.name}: {same}/{len(shared)} episodes identical in all {len(columns)} columns, "
+            f"{outcomes}/{len(shared)} outcomes; {len(ours)} episodes here, {len(theirs)} in the grid; "
+            f"success {100 * rate['o']:.1f} % here, {100 * rate['t']:.1f} % in the grid"
         )
-        differing += same != len(keys) or returns != len(keys) or len(keys) != len(theirs)
+        differing += same != len(shared) or len(ours) != len(theirs) or len(shared) != len(ours)
     return differing
 
 
@@ -1962,6 +1979,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     if args.address and args.backend != "ray":
         raise ConfigError("--address needs --backend ray")
+    if args.replicate and (args.dry_run or args.summarize_only):
+        raise ConfigError("--replicate cannot be combined with --dry-run or --summarize-only")
     if args.dry_run:
         cells = select(expand(cfg), args.only)
         dry_run(cfg, cells, args.workers or default_workers(cells))
@@ -1972,6 +1991,8 @@ def run_from_args(args: argparse.Namespace) -> int:
     if args.replicate:
         if not args.only:
             raise ConfigError("--replicate needs --only (the cells to replicate, e.g. 'eval/zara1/ppo/cv/seed1')")
+        if args.backend != "local":
+            raise ConfigError(f"--replicate runs on the local backend; got --backend {args.backend}")
         return 1 if replicate(cfg, args.only, args.replicate, args.workers) else 0
     result = run_grid(cfg, backend=args.backend, workers=args.workers, address=args.address, only=args.only)
     for name, error in result["failed"].items():

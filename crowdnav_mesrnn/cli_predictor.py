@@ -131,7 +131,12 @@ def _report(args: argparse.Namespace) -> int:
     from crowdnav_mesrnn.report import build_plan_report, build_report, render, render_plan
     from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text
 
-    out = Path(args.out)
+    if args.plan_only and args.out is None:
+        print(
+            "error: --plan-only needs --out (the default is the main page, docs/results/predictors.md)", file=sys.stderr
+        )
+        return 2
+    out = Path(args.out or "docs/results/predictors.md")
     if args.render_only:
         source = out.with_suffix(".json")
         if not source.is_file():
@@ -216,7 +221,9 @@ def add_parser(sub: Any) -> None:
     sel.set_defaults(func=_select)
 
     r = psub.add_parser("report", help="evaluate every predictor and write docs/results/predictors.md (+ .json)")
-    r.add_argument("--out", default="docs/results/predictors.md")
+    r.add_argument(
+        "--out", default=None, help="the page (default docs/results/predictors.md; required with --plan-only)"
+    )
     r.add_argument("--extra", action="append", metavar="MODEL:LABEL=TEMPLATE", help="extra rows from checkpoints")
     r.add_argument("--plan", default=None, help="plan file whose seeds to report (configs/predictor/candidates.yaml)")
     r.add_argument("--block-len", type=int, default=20, help="block bootstrap block length in windows (default 20)")

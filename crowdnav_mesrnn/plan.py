@@ -110,7 +110,7 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
     check_keys(raw, ["models", "splits", "candidates", "selection_seed", "seeds", "out_dir", "export"], path.name)
     ships = raw.get("export", True)
     if not isinstance(ships, bool):
-        raise ConfigError(f"{path}: 'export' is {ships!r}; allowed: true or false")
+        raise ConfigError(f"{path}: 'export' is {ships!r}; valid: true or false")
     models = tuple(raw.get("models") or LEARNED_MODELS)
     for m in models:
         if m not in LEARNED_MODELS:

@@ -371,7 +371,9 @@ def render_plan(results: dict[str, Any]) -> str:
     srnn_fde = ((seeds.get("average") or {}).get("srnn") or {}).get("fde_m", {}).get("mean")
     lines += ["", "## Does the paper's ordering hold here?", "", "Read from the differences over seeds (ADE):", ""]
     lines += (
-        ordering(chosen, {k: "over seeds" for k in chosen}, srnn_fde) if chosen else ["Not every seed has finished."]
+        ordering(chosen, {k: "over seeds" for k in chosen}, srnn_fde)
+        if chosen
+        else ["No five-split average yet: the plan covers fewer splits, or not every seed has finished."]
     )
     lines += candidate_confounds(seeds)
     lines += [
@@ -704,8 +706,8 @@ def candidate_confounds(seeds: dict[str, Any] | None) -> list[str]:
         diff = [
             f"{s} ({rows[f'{a}/{s}']['selected']} vs {rows[f'{b}/{s}']['selected']})"
             for s in SPLITS
-            if f"{a}/{s}" in rows
-            and f"{b}/{s}" in rows
+            if rows.get(f"{a}/{s}", {}).get("selected") is not None
+            and rows.get(f"{b}/{s}", {}).get("selected") is not None
             and rows[f"{a}/{s}"]["selected"] != rows[f"{b}/{s}"]["selected"]
         ]
         if diff:

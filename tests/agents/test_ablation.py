@@ -177,7 +177,14 @@ class Fakes:
         if task.cell.policy.learned:
             assert task.model is not None and Path(task.model).is_file()
         rows = [
-            {"episode": i, "seed": 100 + i, "outcome": "success" if i % 2 else "collision", "navigation_time_s": 10.0}
+            {
+                "episode": i,
+                "seed": 100 + i,
+                "outcome": "success" if i % 2 else "collision",
+                "navigation_time_s": 10.0,
+                "crowd_density": 2.0,
+                "return": 1.5,
+            }
             for i in range(task.episodes)
         ]
         _write_csv(folder / "episodes.csv", rows)
@@ -499,28 +506,52 @@ def test_replicate_reruns_cells_in_a_scratch_folder_and_compares_episodes(
     assert ab.replicate(cfg, "eval/zara1/ppo/mesrnn/seed1", scratch, workers=1, out=lines.append) == 0
     assert [name for name, _ in fakes.train_calls] == ["train/zara1/ppo/mesrnn/seed1"]  # retrained, not reused
     assert (scratch / "runs" / "eval" / "zara1" / "ppo" / "mesrnn" / "seed1" / "episodes.csv").is_file()
-    assert "eval/zara1/ppo/mesrnn/seed1: 4/4 outcomes and 4/4 returns identical" in "\n".join(lines)
+    assert "eval/zara1/ppo/mesrnn/seed1: 4/4 episodes identical in all 6 columns, 4/4 outcomes" in "\n".join(lines)
     assert {p: p.read_bytes() for p in cfg.runs_path().rglob("*") if p.is_file()} == grid_files  # grid untouched
+    with pytest.raises(ConfigError, match="not empty"):  # a replicate starts afresh
+        ab.replicate(cfg, "eval/zara1/ppo/mesrnn/seed1", scratch, workers=1)
 
-    # A replicate that behaves differently is reported and counted.
+    # A replicate that behaves differently, in any column, is reported and counted.
     original = fakes.evaluate
 
-    def flipped(task: ab.CellTask, folder: Path) -> dict[str, Any]:
-        info = original(task, folder)
-        rows = ab.read_episodes(folder / "episodes.csv")
-        rows[0]["outcome"] = "timeout"
-        _write_csv(folder / "episodes.csv", rows)
-        return info
+    def changed(column: str, value: str) -> Any:
+        def evaluate(task: ab.CellTask, folder: Path) -> dict[str, Any]:
+            info = original(task, folder)
+            rows = ab.read_episodes(folder / "episodes.csv")
+            rows[0][column] = value
+            _write_csv(folder / "episodes.csv", rows)
+            return info
 
-    monkeypatch.setattr(ab, "_run_eval", flipped)
+        return evaluate
+
+    monkeypatch.setattr(ab, "_run_eval", changed("outcome", "timeout"))
     lines.clear()
     assert ab.replicate(cfg, "eval/zara1/planner/none", tmp_path / "replica2", workers=1, out=lines.append) == 1
-    assert "eval/zara1/planner/none: 3/4 outcomes" in "\n".join(lines)
-    with pytest.raises(ConfigError, match="scratch folder"):
-        ab.replicate(cfg, "eval/zara1/planner/none", cfg.runs_path(), workers=1)
+    assert "eval/zara1/planner/none: 3/4 episodes identical in all 6 columns, 3/4 outcomes" in "\n".join(lines)
+    monkeypatch.setattr(ab, "_run_eval", changed("return", "99.0"))
+    lines.clear()
+    assert ab.replicate(cfg, "eval/zara1/planner/none", tmp_path / "replica3", workers=1, out=lines.append) == 1
+    assert "3/4 episodes identical in all 6 columns, 4/4 outcomes" in "\n".join(lines)
+
+    # A grid cell that is not done (here: its model changed since it was evaluated) is not compared.
+    monkeypatch.setattr(ab, "_run_eval", original)
+    (ab.cell_dir(cfg, "train/zara1/ppo/none/seed0") / ab.TRAIN_RUN / "best_model.zip").write_bytes(b"retrained")
+    lines.clear()
+    assert ab.replicate(cfg, "eval/zara1/ppo/none/seed0", tmp_path / "replica4", workers=1, out=lines.append) == 1
+    assert "eval/zara1/ppo/none/seed0: not compared: the grid's cell is stale" in "\n".join(lines)
+
+    for folder in (cfg.runs_path(), tmp_path, cfg.runs_path() / "sub"):  # the grid's folder, a parent, a child
+        with pytest.raises(ConfigError, match="overlaps the grid's folder"):
+            ab.replicate(cfg, "eval/zara1/planner/none", folder, workers=1)
+    with pytest.raises(ConfigError, match="selects no evaluation cell"):
+        ab.replicate(cfg, "train/zara1/ppo/none/seed0", tmp_path / "replica5", workers=1)
     (tmp_path / "g.yaml").write_text(json.dumps(_raw(tmp_path)), encoding="utf-8")  # JSON is YAML
     args = {"workers": None, "address": None, "backend": "local", "dry_run": False, "summarize_only": False}
-    with pytest.raises(ConfigError, match="--replicate needs --only"):
-        ab.run_from_args(
-            ab.argparse.Namespace(config=str(tmp_path / "g.yaml"), replicate=str(scratch), only=None, **args)
-        )
+    base = {"config": str(tmp_path / "g.yaml"), "replicate": str(tmp_path / "replica6"), "only": "eval/*"}
+    for change, message in (
+        ({"only": None}, "--replicate needs --only"),
+        ({"backend": "ray"}, "local backend"),
+        ({"dry_run": True}, "cannot be combined"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            ab.run_from_args(ab.argparse.Namespace(**{**args, **base, **change}))

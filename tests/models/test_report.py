@@ -153,6 +153,9 @@ def test_candidate_confounds_name_the_splits_where_selections_differ() -> None:
     assert len(lines) == 2 and "MESRNN and SRNN were selected with different candidates on hotel" in lines[0]
     assert "(residual_rotation vs residual)" in lines[0] and "MESRNN and VLSTM" in lines[1]
     assert candidate_confounds(None) == []
+    rows["srnn/hotel"]["selected"] = None  # not every candidate finished there: nothing selected yet
+    lines = candidate_confounds({"rows": rows})
+    assert len(lines) == 1 and "MESRNN and VLSTM were selected with different candidates on hotel" in lines[0]
 
 
 def test_render_only_rewrites_the_page_from_its_json(tmp_path) -> None:
@@ -171,7 +174,7 @@ def test_render_only_rewrites_the_page_from_its_json(tmp_path) -> None:
     assert out.read_text() == render(json.loads(out.with_suffix(".json").read_text()))
 
 
-def test_plan_only_page_reads_the_ordering_from_the_plan_seeds(tmp_path) -> None:
+def test_plan_only_page_reads_the_ordering_from_the_plan_seeds(tmp_path, capsys) -> None:
     """``report --plan-only``: constant velocity and one plan's seeds, nothing about shipped weights; the
     ordering comes from the differences over seeds, and --render-only rewrites the same page."""
     import json
@@ -216,3 +219,7 @@ def test_plan_only_page_reads_the_ordering_from_the_plan_seeds(tmp_path) -> None
     assert main(["predictor", "report", "--render-only", "--out", str(out)]) == 0
     assert out.read_text() == page
     assert main(["predictor", "report", "--plan-only", "--out", str(out)]) == 2  # needs --plan
+    assert main(["predictor", "report", "--plan", "fixed.yaml", "--plan-only"]) == 2  # needs --out: never the main page
+    capsys.readouterr()
+    plan_results["seeds"]["comparisons"] = {}
+    assert "No five-split average yet" in render_plan(plan_results)
