@@ -3,8 +3,9 @@
 Run: ``python benchmarks/bf16_accuracy.py --model mesrnn --split univ --config configs/predictor/mesrnn.yaml``
 (``--shard 0/2`` and ``--shard 1/2`` in two processes to use both cores; then once more without
 ``--shard`` to print the table). Trains ``--seeds`` seeds of one configuration in fp32 and in bf16
-(``--set precision=bf16``) into ``--out`` (default ``runs/predictor/bf16/MODEL/SPLIT``); finished runs are
-skipped and interrupted ones resume, as in ``predictor plan``. An fp32 run of the same configuration and
+(``--set precision=bf16``) into ``--out`` (default ``runs/predictor/bf16/MODEL/SPLIT/CONFIG[-KEY=VALUE...]``);
+finished runs are skipped and interrupted ones resume, as in ``predictor plan``, after a check that they were
+trained with this configuration and seed. An fp32 run of the same configuration and
 seed in ``--fp32-from`` (a folder template with ``{seed}``, e.g. a plan run) is used instead of training
 it again. Prints each run's best validation ADE and training rate, the mean ± std per precision, and
 the difference bf16 − fp32 with a t interval, as metres and as a fraction of fp32: paired by seed (a
@@ -29,12 +30,19 @@ import yaml
 from scipy import stats as sps
 
 from crowdnav_mesrnn.models.base import LEARNED_MODELS
-from crowdnav_mesrnn.plan import Candidate, Run, epoch_rates, parse_shard, read_done, run_lock, train_run
+from crowdnav_mesrnn.plan import Candidate, Run, epoch_rates, parse_shard, read_done, run_lock, train_run, yaml_scalar
+
+
+def default_out(model: str, split: str, config: str, sets: dict) -> Path:
+    """``runs/predictor/bf16/MODEL/SPLIT/CONFIG[-KEY=VALUE...]``: one folder per configuration, so checks of
+    different configurations never share runs."""
+    name = Path(config.format(model=model)).stem + "".join(f"-{k}={yaml_scalar(v)}" for k, v in sorted(sets.items()))
+    return Path("runs/predictor/bf16") / model / split / name
 
 
 def runs_for(args: argparse.Namespace) -> dict[str, list[Run]]:
-    out = Path(args.out or f"runs/predictor/bf16/{args.model}/{args.split}")
     sets = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.set or [])}
+    out = Path(args.out) if args.out else default_out(args.model, args.split, args.config, sets)
     runs: dict[str, list[Run]] = {}
     for precision in ("fp32", "bf16"):
         cand = Candidate(precision, args.config, {**sets, "precision": precision})
@@ -44,8 +52,9 @@ def runs_for(args: argparse.Namespace) -> dict[str, list[Run]]:
             if precision == "fp32" and args.fp32_from:
                 given = Path(args.fp32_from.format(seed=seed))
                 if read_done(given) is not None:
-                    check_same_recipe(given, args.model, cand, seed)
                     folder = given
+            if (folder / "run.yaml").is_file():  # a run to reuse or resume: it must be this configuration
+                check_same_recipe(folder, args.model, cand, seed)
             runs[precision].append(Run("bf16-check", args.model, args.split, cand, seed, folder))
     return runs
 
@@ -62,7 +71,7 @@ def check_same_recipe(folder: Path, model: str, cand: Candidate, seed: int) -> N
             if key not in ("split", "data_dir") and recorded[part].get(key) != value:
                 raise SystemExit(
                     f"{folder}/run.yaml: {part}.{key} is {recorded[part].get(key)!r}, this check trains with "
-                    f"{value!r}; pass a matching --config/--set or drop --fp32-from"
+                    f"{value!r}; pass a matching --config/--set, another --out, or drop --fp32-from"
                 )
 
 

@@ -90,7 +90,7 @@ class Run:
     def command(self) -> str:
         """The equivalent single ``predictor train`` command."""
         sets = " ".join(
-            f"--set {k}={_yaml_scalar(v)}" for k, v in {**self.candidate.overrides, "seed": self.seed}.items()
+            f"--set {k}={yaml_scalar(v)}" for k, v in {**self.candidate.overrides, "seed": self.seed}.items()
         )
         config = self.candidate.config.format(model=self.model)
         return (
@@ -99,7 +99,8 @@ class Run:
         )
 
 
-def _yaml_scalar(value: Any) -> str:
+def yaml_scalar(value: Any) -> str:
+    """``value`` as it would be written after ``--set KEY=`` (``true``, ``0.5``, ``[1, 2]``)."""
     return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("...").strip()
 
 
