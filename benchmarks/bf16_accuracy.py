@@ -21,14 +21,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 import torch
 import yaml
-from scipy import stats as sps
 
+from agents.stats import welch_seed_test
 from crowdnav_mesrnn.models.base import LEARNED_MODELS
 from crowdnav_mesrnn.plan import Candidate, Run, epoch_rates, parse_shard, read_done, run_lock, train_run, yaml_scalar
 
@@ -105,31 +104,25 @@ def report(runs: dict[str, list[Run]]) -> dict:
     b = np.array([vals["fp32"][k] for k in seeds])
     ref = float(b.mean())
     print(f"seeds {seeds}: fp32 {ref:.4f} ± {b.std(ddof=1):.4f} m; bf16 {a.mean():.4f} ± {a.std(ddof=1):.4f} m")
-    # Paired by seed (same initial weights and data order; only the precision differs): the design's test.
-    d = a - b
-    paired = _t_interval(float(d.mean()), float(d.std(ddof=1)) / math.sqrt(len(d)), len(d) - 1)
-    # Unpaired (Welch), for reference: ignores that the seeds match.
-    va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
-    den = va**2 / (len(a) - 1) + vb**2 / (len(b) - 1)
-    welch = _t_interval(float(a.mean() - b.mean()), math.sqrt(va + vb), (va + vb) ** 2 / den if den > 0 else math.inf)
-    for name, (est, lo, hi, df) in (("paired by seed", paired), ("Welch, unpaired", welch)):
+    # Paired by seed (same initial weights and data order; only the precision differs): the design's test,
+    # a one-sample t interval of the per-seed differences (against a fixed 0). Unpaired (Welch), for
+    # reference: ignores that the seeds match.
+    paired = welch_seed_test(a - b, [0.0])
+    welch = welch_seed_test(a, b)
+    for name, test in (("paired by seed", paired), ("Welch, unpaired", welch)):
+        est, (lo, hi), df = test["difference"], test["difference_ci"], test["df"]
         print(
             f"bf16 − fp32, {name}: {est:+.4f} m [{lo:+.4f}, {hi:+.4f}] (t, df {df:.1f}) = "
             f"{100 * est / ref:+.2f} % [{100 * lo / ref:+.2f}, {100 * hi / ref:+.2f}] of fp32"
         )
         out[name] = {"diff_m": est, "ci_m": [lo, hi], "relative": [est / ref, lo / ref, hi / ref], "df": df}
-    shown = bool(paired[2] / ref < 0.01)
+    shown = bool(paired["difference_ci"][1] / ref < 0.01)  # False when there is no interval (nan)
     print(
         "within 1 % (paired interval below +1 %): "
         + ("shown" if shown else "not shown (the paired interval reaches +1 % or beyond)")
     )
     out["within_1_percent_shown"] = shown
     return out
-
-
-def _t_interval(est: float, se: float, df: float) -> tuple[float, float, float, float]:
-    half = float(sps.t.ppf(0.975, df)) * se if se > 0 and math.isfinite(df) else 0.0
-    return est, est - half, est + half, float(df) if math.isfinite(df) else float("nan")
 
 
 def main() -> int:
