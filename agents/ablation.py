@@ -1911,7 +1911,7 @@ def replicate(
         raise ConfigError(
             f"--replicate {str(into)!r} is not empty; give a new or empty folder (a replicate starts afresh)"
         )
-    states = {st.cell.name: st for st in plan(cfg)}
+    states = {st.cell.name: st for st in plan(cfg, evals)}
     scratch = dataclasses.replace(cfg, runs_dir=str(into / "runs"), out_dir=str(into / "results"))
     result = run_grid(scratch, workers=workers, only=",".join(c.name for c in cells), summarize_after=False, out=out)
     for name, error in result["failed"].items():

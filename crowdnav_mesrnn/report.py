@@ -368,7 +368,7 @@ def render_plan(results: dict[str, Any]) -> str:
         *render_comparisons(seeds.get("comparisons"), results["bootstrap"], n_seeds=len(seeds["seeds"])),
     ]
     chosen = {k: v for k, v in (seeds.get("comparisons") or {}).items() if "average" in v["ade_m"]}
-    srnn_fde = ((seeds.get("average") or {}).get("srnn") or {}).get("fde_m", {}).get("mean")
+    srnn_fde = _seeds_srnn_fde(seeds)
     lines += ["", "## Does the paper's ordering hold here?", "", "Read from the differences over seeds (ADE):", ""]
     lines += (
         ordering(chosen, {k: "over seeds" for k in chosen}, srnn_fde)
@@ -387,6 +387,11 @@ def render_plan(results: dict[str, Any]) -> str:
         "```",
     ]
     return "\n".join(lines) + "\n"
+
+
+def _seeds_srnn_fde(seeds: dict[str, Any] | None) -> float | None:
+    """SRNN's five-split average FDE over the plan's seeds (mean), where it has one."""
+    return (((seeds or {}).get("average") or {}).get("srnn") or {}).get("fde_m", {}).get("mean")
 
 
 def _training_command(checkpoint: Path) -> str | None:
@@ -464,7 +469,7 @@ def render(results: dict[str, Any]) -> str:
     lines += ["", *render_comparisons(results["comparisons"], results["bootstrap"])]
     chosen, sources, source_line = _ordering_source(results)
     if sources.get("mesrnn-srnn") == "over seeds":
-        srnn_fde = ((seeds or {}).get("average", {}).get("srnn") or {}).get("fde_m", {}).get("mean")
+        srnn_fde = _seeds_srnn_fde(seeds)
     else:
         srnn_fde = (results.get("srnn", {}).get("splits", {}).get("average") or {}).get("fde_m")
     lines += ["", "## Does the paper's ordering hold?", "", source_line, "", *ordering(chosen, sources, srnn_fde)]
