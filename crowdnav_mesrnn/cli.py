@@ -7,12 +7,13 @@ import importlib
 import json
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 #: subcommand -> ("module:function" adding its parser to argparse sub-parsers, one-line help). The module is
 #: imported only when its subcommand runs, so no lower package imports a higher one and ``--help`` stays fast.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "data": ("crowdnav_mesrnn.cli:add_data", "inspect and verify the ETH/UCY data"),
+    "data": ("crowdnav_mesrnn.cli:add_data", "download, inspect and verify the ETH/UCY data"),
     "predictor": ("crowdnav_mesrnn.cli_predictor:add_parser", "train, evaluate, export and plot trajectory predictors"),
     "forecasts": ("envs.cli:add_forecasts", "build and inspect the shared on-disk forecast cache"),
     "demo": ("agents.cli:add_demo", "a policy crosses a held-out ETH/UCY scene with forecasts; metrics and a GIF"),
@@ -39,26 +40,71 @@ def _data_summary(args: argparse.Namespace) -> int:
 
 def _data_check(args: argparse.Namespace) -> int:
     from crowdnav_mesrnn.data.checks import check_data_dir
+    from crowdnav_mesrnn.data.paths import find_data_dir
 
-    report = check_data_dir(args.dir)
+    given = args.dir or args.data_dir
+    root = Path(given) if given else find_data_dir()  # no folder given: the one the project would use
+    report = check_data_dir(root)
     for problem in report.problems:
         print(problem, file=sys.stderr)
     sums = "checksums verified against SHA256SUMS" if report.checksum_file else "no SHA256SUMS found"
     status = "OK" if report.ok else f"{len(report.problems)} problem(s)"
-    print(f"{args.dir}: {report.checked} data files parsed, {sums}: {status}")
+    print(f"{root}: {report.checked} data files parsed, {sums}: {status}")
     return 0 if report.ok else 1
 
 
+def _data_download(args: argparse.Namespace) -> int:
+    from crowdnav_mesrnn.data.download import DownloadError, download_data, where_hint
+
+    try:
+        result = download_data(
+            args.dest, args.url, timeout_s=args.timeout, force=args.force, progress=lambda m: print(m, flush=True)
+        )
+    except DownloadError as exc:
+        print(f"crowdnav-mesrnn: error: {exc}", file=sys.stderr)
+        return 1
+    what = "already holds" if result.already_present else "now holds"
+    print(f"{result.dest} {what} the ETH/UCY recordings ({result.files} files, SHA-256 verified).")
+    print(where_hint(result.dest, result.found_by_default))
+    print(f"Check it any time with `crowdnav-mesrnn data check {result.dest}`.")
+    return 0
+
+
+DATA_DIR_HELP = "ETH/UCY folder (default: $CROWDNAV_MESRNN_DATA, ./data/eth_ucy, ~/.cache/crowdnav-mesrnn/eth_ucy)"
+
+
 def add_data(sub: Any) -> None:
-    p = sub.add_parser("data", help="inspect and verify the ETH/UCY data")
+    from crowdnav_mesrnn.data.download import DEFAULT_DEST, DEFAULT_TIMEOUT_S
+
+    p = sub.add_parser("data", help="download, inspect and verify the ETH/UCY data")
     dsub = p.add_subparsers(dest="data_cmd", required=True)
     s = dsub.add_parser("summary", help="frames, pedestrians, step time and window counts")
     s.add_argument("--json", action="store_true", help="print one JSON object")
-    s.add_argument("--data-dir", default=None, help="data folder (default: $CROWDNAV_MESRNN_DATA, ...)")
+    s.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     s.set_defaults(func=_data_summary)
-    c = dsub.add_parser("check", help="verify SHA256SUMS and the format of every file in DIR")
-    c.add_argument("dir")
+    c = dsub.add_parser("check", help="verify SHA256SUMS and the format of every file in a data folder")
+    c.add_argument("dir", nargs="?", default=None, help="data folder (default: the one the project would use)")
+    c.add_argument("--data-dir", default=None, help=f"same as DIR; {DATA_DIR_HELP}")
     c.set_defaults(func=_data_check)
+    d = dsub.add_parser(
+        "download",
+        help="fetch the ETH/UCY recordings, verify them against pinned SHA-256 sums and install them atomically",
+    )
+    d.add_argument("--dest", default=None, help=f"folder to create (default: {DEFAULT_DEST}, searched by the project)")
+    d.add_argument(
+        "--url",
+        default=None,
+        help="a .zip in the Social-GAN datasets layout, or a base URL serving the project's layout "
+        "(BASE/all_data/biwi_eth.txt, BASE/train/..., BASE/val/...); default: the Social-GAN datasets archive",
+    )
+    d.add_argument(
+        "--timeout",
+        type=float,
+        default=DEFAULT_TIMEOUT_S,
+        help=f"seconds a connection or read may stall before failing (default: {DEFAULT_TIMEOUT_S:g})",
+    )
+    d.add_argument("--force", action="store_true", help="replace an existing --dest that does not verify")
+    d.set_defaults(func=_data_download)
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:

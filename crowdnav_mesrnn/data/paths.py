@@ -11,11 +11,12 @@ from pathlib import Path
 
 ENV_VAR = "CROWDNAV_MESRNN_DATA"
 
+#: How to get the data, appended to every "no data" message (one text, so every message names the command).
 HOW_TO_GET_DATA = (
     "The ETH/UCY recordings (SGAN format, metres: all_data/, train/, val/) are not shipped with "
-    "crowdnav-mesrnn. Download the Social-GAN copy of the datasets and point the project at it with "
-    f"`export {ENV_VAR}=/path/to/eth_ucy`, or pass `--data-dir`, or place it in ./data/eth_ucy or "
-    "~/.cache/crowdnav-mesrnn/eth_ucy."
+    "crowdnav-mesrnn. Get them with `crowdnav-mesrnn data download` (verified against pinned SHA-256 sums, "
+    "installed in ~/.cache/crowdnav-mesrnn/eth_ucy, where the project finds them), or point the project at "
+    f"a copy with `export {ENV_VAR}=/path/to/eth_ucy` or `--data-dir`."
 )
 
 
