@@ -36,7 +36,7 @@ from agents.stats import bootstrap_mean_ci, wilson_interval
 from crowdnav_mesrnn.config import ConfigError, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text
-from envs.config import FORECAST_SOURCES, CrowdNavConfig, config_from
+from envs.config import FORECAST_SOURCES, CrowdNavConfig, check_predictor_name, config_from
 
 #: Outcomes of an episode, each reported as a rate with a Wilson interval.
 OUTCOMES: Final[tuple[str, ...]] = ("success", "collision", "timeout")
@@ -289,11 +289,12 @@ def prepare_forecasts(env_kwargs: Mapping[str, Any], progress: bool = False) -> 
     (no learned predictor, no disk cache, a synthetic or empty crowd, or no data with ``crowd: auto``)."""
     from crowdnav_mesrnn.data.paths import DataNotFoundError
     from envs import forecasts
-    from envs.config import LEARNED_SOURCES
+    from envs.config import LEARNED_SOURCES, is_plugin_source
 
     cfg = config_from(dict(env_kwargs), {})
     build = getattr(forecasts, "build_forecast_cache", None)
-    if build is None or cfg.predictor not in LEARNED_SOURCES or cfg.crowd not in ("auto", "replay"):
+    learned = cfg.predictor in LEARNED_SOURCES or is_plugin_source(cfg.predictor)
+    if build is None or not learned or cfg.crowd not in ("auto", "replay"):
         return None
     if not (getattr(cfg, "cache_forecasts", True) and getattr(cfg, "forecast_disk_cache", True)):
         return None
@@ -502,8 +503,7 @@ def evaluate(
     """
     from envs.crowd_nav import CrowdNavEnv
 
-    if predictor not in FORECAST_SOURCES:
-        raise ValueError(f"unknown predictor {predictor!r}; valid: {', '.join(FORECAST_SOURCES)}")
+    check_predictor_name(predictor)
     if n_envs < 1:
         raise ValueError(f"n_envs must be >= 1, got {n_envs!r}")
     started = time.perf_counter()
@@ -576,7 +576,13 @@ def parse_set(items: Sequence[str] | None) -> dict[str, Any]:
 
 def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("policy", help="a run folder of agents.train, an SB3 .zip, 'planner' or 'straight'")
-    p.add_argument("--predictor", default="mesrnn", choices=FORECAST_SOURCES, help="forecast arm (default: mesrnn)")
+    p.add_argument(
+        "--predictor",
+        default="mesrnn",
+        metavar="PREDICTOR",
+        help=f"forecast arm: {', '.join(FORECAST_SOURCES)}, an installed predictor plug-in or an import path "
+        "package.module:Factory (default: mesrnn)",
+    )
     p.add_argument("--split", default="zara1", choices=SPLITS, help="its held-out scene is replayed (default: zara1)")
     p.add_argument("--episodes", type=int, default=500, help="number of episodes (default: 500)")
     p.add_argument("--seed", type=int, default=0, help="which seeded list of episodes (default: 0)")

@@ -72,7 +72,7 @@ from agents.pretrain import PretrainConfig
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
-from envs.config import FORECAST_SOURCES, LEARNED_SOURCES, config_from, episode_recordings
+from envs.config import FORECAST_SOURCES, LEARNED_SOURCES, check_predictor_name, config_from, episode_recordings
 
 #: Top-level key of the project's own settings in a config file (RL Zoo ignores it).
 PROJECT_KEY: Final[str] = "crowdnav_mesrnn"
@@ -235,7 +235,8 @@ def action_set(action: Mapping[str, Any] | None, env_config: Any) -> Any:
 def env_id_for(predictor: str) -> str:
     """The config entry (environment id) of a forecast arm."""
     if predictor not in ENV_ID_OF:
-        raise ConfigError(f"unknown predictor {predictor!r}; valid: {', '.join(ENV_ID_OF)}")
+        check_predictor_name(predictor)
+        return ENV_ID_OF["mesrnn"]  # a plug-in: the learned arms' entry, with its own predictor
     return ENV_ID_OF[predictor]
 
 
@@ -287,8 +288,7 @@ def load_train_config(
     split = str(over.pop("split", None) or run.get("split") or "zara1")
     seed_value = over.pop("seed", None)
     seed = int(seed_value if seed_value is not None else run.get("seed", 0))
-    if predictor not in FORECAST_SOURCES:
-        raise ConfigError(f"unknown predictor {predictor!r}; valid: {', '.join(FORECAST_SOURCES)}")
+    check_predictor_name(predictor)
     if split not in SPLITS:
         raise ConfigError(f"unknown split {split!r}; valid: {', '.join(SPLITS)}")
     env_id = env_id or env_id_for(predictor)
@@ -931,7 +931,13 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="training YAML (default: configs/agent/ppo.yaml; with --resume: the run's config.yaml)",
     )
-    p.add_argument("--predictor", default=None, choices=FORECAST_SOURCES, help="forecast arm (default: mesrnn)")
+    p.add_argument(
+        "--predictor",
+        default=None,
+        metavar="PREDICTOR",
+        help=f"forecast arm: {', '.join(FORECAST_SOURCES)}, an installed predictor plug-in or an import path "
+        "package.module:Factory (default: mesrnn)",
+    )
     p.add_argument("--split", default=None, choices=SPLITS, help="train on its four training scenes (default: zara1)")
     p.add_argument("--seed", type=int, default=None, help="seed (default: 0)")
     p.add_argument("--timesteps", type=float, default=None, help="total environment steps (overrides n_timesteps)")

@@ -72,7 +72,12 @@ def add_forecasts(sub: Any) -> None:
     )
     fsub = p.add_subparsers(dest="forecasts_cmd", required=True)
     b = fsub.add_parser("build", help="compute and store the forecasts of a split's recordings ahead of training")
-    b.add_argument("--predictor", required=True, choices=LEARNED_SOURCES)
+    b.add_argument(
+        "--predictor",
+        required=True,
+        metavar="PREDICTOR",
+        help=f"{', '.join(LEARNED_SOURCES)}, an installed predictor plug-in or an import path package.module:Factory",
+    )
     b.add_argument("--split", default=None, choices=SPLITS, help="default: every replayable recording")
     b.add_argument("--part", default="all", choices=("train", "test", "all"), help="default: all")
     b.add_argument("--memory", default="window", choices=FORECAST_MEMORIES, help="forecast memory (default: window)")

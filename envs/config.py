@@ -25,6 +25,36 @@ from crowdnav_mesrnn.data.constants import RECORDINGS, SPLIT_TEST_RECORDINGS, SP
 FORECAST_SOURCES: Final[tuple[str, ...]] = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
 #: Forecast sources that load a pretrained predictor per split.
 LEARNED_SOURCES: Final[tuple[str, ...]] = ("mesrnn", "srnn", "vlstm")
+
+
+def is_plugin_source(name: Any) -> bool:
+    """True for an installed predictor plug-in's name or an import path ``package.module:Factory``
+    (:mod:`crowdnav_mesrnn.predictors`): loaded per split like the learned sources."""
+    if not isinstance(name, str) or name in FORECAST_SOURCES:
+        return False
+    from crowdnav_mesrnn.predictors import is_known
+
+    return is_known(name)
+
+
+def forecast_source_names() -> tuple[str, ...]:
+    """Every forecast source name: :data:`FORECAST_SOURCES` and the installed plug-ins."""
+    from crowdnav_mesrnn.predictors import plugin_names
+
+    return (*FORECAST_SOURCES, *plugin_names())
+
+
+def check_predictor_name(name: Any) -> str:
+    """``name`` if it is a forecast source, an installed plug-in or an import path; else :class:`ConfigError`
+    listing them."""
+    if isinstance(name, str) and (name in FORECAST_SOURCES or is_plugin_source(name)):
+        return name
+    raise ConfigError(
+        f"unknown predictor {name!r}; valid: {', '.join(forecast_source_names())}, or an import path "
+        "'package.module:Factory' (see crowdnav_mesrnn.predictors)"
+    )
+
+
 #: Crowd sources accepted by ``crowd=`` (or a :class:`~crowdnav_mesrnn.data.Recording` object).
 CROWDS: Final[tuple[str, ...]] = ("auto", "replay", "synthetic", "empty")
 #: Which recordings an episode may replay: ``test`` = the split's held-out scene, ``train`` = the other four.
@@ -53,7 +83,8 @@ class CrowdNavConfig:
     data_dir: str | None = None
     """ETH/UCY folder; default: ``$CROWDNAV_MESRNN_DATA``, ``./data/eth_ucy``, ``~/.cache/crowdnav-mesrnn/eth_ucy``."""
     predictor: str = "mesrnn"
-    """Forecast source: ``none``, ``cv``, ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, ``noisy_oracle`` (or pass a predictor object)."""
+    """Forecast source: ``none``, ``cv``, ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, ``noisy_oracle``, an installed
+    predictor plug-in's name or an import path ``package.module:Factory`` (or pass a predictor object)."""
 
     # ----------------------------------------------------------------- robot and physics
     kinematics: str = "holonomic"
@@ -211,7 +242,9 @@ class CrowdNavConfig:
 def check_value(key: str, value: Any) -> None:
     """Raise :class:`ConfigError` unless ``value`` is allowed for ``key`` on its own (type, finiteness, range;
     how keys go together is checked by :meth:`CrowdNavConfig.validate`)."""
-    if key in _CHOICES:
+    if key == "predictor":
+        check_predictor_name(value)
+    elif key in _CHOICES:
         _one_of(key, value, _CHOICES[key])
     elif key == "scenes":
         if not (isinstance(value, tuple) and all(isinstance(x, str) for x in value)):
@@ -256,7 +289,6 @@ _CHOICES: Final[dict[str, tuple[str, ...]]] = {
     "split": SPLITS,
     "part": EPISODE_PARTS,
     "crowd": CROWDS,
-    "predictor": FORECAST_SOURCES,
     "kinematics": KINEMATICS,
     "forecast_memory": FORECAST_MEMORIES,
     "episode_time": EPISODE_TIMES,

@@ -73,14 +73,19 @@ def predictor_fingerprint(model: Any) -> str | None:
     """SHA-256 of a predictor's weights, normalisation and config; None when it has none to hash.
 
     A predictor object may define ``cache_fingerprint() -> str`` itself; otherwise one with a torch ``net``
-    and a ``norm`` (:class:`crowdnav_mesrnn.models.learned.LearnedPredictor`) is hashed; any other object
-    (constant velocity, test doubles) is not disk-cached.
+    and a ``norm`` (:class:`crowdnav_mesrnn.models.learned.LearnedPredictor`) is hashed. A plug-in loaded by name
+    (:func:`crowdnav_mesrnn.predictors.load`) is keyed on its identity (name, target, distribution version, module
+    source) plus that digest, so it is disk-cached even without weights. Any other object (constant velocity,
+    test doubles passed as objects) is not disk-cached.
     """
     held = _FINGERPRINTS.get(id(model))
     if held is not None and held[0] is model:
         return held[1]
     custom = getattr(model, "cache_fingerprint", None)
     net, norm = getattr(model, "net", None), getattr(model, "norm", None)
+    from crowdnav_mesrnn.predictors import identity_of
+
+    plugin = identity_of(model)  # a plug-in loaded by name: its identity + (below) its weights or own digest
     if callable(custom):
         digest: str | None = str(custom())
     elif net is not None and callable(getattr(net, "state_dict", None)) and norm is not None:
@@ -102,6 +107,8 @@ def predictor_fingerprint(model: Any) -> str | None:
         digest = h.hexdigest()
     else:
         digest = None
+    if plugin is not None:
+        digest = hashlib.sha256(f"plugin:{plugin}:{digest or ''}".encode()).hexdigest()
     _FINGERPRINTS[id(model)] = (model, digest)
     return digest
 

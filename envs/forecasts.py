@@ -30,7 +30,7 @@ import numpy as np
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, SPLIT_TEST_RECORDINGS
 from crowdnav_mesrnn.data.recordings import Recording
-from envs.config import FORECAST_MEMORIES, FORECAST_SOURCES, LEARNED_SOURCES
+from envs.config import FORECAST_MEMORIES, FORECAST_SOURCES, LEARNED_SOURCES, check_predictor_name, is_plugin_source
 from envs.forecast_cache import (
     CHUNK_FRAMES,
     ForecastStore,
@@ -601,9 +601,11 @@ def load_learned(name: str, split: str, needed_for: str) -> Any:
         try:
             _LOADED[key] = models.get_predictor(name, split)
         except Exception as exc:  # any failure to load is reported the same way, with its cause
+            shipped = name in LEARNED_SOURCES
             raise PredictorUnavailableError(
-                f"the pretrained {name!r} predictor for split {split!r} (needed to forecast {needed_for}) "
-                f"could not be loaded: {type(exc).__name__}: {str(exc).rstrip('.')}. {WEIGHTS_HELP}"
+                f"the {'pretrained ' if shipped else 'plug-in '}{name!r} predictor for split {split!r} (needed to "
+                f"forecast {needed_for}) could not be loaded: {type(exc).__name__}: {str(exc).rstrip('.')}. "
+                + (WEIGHTS_HELP if shipped else "See crowdnav_mesrnn.predictors for the plug-in protocol.")
             ) from exc
     return _LOADED[key]
 
@@ -657,7 +659,7 @@ def make_forecast_source(
         from crowdnav_mesrnn.models import get_predictor
 
         return PredictorForecast("cv", {}, get_predictor("cv"), dt_s, horizon, cache)
-    if predictor in LEARNED_SOURCES:
+    if predictor in LEARNED_SOURCES or is_plugin_source(predictor):  # a plug-in loads per split like MESRNN
         per_recording: dict[str, ForecastModel] = {}
         default: ForecastModel | None = None
         for rec in recordings:
@@ -667,7 +669,7 @@ def make_forecast_source(
             else:
                 per_recording[rec] = load_learned(predictor, split, rec)
         return learned_cls(predictor, per_recording, default, dt_s, horizon, cache, store)
-    raise ValueError(f"unknown predictor {predictor!r}")
+    raise ValueError(check_predictor_name(predictor))  # raises ConfigError listing the valid names
 
 
 # ----------------------------------------------------------------------------- the shared cache, filled ahead
@@ -724,10 +726,10 @@ def build_forecast_cache(
     from crowdnav_mesrnn.data.recordings import load_recording
     from envs.forecast_cache import cache_root
 
-    if predictor not in LEARNED_SOURCES:
+    if predictor not in LEARNED_SOURCES and not is_plugin_source(predictor):
         raise ValueError(
-            f"unknown predictor {predictor!r} for the forecast cache; valid: {', '.join(LEARNED_SOURCES)} "
-            "(none, cv, oracle and noisy_oracle need no cache)"
+            f"unknown predictor {predictor!r} for the forecast cache; valid: {', '.join(LEARNED_SOURCES)}, an installed "
+            "predictor plug-in or an import path 'package.module:Factory' (none, cv, oracle and noisy_oracle need no cache)"
         )
     if memory not in FORECAST_MEMORIES:
         raise ValueError(f"unknown forecast memory {memory!r}; valid: {', '.join(FORECAST_MEMORIES)}")

@@ -6,7 +6,8 @@ __all__ = ["LEARNED_MODELS", "MODELS", "ConstantVelocity", "Predictor", "get_pre
 
 
 def get_predictor(name: str, split: str | None = None) -> Predictor:
-    """A ready predictor by name: ``"cv"`` or a pretrained ``"mesrnn"``/``"srnn"``/``"vlstm"`` for ``split``."""
+    """A ready predictor by name: ``"cv"``, a pretrained ``"mesrnn"``/``"srnn"``/``"vlstm"`` for ``split``, an
+    installed plug-in's name or an import path ``package.module:Factory`` (:mod:`crowdnav_mesrnn.predictors`)."""
     if name == "cv":
         return ConstantVelocity()
     if name in LEARNED_MODELS:
@@ -15,4 +16,6 @@ def get_predictor(name: str, split: str | None = None) -> Predictor:
         from crowdnav_mesrnn.models.pretrained import load_pretrained
 
         return load_pretrained(name, split)
-    raise ValueError(f"unknown predictor {name!r}; valid: {', '.join(MODELS)}")
+    from crowdnav_mesrnn.predictors import load
+
+    return load(name, split)  # PluginError (a ValueError) names the registered predictors

@@ -1,0 +1,303 @@
+"""Predictors as plug-ins: the forecast protocol, registration by entry point or import path, and loading.
+
+**The protocol** (:class:`crowdnav_mesrnn.models.Predictor`). A predictor is any object with
+
+- ``name: str`` — shown in results;
+- ``obs_len: int`` and ``pred_len: int`` — observed and predicted annotation steps (8 and 12 on ETH/UCY);
+- ``forecast(history, mask) -> future``:
+
+  - ``history``: ``(obs_len, N, 2)`` float32, metres, world frame, the last ``obs_len`` annotation steps of the
+    ``N`` pedestrians seen in them, oldest first (values where ``mask`` is False are 0 and must be ignored);
+  - ``mask``: ``(obs_len, N)`` bool, pedestrian ``n`` annotated at step ``t``;
+  - returns ``(N, pred_len, 2)`` float metres at the next ``pred_len`` annotation steps. Rows of pedestrians
+    absent at the last observed step are ignored (by convention they hold the last observed position).
+
+  One step is one annotation of the recording (0.4 s; 0.667 s on ``biwi_eth``); the environment resamples
+  forecasts onto its own time grid. Every pedestrian present in the window is passed together, so a social
+  model can use the others as context.
+
+Optional parts, looked up with ``getattr`` (a plug-in without them works):
+
+- ``forecast_distribution(history, mask) -> (mean, cov)``: a Gaussian per pedestrian and step, ``mean``
+  ``(N, pred_len, 2)`` metres and ``cov`` ``(N, pred_len, 2, 2)`` square metres
+  (:class:`DistributionPredictor`); ``forecast`` should return ``mean``.
+- ``online(num_slots)``: an incremental forecaster (``observe(positions (S, 2), present (S,))`` per annotation
+  step, ``forecast() -> (S, pred_len, 2)``) for ``forecast_memory="carried"``.
+- ``cache_fingerprint() -> str``: a digest of whatever determines the forecasts (weights, parameters). The
+  forecast cache keys a registered plug-in's forecasts on its identity (:meth:`PredictorSpec.identity`: name,
+  import target, distribution name and version, and a hash of the factory's module source) plus this digest,
+  or the hash of a torch ``net`` and ``norm`` when the predictor has them.
+
+**Registration.** A package declares a factory under the entry-point group :data:`ENTRY_POINT_GROUP`::
+
+    [project.entry-points."crowdnav_mesrnn.predictors"]
+    kalman = "kalman_predictor:KalmanPredictor"
+
+or any user passes an import path ``package.module:Factory`` where a predictor name is accepted. The factory is
+called as ``factory(split=SPLIT)``: ``SPLIT`` is the leave-one-out split whose held-out scene will be forecast
+(a learned plug-in returns weights trained without that scene; others ignore it), or None. The shipped models
+register the same way (``pyproject.toml``); :data:`SHIPPED` is used for them when the package runs from a source
+tree without installed metadata. Names ``none``, ``oracle`` and ``noisy_oracle`` are forecast sources of the
+environment, not predictors, and cannot be registered.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib
+import importlib.metadata
+import importlib.util
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Final, Protocol, runtime_checkable
+
+import numpy as np
+
+from crowdnav_mesrnn.config import ConfigError
+from crowdnav_mesrnn.models.base import ConstantVelocity, Predictor
+
+#: Entry-point group predictors register under.
+ENTRY_POINT_GROUP: Final[str] = "crowdnav_mesrnn.predictors"
+
+#: The shipped predictors: name -> factory (the same entries as in pyproject.toml).
+SHIPPED: Final[dict[str, str]] = {
+    "cv": "crowdnav_mesrnn.predictors:constant_velocity",
+    "mesrnn": "crowdnav_mesrnn.predictors:mesrnn",
+    "srnn": "crowdnav_mesrnn.predictors:srnn",
+    "vlstm": "crowdnav_mesrnn.predictors:vlstm",
+}
+
+#: Forecast sources of the environment that are not predictors (never registrable names).
+RESERVED: Final[tuple[str, ...]] = ("none", "oracle", "noisy_oracle")
+
+
+@runtime_checkable
+class DistributionPredictor(Protocol):
+    """The optional distribution part of the protocol: a Gaussian forecast per pedestrian and step."""
+
+    def forecast_distribution(self, history: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(obs_len, N, 2)`` metres + ``(obs_len, N)`` mask -> ``mean (N, pred_len, 2)`` metres,
+        ``cov (N, pred_len, 2, 2)`` square metres."""
+        ...
+
+
+class PluginError(ConfigError):
+    """A predictor name or import path that cannot be resolved or loaded, or a plug-in breaking the protocol."""
+
+
+# ---------------------------------------------------------------------------- shipped factories
+
+
+def constant_velocity(split: str | None = None) -> Predictor:
+    """The constant-velocity baseline (no weights; ``split`` is ignored)."""
+    return ConstantVelocity()
+
+
+def _learned(model: str, split: str | None) -> Predictor:
+    if split is None:
+        raise PluginError(f"predictor {model!r} needs the split whose held-out scene it will forecast")
+    from crowdnav_mesrnn.models.pretrained import load_pretrained
+
+    return load_pretrained(model, split)
+
+
+def mesrnn(split: str | None = None) -> Predictor:
+    """The shipped MESRNN trained without ``split``'s held-out scene."""
+    return _learned("mesrnn", split)
+
+
+def srnn(split: str | None = None) -> Predictor:
+    """The shipped SRNN trained without ``split``'s held-out scene."""
+    return _learned("srnn", split)
+
+
+def vlstm(split: str | None = None) -> Predictor:
+    """The shipped Vanilla LSTM trained without ``split``'s held-out scene."""
+    return _learned("vlstm", split)
+
+
+# ---------------------------------------------------------------------------- registry
+
+
+@dataclass(frozen=True)
+class PredictorSpec:
+    """A resolvable predictor: a registered name or an import path."""
+
+    name: str
+    """The name it is chosen by (``predictor="kalman"``), or the import path itself."""
+    target: str
+    """``package.module:Factory``."""
+    distribution: str | None = None
+    """The installed distribution declaring it (None for a bare import path)."""
+    version: str | None = None
+    """That distribution's version."""
+
+    @property
+    def shipped(self) -> bool:
+        """One of the project's own predictors."""
+        return self.name in SHIPPED and self.target == SHIPPED[self.name]
+
+    def factory(self) -> Callable[..., Any]:
+        """The imported factory; raises :class:`PluginError` naming the target when it cannot be imported."""
+        module, sep, attr = self.target.partition(":")
+        if not sep or not module or not attr:
+            raise PluginError(f"predictor {self.name!r}: target {self.target!r} is not 'package.module:Factory'")
+        try:
+            obj: Any = importlib.import_module(module)
+            for part in attr.split("."):
+                obj = getattr(obj, part)
+        except (ImportError, AttributeError) as exc:
+            raise PluginError(f"predictor {self.name!r}: cannot import {self.target!r} ({exc})") from exc
+        if not callable(obj):
+            raise PluginError(f"predictor {self.name!r}: {self.target!r} is not callable")
+        return obj
+
+    def identity(self) -> str:
+        """SHA-256 of (name, target, distribution, version, the factory module's source): what the forecast cache
+        keys a plug-in on, besides its weights."""
+        module = self.target.partition(":")[0]
+        source = ""
+        try:
+            found = importlib.util.find_spec(module)
+            if found is not None and found.origin and found.origin.endswith(".py"):
+                with open(found.origin, "rb") as fh:
+                    source = hashlib.sha256(fh.read()).hexdigest()
+        except (ImportError, ValueError, OSError):
+            pass
+        head = [self.name, self.target, self.distribution, self.version, source]
+        return hashlib.sha256(json.dumps(head).encode()).hexdigest()
+
+
+@functools.cache
+def _entry_points() -> tuple[importlib.metadata.EntryPoint, ...]:
+    return tuple(importlib.metadata.entry_points(group=ENTRY_POINT_GROUP))
+
+
+def refresh() -> None:
+    """Forget the entry points read so far (call after installing a plug-in into a running interpreter)."""
+    _entry_points.cache_clear()
+
+
+def registered() -> dict[str, PredictorSpec]:
+    """Every registered predictor by name: installed entry points, plus :data:`SHIPPED` when the project's own
+    metadata is not installed.
+
+    Raises:
+        PluginError: two distributions register one name, a plug-in takes a shipped or reserved name, or a name
+            contains ``:``.
+    """
+    out: dict[str, PredictorSpec] = {}
+    for ep in _entry_points():
+        dist = getattr(ep, "dist", None)
+        spec = PredictorSpec(
+            ep.name, ep.value, getattr(dist, "name", None) if dist else None, getattr(dist, "version", None)
+        )
+        if ep.name in RESERVED or ":" in ep.name:
+            raise PluginError(
+                f"entry point {ep.name!r} = {ep.value!r} ({spec.distribution}) in group {ENTRY_POINT_GROUP!r}: the name "
+                f"is reserved or contains ':'; reserved: {', '.join(RESERVED)}"
+            )
+        if ep.name in SHIPPED and ep.value != SHIPPED[ep.name]:
+            raise PluginError(
+                f"entry point {ep.name!r} = {ep.value!r} ({spec.distribution}) would replace the shipped predictor "
+                f"{ep.name!r}; choose another name"
+            )
+        held = out.get(ep.name)
+        if held is not None and held.target != spec.target:
+            raise PluginError(
+                f"predictor name {ep.name!r} is registered twice: {held.target!r} ({held.distribution}) and "
+                f"{spec.target!r} ({spec.distribution}); uninstall one"
+            )
+        out[ep.name] = spec
+    for name, target in SHIPPED.items():
+        out.setdefault(name, PredictorSpec(name, target, "crowdnav-mesrnn", _own_version()))
+    return out
+
+
+def _own_version() -> str:
+    from crowdnav_mesrnn import __version__
+
+    return __version__
+
+
+def plugin_names() -> tuple[str, ...]:
+    """Registered names that are not shipped (installed plug-ins), sorted."""
+    return tuple(sorted(n for n, s in registered().items() if not s.shipped))
+
+
+def is_import_path(name: str) -> bool:
+    """``package.module:Factory``."""
+    module, sep, attr = name.partition(":")
+    return bool(sep and module and attr) and all(p.isidentifier() for p in [*module.split("."), *attr.split(".")])
+
+
+def resolve(name: str) -> PredictorSpec:
+    """The spec of a registered name or an import path.
+
+    Raises:
+        PluginError: unknown name (listing the registered ones and the import-path form).
+    """
+    if not isinstance(name, str):
+        raise PluginError(f"a predictor name must be a string, got {name!r}")
+    specs = registered()
+    if name in specs:
+        return specs[name]
+    if is_import_path(name):
+        return PredictorSpec(name, name)
+    raise PluginError(
+        f"unknown predictor {name!r}; registered: {', '.join(sorted(specs))} (entry-point group "
+        f"{ENTRY_POINT_GROUP!r}), or give an import path 'package.module:Factory'"
+    )
+
+
+def is_known(name: str) -> bool:
+    """True for a registered name or a well-formed import path (not imported here)."""
+    try:
+        resolve(name)
+    except PluginError:
+        return False
+    return True
+
+
+_IDENTITIES: dict[int, tuple[Any, str]] = {}
+
+
+def check_protocol(model: Any, label: str) -> None:
+    """Raise :class:`PluginError` unless ``model`` has ``forecast`` and integer ``obs_len``/``pred_len`` >= 1."""
+    if not callable(getattr(model, "forecast", None)):
+        raise PluginError(f"predictor {label!r} returned {model!r}, which has no forecast(history, mask) method")
+    for attr in ("obs_len", "pred_len"):
+        value = getattr(model, attr, None)
+        if not (isinstance(value, int | np.integer) and value >= 1):
+            raise PluginError(f"predictor {label!r}: {attr} must be an integer >= 1, got {value!r}")
+
+
+def load(name: str, split: str | None = None) -> Predictor:
+    """A ready predictor: ``factory(split=split)`` of the registered name or import path.
+
+    A plug-in's object is remembered with its identity (:func:`identity_of`), which keys its forecasts in the
+    shared cache.
+
+    Raises:
+        PluginError: unknown name, import failure, or an object breaking the protocol.
+    """
+    spec = resolve(name)
+    factory = spec.factory()
+    model = factory(split=split)
+    check_protocol(model, name)
+    if not spec.shipped:
+        _IDENTITIES[id(model)] = (model, spec.identity())
+        if not getattr(model, "name", None):
+            try:
+                model.name = spec.name
+            except AttributeError:
+                pass
+    return model
+
+
+def identity_of(model: Any) -> str | None:
+    """The identity of a plug-in loaded by :func:`load` (None for shipped predictors and other objects)."""
+    held = _IDENTITIES.get(id(model))
+    return held[1] if held is not None and held[0] is model else None
