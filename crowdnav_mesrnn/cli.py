@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("agents.cli:add_demo", "a policy crosses a held-out ETH/UCY scene with forecasts; metrics and a GIF"),
     "agent": ("agents.cli:add_agent", "train and evaluate navigation policies (PPO, SAC, planners)"),
     "ablation": ("agents.cli:add_ablation", "run the planning-aid ablation grid and summarise it"),
+    "bench": ("agents.bench:add_parser", "benchmark any predictor: ADE/FDE vs CV and the planner cells, one page"),
 }
 
 

@@ -1,0 +1,207 @@
+"""``crowdnav-mesrnn bench PREDICTOR``: the project's navigation answer for any predictor, on one page.
+
+Two halves, each resumable and cached under ``--out``:
+
+1. :mod:`agents.bench.metrics` — ADE/FDE on the ETH/UCY leave-one-out test windows against constant velocity
+   (paired, block-bootstrap intervals);
+2. :mod:`agents.bench.planner` — the sampling planner on the held-out scenes with the predictor's forecasts,
+   against cv, the oracle and the noisy-oracle sweep on the same episodes (exact McNemar, Holm).
+
+:mod:`agents.bench.report` writes ``report.md``, ``report.json`` and ``success_vs_ade.png``. The planner cells go
+through a :data:`~agents.bench.planner.CellRunner`; the local runner evaluates them in this process (the
+ablation grid's process-pool and Ray backends can take its place: a cell is a folder with a key, as there).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from agents.bench.metrics import predictor_identity, predictor_metrics
+from agents.bench.planner import (
+    DEFAULT_SCENES,
+    NOISY_ORACLE_ADE_M,
+    CellRunner,
+    PlannerCell,
+    local_runner,
+    planner_cells,
+    planner_results,
+    run_cells,
+)
+from agents.bench.report import write_report
+from crowdnav_mesrnn.data.constants import SPLITS
+from crowdnav_mesrnn.stats import DEFAULT_BLOCK_LEN
+
+__all__ = ["BenchConfig", "run_bench"]
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """What one bench runs."""
+
+    predictor: str
+    """Predictor name (shipped, installed plug-in) or import path ``package.module:Factory``."""
+    splits: tuple[str, ...] = SPLITS
+    """Leave-one-out splits whose test windows are scored (ADE/FDE)."""
+    scenes: tuple[str, ...] = DEFAULT_SCENES
+    """Held-out scenes (splits) of the planner cells."""
+    episodes: int = 500
+    """Seeded episodes per planner cell (the ablation uses 500)."""
+    seed: int = 0
+    """Which seeded list of episodes."""
+    noisy_oracle_ade_m: tuple[float, ...] = NOISY_ORACLE_ADE_M
+    """Target ADEs of the noisy-oracle reference arms, metres."""
+    planner: bool = True
+    """Run the planner cells (False: forecast accuracy only)."""
+    block_len: int = DEFAULT_BLOCK_LEN
+    """Moving-block length of the bootstrap, windows."""
+    resamples: int = 10_000
+    """Bootstrap resamples."""
+    data_dir: str | None = None
+    """ETH/UCY folder (default: the usual search)."""
+
+
+def default_out(predictor: str) -> Path:
+    """``runs/bench/<predictor>`` (an import path's ``:`` and ``.`` made file-name safe)."""
+    return Path("runs") / "bench" / predictor.replace(":", "_").replace("/", "_")
+
+
+def run_bench(
+    cfg: BenchConfig,
+    out_dir: str | Path,
+    runner: CellRunner | None = None,
+    command: str = "",
+    log: Callable[[str], None] = lambda _m: None,
+) -> dict[str, Any]:
+    """Run (or resume) a bench and write its report into ``out_dir``; returns the report's content.
+
+    Raises:
+        ValueError: bad settings (unknown split, scene, predictor; episodes < 1).
+    """
+    from crowdnav_mesrnn.data.constants import check_split
+    from crowdnav_mesrnn.predictors import resolve
+    from crowdnav_mesrnn.utils import code_version
+
+    spec = resolve(cfg.predictor)
+    for s in (*cfg.splits, *cfg.scenes):
+        check_split(s)
+    if cfg.episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {cfg.episodes}")
+    out = Path(out_dir)
+    started = time.perf_counter()
+    report: dict[str, Any] = {
+        "predictor": cfg.predictor,
+        "spec": asdict(spec),
+        "config": asdict(cfg),
+        "command": command or f"crowdnav-mesrnn bench {cfg.predictor}",
+        "code_version": code_version(),
+        "episodes": cfg.episodes,
+    }
+    if cfg.splits:
+        log(f"forecast accuracy of {cfg.predictor} on {', '.join(cfg.splits)}")
+        report["predictor_metrics"] = predictor_metrics(
+            cfg.predictor, cfg.splits, out / "windows", cfg.data_dir, cfg.block_len, cfg.resamples, 0, log
+        )
+    if cfg.planner and cfg.scenes:
+        cells = planner_cells(cfg.predictor, cfg.scenes, cfg.noisy_oracle_ade_m)
+        fingerprints = {s: predictor_identity(cfg.predictor, s)[1] for s in cfg.scenes}
+
+        def fingerprint_of(cell: PlannerCell) -> str:
+            return fingerprints[cell.scene] if cell.predictor == cfg.predictor else f"reference:{cell.arm}"
+
+        runner = runner or local_runner()
+        if cfg.data_dir:
+            runner = _with_overrides(runner, {"data_dir": cfg.data_dir})
+        log(f"planner cells: {len(cells)} ({', '.join(cfg.scenes)})")
+        counts = run_cells(cells, out / "planner", cfg.episodes, cfg.seed, fingerprint_of, runner, log)
+        report["planner"] = planner_results(cfg.predictor, cells, out / "planner")
+        report["planner"]["cells"] = counts
+    report["seconds"] = round(time.perf_counter() - started, 1)
+    write_report(report, out)
+    return report
+
+
+def _with_overrides(runner: CellRunner, overrides: dict[str, Any]) -> CellRunner:
+    def run(cell: PlannerCell, folder: Path, episodes: int, seed: int) -> None:
+        runner(
+            PlannerCell(cell.scene, cell.arm, cell.predictor, {**overrides, **cell.env_overrides}),
+            folder,
+            episodes,
+            seed,
+        )
+
+    return run
+
+
+# ---------------------------------------------------------------------------- command line
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser(
+        "bench",
+        help="benchmark any predictor: ADE/FDE against CV, and the planner cells of the ablation, on one page",
+        description=(
+            "Scores PREDICTOR (a shipped model, an installed plug-in or package.module:Factory) on the ETH/UCY test "
+            "windows against constant velocity, runs the sampling planner with its forecasts on held-out scenes "
+            "against cv, oracle and a noisy-oracle sweep on the same episodes, and writes report.md, report.json "
+            "and success_vs_ade.png into --out. Resumable: finished parts are reused."
+        ),
+    )
+    p.add_argument("predictor", metavar="PREDICTOR", help="predictor name or import path package.module:Factory")
+    p.add_argument(
+        "--splits", nargs="+", default=list(SPLITS), choices=SPLITS, help="test windows of these splits (default: all)"
+    )
+    p.add_argument(
+        "--scenes",
+        nargs="+",
+        default=list(DEFAULT_SCENES),
+        choices=SPLITS,
+        help=f"held-out scenes of the planner cells (default: {' '.join(DEFAULT_SCENES)}, as in the ablation)",
+    )
+    p.add_argument("--episodes", type=int, default=500, help="episodes per planner cell (default: 500)")
+    p.add_argument("--seed", type=int, default=0, help="which seeded list of episodes (default: 0)")
+    p.add_argument("--out", default=None, help="output folder (default: runs/bench/PREDICTOR)")
+    p.add_argument("--data-dir", default=None, help="ETH/UCY folder (default: $CROWDNAV_MESRNN_DATA, ...)")
+    p.add_argument("--no-planner", action="store_true", help="forecast accuracy only (no planner cells)")
+    p.add_argument("--n-envs", type=int, default=4, help="environments per planner evaluation (default: 4)")
+    p.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default: 10000)")
+    p.add_argument(
+        "--block-len",
+        type=int,
+        default=DEFAULT_BLOCK_LEN,
+        help=f"bootstrap block, windows (default: {DEFAULT_BLOCK_LEN})",
+    )
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    cfg = BenchConfig(
+        predictor=args.predictor,
+        splits=tuple(args.splits),
+        scenes=tuple(args.scenes),
+        episodes=args.episodes,
+        seed=args.seed,
+        planner=not args.no_planner,
+        block_len=args.block_len,
+        resamples=args.resamples,
+        data_dir=args.data_dir,
+    )
+    out = Path(args.out) if args.out else default_out(args.predictor)
+    runner = local_runner(n_envs=args.n_envs)
+    command = "crowdnav-mesrnn " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else ""
+    run_bench(cfg, out, runner, command, log=lambda m: print(m, flush=True))
+    print(f"report: {out / 'report.md'} (+ report.json{', success_vs_ade.png' if cfg.planner else ''})")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m agents.bench``: the same as ``crowdnav-mesrnn bench``."""
+    from crowdnav_mesrnn.cli import main as cli_main
+
+    return cli_main(["bench", *(sys.argv[1:] if argv is None else argv)])

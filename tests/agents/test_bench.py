@@ -1,0 +1,121 @@
+"""``crowdnav-mesrnn bench``: forecast accuracy of any predictor against CV, the planner cells, the report, resuming."""
+
+from __future__ import annotations
+
+import json
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.bench import BenchConfig, run_bench
+from agents.bench.metrics import protocol_batch_fn
+from agents.bench.planner import PlannerCell, local_runner, planner_cells
+from crowdnav_mesrnn.cli import main
+from crowdnav_mesrnn.data.windows import split_windows
+from crowdnav_mesrnn.evaluation import cv_predict_batch, split_norm, window_errors
+from crowdnav_mesrnn.models import ConstantVelocity
+
+PLUGIN = '''
+import numpy as np
+
+VERSION = "{version}"
+
+
+class Still:
+    """Everyone stays where last seen."""
+
+    name = "still"
+    obs_len = 8
+    pred_len = 12
+
+    def __init__(self, split=None):
+        pass
+
+    def cache_fingerprint(self):
+        return VERSION
+
+    def forecast(self, history, mask):
+        t_last = np.where(mask, np.arange(mask.shape[0])[:, None], 0).max(axis=0)
+        last = history[t_last, np.arange(history.shape[1])]
+        return np.repeat(last[:, None, :], 12, axis=1).astype(np.float32)
+'''
+
+
+@pytest.fixture
+def still_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> str:
+    (tmp_path / "still_bench_plugin.py").write_text(textwrap.dedent(PLUGIN.format(version="1")))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    sys.modules.pop("still_bench_plugin", None)
+    return "still_bench_plugin:Still"
+
+
+def test_protocol_wrapper_scores_constant_velocity_like_the_batched_code(data_dir: Path) -> None:
+    windows = split_windows("eth", "test", min_scored=2)
+    norm = split_norm("eth")
+    ours = window_errors(protocol_batch_fn(ConstantVelocity()), windows, norm)
+    ref = window_errors(cv_predict_batch, windows, norm)
+    assert np.allclose(ours["ade_m"], ref["ade_m"], atol=1e-4) and np.array_equal(
+        ours["pedestrians"], ref["pedestrians"]
+    )
+
+
+def test_planner_cells_pair_the_predictor_with_the_references() -> None:
+    cells = planner_cells("mine", ("univ",), (0.5,))
+    assert [c.arm for c in cells] == ["mine", "cv", "oracle", "noisy_oracle_0.5"]
+    assert cells[-1].env_overrides == {"noisy_oracle_ade_m": 0.5}
+    assert [c.arm for c in planner_cells("cv", ("univ",), ())] == ["cv", "oracle"]  # cv is not its own reference
+
+
+def test_bench_writes_the_report_and_resumes(data_dir: Path, tmp_path: Path, still_plugin: str) -> None:
+    ran: list[str] = []
+    base = local_runner(n_envs=1)
+
+    def runner(cell: PlannerCell, folder: Path, episodes: int, seed: int) -> None:
+        ran.append(cell.arm)
+        base(cell, folder, episodes, seed)
+
+    cfg = BenchConfig(
+        still_plugin, splits=("eth",), scenes=("zara1",), episodes=3, noisy_oracle_ade_m=(1.0,), resamples=200
+    )
+    out = tmp_path / "bench"
+    report = run_bench(cfg, out, runner)
+    assert sorted(ran) == sorted([still_plugin, "cv", "oracle", "noisy_oracle_1"])
+    assert {p.name for p in out.iterdir()} >= {"report.md", "report.json", "success_vs_ade.png", "windows", "planner"}
+    eth = report["predictor_metrics"]["splits"]["eth"]
+    assert eth["windows"] == 70 and eth["ade_m"] > eth["cv_ade_m"]  # standing still loses to CV on ETH
+    assert eth["ade_m_diff_ci"][0] > 0
+    arms = report["planner"]["arms"]["zara1"]
+    assert arms["oracle"]["forecast_ade_m"] == pytest.approx(0.0, abs=1e-9)
+    assert {(t["a"], t["b"]) for t in report["planner"]["tests"]} == {(still_plugin, "cv"), (still_plugin, "oracle")}
+    page = (out / "report.md").read_text()
+    assert "| eth | 70 |" in page and "exact McNemar" in page and "success_vs_ade.png" in page
+    assert json.loads((out / "report.json").read_text())["predictor"] == still_plugin
+
+    ran.clear()
+    run_bench(cfg, out, runner)  # everything done: nothing runs again
+    assert ran == []
+
+    # a new version of the plug-in (its fingerprint) re-runs its own cell only
+    (Path(sys.modules["still_bench_plugin"].__file__)).write_text(textwrap.dedent(PLUGIN.format(version="2")))
+    sys.modules.pop("still_bench_plugin", None)
+    run_bench(cfg, out, runner)
+    assert ran == [still_plugin]
+
+
+def test_bench_cli_forecast_accuracy_only(data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "cv"
+    argv = ["bench", "cv", "--splits", "eth", "--no-planner", "--resamples", "200", "--out", str(out)]
+    assert main(argv) == 0
+    report = json.loads((out / "report.json").read_text())
+    eth = report["predictor_metrics"]["splits"]["eth"]
+    assert eth["ade_m_diff"] == pytest.approx(0.0, abs=1e-6) and "planner" not in report
+    assert "not run" in (out / "report.md").read_text()
+
+
+def test_bench_rejects_unknown_predictors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "nope", "--out", str(tmp_path / "x")]) == 2
+    assert "unknown predictor 'nope'" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
