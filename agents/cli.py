@@ -11,34 +11,12 @@ import json
 import shlex
 import sys
 import time
-from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Final
 
 from crowdnav_mesrnn.data.constants import SPLITS
 
 _PREDICTORS = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
-
-
-def module_main(
-    prog: str,
-    doc: str | None,
-    add_arguments: Callable[[argparse.ArgumentParser], None],
-    run: Callable[[argparse.Namespace], int],
-    argv: Sequence[str] | None = None,
-) -> int:
-    """``main()`` of a ``python -m agents.<module>`` command: parse, run, and turn configuration and input errors
-    into a message and exit status 2 (as ``crowdnav-mesrnn`` does)."""
-    from crowdnav_mesrnn.config import ConfigError
-
-    parser = argparse.ArgumentParser(prog=prog, description=(doc or "").split("\n\n")[0] or None)
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        return run(args)
-    except (ConfigError, ValueError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
 
 
 def _fmt(value: Any) -> str:

@@ -634,7 +634,7 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from agents.cli import module_main
+    from agents.entry import module_main
 
     return module_main("python -m agents.evaluate", __doc__, add_evaluate_arguments, run_from_args, argv)
 

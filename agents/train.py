@@ -986,7 +986,7 @@ def run_from_args(args: argparse.Namespace, command: str | None = None) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from agents.cli import module_main
+    from agents.entry import module_main
 
     def run(args: argparse.Namespace) -> int:
         return run_from_args(

@@ -6,6 +6,7 @@ these tests need neither SB3 training nor the ETH/UCY data; ``test_ablation_e2e.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import gzip
 import json
@@ -194,10 +195,11 @@ class Fakes:
 @pytest.fixture
 def fakes(monkeypatch: pytest.MonkeyPatch) -> Fakes:
     f = Fakes()
-    monkeypatch.setattr(ab, "_run_train", f.train)
-    monkeypatch.setattr(ab, "_run_eval", f.evaluate)
-    monkeypatch.setattr(ab, "weights_fingerprint", lambda p: {"mesrnn_zara1.pt": "v1"} if p == "mesrnn" else {})
-    monkeypatch.setattr(ab, "build_forecast_caches", lambda *a, **k: [])
+    monkeypatch.setattr(ab.backends, "_run_train", f.train)
+    monkeypatch.setattr(ab.backends, "_run_eval", f.evaluate)
+    for module in (ab, ab.cells, ab.backends):  # the package, and where cell states and the cell runner look it up
+        monkeypatch.setattr(module, "weights_fingerprint", lambda p: {"mesrnn_zara1.pt": "v1"} if p == "mesrnn" else {})
+    monkeypatch.setattr(ab.backends, "build_forecast_caches", lambda *a, **k: [])
     return f
 
 
@@ -251,7 +253,8 @@ def test_changed_weights_or_spec_make_cells_stale(
 ) -> None:
     cfg = ab.config_from_mapping(_raw(tmp_path))
     ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
-    monkeypatch.setattr(ab, "weights_fingerprint", lambda p: {"mesrnn_zara1.pt": "v2"} if p == "mesrnn" else {})
+    for module in (ab, ab.cells, ab.backends):
+        monkeypatch.setattr(module, "weights_fingerprint", lambda p: {"mesrnn_zara1.pt": "v2"} if p == "mesrnn" else {})
     states = ab.plan(cfg)
     stale = sorted(st.cell.name for st in states if st.state == "stale")
     assert stale == [
@@ -431,7 +434,7 @@ def test_summary_pairs_ppo_seeds_with_the_planner_and_counts_missing(tmp_path: P
         _fake_done_cell(cfg, cells[0], [{"episode": 0}])
         _fake_done_cell(cfg, cells[1], _episode_rows(outcomes, [2, 2, 2], d))
         meta = json.loads((ab.cell_dir(cfg, cells[1]) / ab.CELL_JSON).read_text())
-        meta["model_sha256"] = ab._file_sha256(folder / ab.TRAIN_RUN / "best_model.zip")
+        meta["model_sha256"] = ab.cells._file_sha256(folder / ab.TRAIN_RUN / "best_model.zip")
         (ab.cell_dir(cfg, cells[1]) / ab.CELL_JSON).write_text(json.dumps(meta))
     summary = ab.summarize(cfg, out=lambda s: None, plots=False)
     ppo = summary["policies"]["ppo"]["arms"]["none"]
@@ -524,17 +527,17 @@ def test_replicate_reruns_cells_in_a_scratch_folder_and_compares_episodes(
 
         return evaluate
 
-    monkeypatch.setattr(ab, "_run_eval", changed("outcome", "timeout"))
+    monkeypatch.setattr(ab.backends, "_run_eval", changed("outcome", "timeout"))
     lines.clear()
     assert ab.replicate(cfg, "eval/zara1/planner/none", tmp_path / "replica2", workers=1, out=lines.append) == 1
     assert "eval/zara1/planner/none: 3/4 episodes identical in all 6 columns, 3/4 outcomes" in "\n".join(lines)
-    monkeypatch.setattr(ab, "_run_eval", changed("return", "99.0"))
+    monkeypatch.setattr(ab.backends, "_run_eval", changed("return", "99.0"))
     lines.clear()
     assert ab.replicate(cfg, "eval/zara1/planner/none", tmp_path / "replica3", workers=1, out=lines.append) == 1
     assert "3/4 episodes identical in all 6 columns, 4/4 outcomes" in "\n".join(lines)
 
     # A grid cell that is not done (here: its model changed since it was evaluated) is not compared.
-    monkeypatch.setattr(ab, "_run_eval", original)
+    monkeypatch.setattr(ab.backends, "_run_eval", original)
     (ab.cell_dir(cfg, "train/zara1/ppo/none/seed0") / ab.TRAIN_RUN / "best_model.zip").write_bytes(b"retrained")
     lines.clear()
     assert ab.replicate(cfg, "eval/zara1/ppo/none/seed0", tmp_path / "replica4", workers=1, out=lines.append) == 1
@@ -554,4 +557,4 @@ def test_replicate_reruns_cells_in_a_scratch_folder_and_compares_episodes(
         ({"dry_run": True}, "cannot be combined"),
     ):
         with pytest.raises(ConfigError, match=message):
-            ab.run_from_args(ab.argparse.Namespace(**{**args, **base, **change}))
+            ab.run_from_args(argparse.Namespace(**{**args, **base, **change}))

@@ -1,0 +1,168 @@
+"""The planning-aid ablation: forecast arms x policies x seeds x held-out splits, run as resumable cells.
+
+``python -m agents.ablation configs/ablation/planning_aid.yaml [--dry-run] [--workers N]
+[--backend local|ray] [--address ADDR] [--only PATTERN] [--summarize-only] [--replicate DIR]`` (also
+``crowdnav-mesrnn ablation ...``).
+
+The grid
+    A YAML config (see ``configs/ablation/planning_aid.yaml``) names forecast arms (``none``, ``cv``,
+    ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, and ``noisy_oracle`` expanded into one arm per target
+    ADE), policies (learned ``ppo``/``sac`` with an agent config and a training budget; non-learned
+    ``planner``/``straight``), training seeds, held-out splits and the fixed evaluation episode list.
+    It expands into *cells*:
+
+    - ``train/<split>/<policy>/<arm>/seed<k>``: one training run (``agents.train.train``) of a learned
+      policy on the split's training scenes;
+    - ``eval/<split>/<policy>/<arm>[/seed<k>]``: the trained model (its ``best`` or ``final`` model) or a
+      planner evaluated with ``agents.evaluate.evaluate`` on the split's held-out scene over the fixed
+      episode list (``evaluation.episodes`` episodes from ``evaluation.seed``), identical in every cell.
+
+Cells and their state
+    Every cell is a folder under ``runs_dir`` (default ``runs/ablation/<name>/``, gitignored) holding
+    ``cell.json`` (what the cell is — its *spec* —, the predictor weights it used, timings) and, written
+    last, ``DONE``. A cell is ``done`` (DONE present, spec and weights as now), ``stale`` (DONE present but its
+    spec, the sha256 of the shipped predictor weights it used, or the model it evaluated changed: redone),
+    ``partial`` (a folder without DONE: an interrupted run; a training cell resumes with
+    ``train(..., resume=True)``, an evaluation cell is redone) or ``todo``. Re-running the grid skips done
+    cells. ``--dry-run`` lists every cell with its state and an estimated time from measured throughputs
+    (finished cells' ``cell.json``), falling back to the config's ``estimates``.
+    ``--replicate DIR --only PATTERN`` runs the selected cells afresh in the scratch folder ``DIR`` and
+    compares each replicated evaluation with the grid's, episode by episode (:func:`replicate`): cells are
+    seeded, so a difference means nondeterminism or a change of behaviour since the grid's cell ran (only grid
+    cells that are ``done`` are compared; the folder must be new or empty).
+
+Backends
+    ``local`` (default): a process pool (forkserver) of ``--workers`` processes (default: cores // the
+    largest ``cpus`` of a cell), each with one torch thread; ``--workers 1`` runs cells one after the
+    other in this process. ``ray``: the same cell function as Ray tasks (``ray.init(address=...)`` for an
+    existing cluster, a local instance otherwise), ``num_cpus`` per task = the cell's ``cpus``. A Ray task
+    does not need shared storage: the driver sends what the cell needs (an interrupted training run's folder,
+    or the trained model being evaluated) with the task, the task works in a temporary folder on its node and
+    returns the cell folder as a tar archive, which the driver writes into ``runs_dir``. Every node needs the
+    project installed (``pip install 'crowdnav-mesrnn[ray]'``, the same version and predictor weights: a cell
+    whose node has other weights than the driver fails and says so) and the ETH/UCY data at
+    ``$CROWDNAV_MESRNN_DATA``; forecast caches are built per node on first use. On a cluster::
+
+        CROWDNAV_MESRNN_DATA=/data/eth_ucy ray start --head --port=6379   # head node
+        CROWDNAV_MESRNN_DATA=/data/eth_ucy ray start --address=HEAD:6379  # every other node
+        python -m agents.ablation configs/ablation/planning_aid.yaml --backend ray --address HEAD:6379
+
+    Without ``--address`` a local Ray instance with ``--workers`` x the largest ``cpus`` is started
+    (no dashboard) and shut down at the end.
+
+The answer
+    :func:`summarize` reads the evaluation cells and writes ``summary.json``, ``summary.md`` and plots into
+    ``out_dir`` (default ``results/ablation/<name>/``): rates with Wilson intervals and metric means with
+    bootstrap intervals per policy and arm (pooled over splits and seeds, and per split), rates by crowd
+    density bins, the pre-declared paired tests (exact McNemar on success, Wilcoxon signed-rank on the
+    navigation time of episodes both arms finished, pairs = (training seed, episode)), Holm-corrected per
+    endpoint with the family size stated, and the difference in success rate each McNemar design detects at
+    the configured power.
+"""
+
+from __future__ import annotations
+
+from agents.ablation.backends import (
+    CellTask,
+    build_forecast_caches,
+    execute_cell,
+    execute_shipped,
+    replicate,
+    run_grid,
+    train_overrides,
+)
+from agents.ablation.cells import (
+    Cell,
+    CellStatus,
+    cell_dir,
+    cell_spec,
+    cell_status,
+    default_workers,
+    dry_run,
+    estimate_seconds,
+    expand,
+    measured_rates,
+    plan,
+    select,
+    trained_model,
+    weights_fingerprint,
+)
+from agents.ablation.cli import add_arguments, main, run_from_args
+from agents.ablation.config import (
+    AGENT_CONFIG,
+    ARM_SOURCES,
+    BACKENDS,
+    CELL_JSON,
+    CELL_STATES,
+    DONE,
+    LEARNED_KINDS,
+    LEARNED_SOURCES,
+    MODEL_CHOICES,
+    OUTCOMES,
+    POLICY_KINDS,
+    TRAIN_RUN,
+    AblationConfig,
+    Arm,
+    PolicySpec,
+    config_from_mapping,
+    load_config,
+)
+from agents.ablation.episodes import ARCHIVE_KEYS, aggregate, episodes_archive, read_episodes
+from agents.ablation.plots import write_plots
+from agents.ablation.report import summary_markdown
+from agents.ablation.stats import by_density, density_edges, paired_tests
+from agents.ablation.summary import summarize
+
+__all__ = [
+    "AGENT_CONFIG",
+    "ARCHIVE_KEYS",
+    "ARM_SOURCES",
+    "BACKENDS",
+    "CELL_JSON",
+    "CELL_STATES",
+    "DONE",
+    "LEARNED_KINDS",
+    "LEARNED_SOURCES",
+    "MODEL_CHOICES",
+    "OUTCOMES",
+    "POLICY_KINDS",
+    "TRAIN_RUN",
+    "AblationConfig",
+    "Arm",
+    "Cell",
+    "CellStatus",
+    "CellTask",
+    "PolicySpec",
+    "add_arguments",
+    "aggregate",
+    "build_forecast_caches",
+    "by_density",
+    "cell_dir",
+    "cell_spec",
+    "cell_status",
+    "config_from_mapping",
+    "default_workers",
+    "density_edges",
+    "dry_run",
+    "episodes_archive",
+    "estimate_seconds",
+    "execute_cell",
+    "execute_shipped",
+    "expand",
+    "load_config",
+    "main",
+    "measured_rates",
+    "paired_tests",
+    "plan",
+    "read_episodes",
+    "replicate",
+    "run_from_args",
+    "run_grid",
+    "select",
+    "summarize",
+    "summary_markdown",
+    "train_overrides",
+    "trained_model",
+    "weights_fingerprint",
+    "write_plots",
+]

@@ -1,0 +1,529 @@
+"""Running cells: one cell in a folder, the serial/process-pool/Ray backends, the grid, and replication."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import os
+import shutil
+import socket
+import tarfile
+import tempfile
+import time
+import traceback
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from agents.ablation.cells import (
+    Cell,
+    CellStatus,
+    _file_sha256,
+    _hms,
+    _now,
+    _read_json,
+    cell_dir,
+    cell_spec,
+    default_workers,
+    expand,
+    plan,
+    select,
+    trained_model,
+    weights_fingerprint,
+)
+from agents.ablation.config import AGENT_CONFIG, BACKENDS, CELL_JSON, DONE, LEARNED_SOURCES, TRAIN_RUN, AblationConfig
+from agents.ablation.episodes import read_episodes
+from agents.ablation.summary import summarize
+from crowdnav_mesrnn.config import ConfigError
+from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text, code_version
+
+
+@dataclass(frozen=True)
+class CellTask:
+    """What a worker needs to run one cell (picklable; paths are absolute or relative to the worker's cwd)."""
+
+    cell: Cell
+    folder: str
+    spec: Mapping[str, Any]
+    weights: Mapping[str, str]
+    episodes: int
+    eval_seed: int
+    env: Mapping[str, Any]
+    model: str | None = None
+    """Evaluation of a learned policy: the model zip to evaluate."""
+    model_sha256: str | None = None
+    command: str = ""
+    """The command line that reproduces the cell (recorded in a training run's ``command.txt``)."""
+    agent_config: str | None = None
+    """Training: the agent YAML's text (written into the cell as :data:`AGENT_CONFIG` and read from there,
+    so a worker on another machine needs no copy of the driver's files)."""
+
+
+def train_overrides(cell: Cell, env: Mapping[str, Any]) -> dict[str, Any]:
+    """Overrides of ``agents.train.load_train_config`` for a training cell: the run (predictor, split,
+    seed), the budget (``n_timesteps``, ``n_envs``), the grid's and the arm's environment settings
+    (``env.<key>``), then the policy's own ``overrides``."""
+    cell_env = {**dict(env), **cell.arm.env_overrides()}
+    return {
+        "predictor": cell.arm.predictor,
+        "split": cell.split,
+        "seed": cell.seed,
+        "n_timesteps": cell.policy.timesteps,
+        "n_envs": cell.policy.n_envs,
+        **{f"env.{k}": v for k, v in sorted(cell_env.items())},
+        **dict(cell.policy.overrides),
+    }
+
+
+def _run_train(task: CellTask, folder: Path) -> dict[str, Any]:
+    """Train (or resume) one learned policy into ``folder / run``; returns counts for ``cell.json``."""
+    from agents.train import load_train_config, train
+
+    cfg = load_train_config(folder / AGENT_CONFIG, None, train_overrides(task.cell, task.env))
+    run = folder / TRAIN_RUN
+    result = train(cfg, run, resume=run.exists(), progress=False, command=task.command)
+    return {
+        "run_dir": Path(result).resolve().relative_to(folder.resolve()).as_posix(),
+        "steps": task.cell.policy.timesteps,
+    }
+
+
+def _run_eval(task: CellTask, folder: Path) -> dict[str, Any]:
+    """Evaluate a trained model or a planner on the held-out scene; writes episodes.csv and summary.json."""
+    from agents.evaluate import evaluate
+
+    cell = task.cell
+    spec = task.model if cell.policy.learned else cell.policy.kind
+    result = evaluate(
+        spec,
+        cell.arm.predictor,
+        cell.split,
+        task.episodes,
+        seed=task.eval_seed,
+        out_dir=folder,
+        env_overrides={**task.env, **cell.arm.env_overrides()} or None,
+    )
+    rows = read_episodes(folder / "episodes.csv")
+    steps = sum(int(float(r.get("steps", 0) or 0)) for r in rows) if rows and "steps" in rows[0] else None
+    return {"episodes": int(result.get("episodes", len(rows))), "steps": steps}
+
+
+def execute_cell(task: CellTask) -> dict[str, Any]:
+    """Run one cell in ``task.folder``: ``cell.json`` first, the work, then ``cell.json`` again and ``DONE``.
+
+    Never raises for a failure of the work itself: the result (also in ``cell.json``) says ``ok`` and
+    ``error``, so one failed cell does not stop the grid.
+    """
+    _single_thread()
+    folder = Path(task.folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    here = weights_fingerprint(task.cell.arm.predictor)
+    if here != dict(task.weights):  # a Ray node with another installation than the driver's
+        error = f"predictor weights on {socket.gethostname()} differ from the driver's: {here} != {dict(task.weights)}"
+        return {"name": task.cell.name, "ok": False, "error": error, "wall_s": 0.0}
+    old = _read_json(folder / CELL_JSON) or {}
+    attempts = list(old.get("attempts", [])) if old.get("spec") == task.spec else []
+    meta: dict[str, Any] = {
+        "name": task.cell.name,
+        "spec": dict(task.spec),
+        "weights": dict(task.weights),
+        "model": task.model,
+        "model_sha256": task.model_sha256,
+        "code_version": code_version(),
+        "host": socket.gethostname(),
+        "status": "running",
+        "attempts": [*attempts, {"started": _now()}],
+    }
+    atomic_write_json(folder / CELL_JSON, meta)
+    if task.agent_config is not None:
+        atomic_write_text(folder / AGENT_CONFIG, task.agent_config)
+    t0 = time.perf_counter()
+    try:
+        counts = _run_train(task, folder) if task.cell.kind == "train" else _run_eval(task, folder)
+        ok, error = True, None
+    except Exception as exc:  # report and carry on with the other cells
+        counts, ok = {}, False
+        error = f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"
+    wall = time.perf_counter() - t0
+    meta["attempts"][-1].update(finished=_now(), wall_s=round(wall, 3), ok=ok)
+    meta.update(counts)
+    meta["wall_s"] = round(sum(a.get("wall_s", 0.0) for a in meta["attempts"]), 3)
+    meta["status"] = "done" if ok else "failed"
+    meta["error"] = error
+    if ok:
+        if task.cell.kind == "train" and meta.get("steps"):
+            meta["steps_per_s"] = meta["steps"] / max(meta["wall_s"], 1e-9)
+        if task.cell.kind == "eval":
+            meta["episodes_per_s"] = meta.get("episodes", task.episodes) / max(wall, 1e-9)
+    atomic_write_json(folder / CELL_JSON, meta)
+    if ok:
+        atomic_write_text(folder / DONE, _now() + "\n")
+    return {"name": task.cell.name, "ok": ok, "error": error, "wall_s": wall}
+
+
+def _single_thread() -> None:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _pack(folder: Path, arcname: str = ".", skip: Sequence[str] = ()) -> bytes:
+    """A folder as gzipped tar bytes (``skip``: top-level names left out)."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+        for path in sorted(folder.iterdir()) if folder.is_dir() else []:
+            if path.name in skip:
+                continue
+            tar.add(path, arcname=f"{arcname}/{path.name}")
+    return buf.getvalue()
+
+
+def _unpack(blob: bytes, dest: Path) -> None:
+    dest.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(fileobj=io.BytesIO(blob), mode="r:gz") as tar:
+        tar.extractall(dest, filter="data")
+
+
+def _replace_folder(folder: Path, blob: bytes) -> None:
+    """Make ``folder`` hold exactly the archive's content, swapping it in with renames."""
+    incoming = folder.parent / f".{folder.name}.incoming"
+    old = folder.parent / f".{folder.name}.old"
+    for tmp in (incoming, old):
+        shutil.rmtree(tmp, ignore_errors=True)
+    _unpack(blob, incoming)
+    if folder.exists():
+        folder.rename(old)
+    incoming.rename(folder)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def execute_shipped(task: CellTask, inputs: bytes | None) -> tuple[dict[str, Any], bytes]:
+    """A Ray task: run the cell in a temporary folder on this node and return its folder as tar bytes.
+
+    ``inputs`` (tar bytes) holds ``cell/`` (an interrupted training run to resume) and/or ``model/`` (the
+    trained run folder whose model is evaluated); paths in ``task`` are rewritten to the temporary copies.
+    """
+    with tempfile.TemporaryDirectory(prefix="crowdnav-ablation-") as tmp:
+        root = Path(tmp)
+        if inputs:
+            _unpack(inputs, root)
+        folder = root / "cell"
+        model = None
+        if task.model is not None:
+            model = str(root / "model" / Path(task.model).name)
+        local = dataclasses.replace(task, folder=str(folder), model=model)
+        result = execute_cell(local)
+        if task.model is not None:  # record the driver's path, not the temporary one
+            meta = _read_json(folder / CELL_JSON) or {}
+            meta["model"] = task.model
+            atomic_write_json(folder / CELL_JSON, meta)
+        return result, _pack(folder)
+
+
+def _shipped_inputs(task: CellTask) -> bytes | None:
+    buf = io.BytesIO()
+    added = False
+    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+        folder = Path(task.folder)
+        if task.cell.kind == "train" and folder.is_dir():
+            tar.add(folder, arcname="cell")
+            added = True
+        if task.model is not None:
+            run = Path(task.model).parent
+            for path in sorted(run.iterdir()):
+                if path.is_file():  # the run's top-level files: models, resolved config; not checkpoints/logs
+                    tar.add(path, arcname=f"model/{path.name}")
+            added = True
+    return buf.getvalue() if added else None
+
+
+class _Backend:
+    def submit(self, task: CellTask) -> Any:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def wait_one(self, handles: Iterable[Any]) -> tuple[Any, dict[str, Any]]:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+class _Serial(_Backend):
+    """Cells one after another in this process (``--workers 1``)."""
+
+    def __init__(self) -> None:
+        self._results: dict[int, dict[str, Any]] = {}
+        self._next = 0
+
+    def submit(self, task: CellTask) -> Any:
+        self._next += 1
+        self._results[self._next] = execute_cell(task)
+        return self._next
+
+    def wait_one(self, handles: Iterable[Any]) -> tuple[Any, dict[str, Any]]:
+        handle = next(iter(handles))
+        return handle, self._results.pop(handle)
+
+
+class _Pool(_Backend):
+    """A process pool with forkserver (or spawn) workers, one torch thread each."""
+
+    def __init__(self, workers: int) -> None:
+        import concurrent.futures as cf
+        import multiprocessing as mp
+
+        method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+        self._cf = cf
+        self._pool = cf.ProcessPoolExecutor(workers, mp_context=mp.get_context(method), initializer=_single_thread)
+
+    def submit(self, task: CellTask) -> Any:
+        return self._pool.submit(execute_cell, task)
+
+    def wait_one(self, handles: Iterable[Any]) -> tuple[Any, dict[str, Any]]:
+        done, _ = self._cf.wait(list(handles), return_when=self._cf.FIRST_COMPLETED)
+        fut = next(iter(done))
+        try:
+            return fut, fut.result()
+        except Exception as exc:  # a worker died (killed, out of memory): the cell stays partial
+            return fut, {"ok": False, "error": f"worker failed: {type(exc).__name__}: {exc}"}
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+class _Ray(_Backend):
+    """Cells as Ray tasks; files travel with the task and its return value (no shared storage needed)."""
+
+    def __init__(self, address: str | None, num_cpus: int | None) -> None:
+        try:
+            import ray
+        except ImportError as exc:
+            raise ConfigError(
+                "--backend ray needs Ray: pip install 'crowdnav-mesrnn[ray]' (or pip install 'ray>=2.9')"
+            ) from exc
+        self._ray = ray
+        self._started = not ray.is_initialized()
+        if self._started:
+            kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": True}
+            if address:
+                kwargs["address"] = address
+                kwargs["runtime_env"] = {"env_vars": {"OMP_NUM_THREADS": "1"}}
+            elif num_cpus:
+                kwargs["num_cpus"] = num_cpus
+            ray.init(**kwargs)
+        self._remote = ray.remote(execute_shipped)
+        self._tasks: dict[Any, CellTask] = {}
+
+    def submit(self, task: CellTask) -> Any:
+        ref = self._remote.options(num_cpus=task.cell.cpus, num_returns=1).remote(task, _shipped_inputs(task))
+        self._tasks[ref] = task
+        return ref
+
+    def wait_one(self, handles: Iterable[Any]) -> tuple[Any, dict[str, Any]]:
+        ready, _ = self._ray.wait(list(handles), num_returns=1)
+        ref = ready[0]
+        task = self._tasks.pop(ref)
+        try:
+            result, blob = self._ray.get(ref)
+        except Exception as exc:  # the task itself died (node lost, worker killed)
+            return ref, {"name": task.cell.name, "ok": False, "error": f"ray task failed: {type(exc).__name__}: {exc}"}
+        _replace_folder(Path(task.folder), blob)
+        return ref, result
+
+    def close(self) -> None:
+        if self._started:
+            self._ray.shutdown()
+
+
+def _prepare(cfg: AblationConfig, status: CellStatus) -> None:
+    """Clear what must not be reused: stale cells, interrupted evaluations (interrupted training resumes)."""
+    folder = cell_dir(cfg, status.cell)
+    resumable = status.state == "partial" and status.cell.kind == "train" and status.meta is not None
+    if status.state in ("stale", "partial") and not resumable and folder.exists():
+        shutil.rmtree(folder)
+
+
+def _task(cfg: AblationConfig, cell: Cell) -> CellTask:
+    model = model_sha = None
+    if cell.needs is not None:
+        path = trained_model(cell_dir(cfg, cell.needs), cell.policy.model)
+        if path is None:
+            raise FileNotFoundError(f"{cell.needs} has no {cell.policy.model} model in {cell_dir(cfg, cell.needs)}")
+        model, model_sha = str(path.resolve()), _file_sha256(path)
+    return CellTask(
+        cell=cell,
+        folder=str(cell_dir(cfg, cell).resolve()),
+        spec=cell_spec(cfg, cell),
+        weights=weights_fingerprint(cell.arm.predictor),
+        episodes=cfg.episodes,
+        eval_seed=cfg.eval_seed,
+        env=dict(cfg.env),
+        model=model,
+        model_sha256=model_sha,
+        command=f"python -m agents.ablation {cfg.source or '<config>'} --only {cell.name}",
+        agent_config=Path(cell.policy.config).read_text(encoding="utf-8") if cell.kind == "train" else None,
+    )
+
+
+def build_forecast_caches(
+    cfg: AblationConfig, cells: Iterable[Cell], out: Callable[[str], None] = print
+) -> list[tuple[str, str]]:
+    """Build the shared on-disk forecast cache once for every (learned source, split) the cells need.
+
+    Uses ``envs.forecasts.build_forecast_cache`` when the environment provides it (otherwise each process
+    computes the forecasts it needs). Returns the pairs built.
+    """
+    import envs.forecasts as forecasts
+
+    wanted = sorted({(c.arm.predictor, c.split) for c in cells if c.arm.predictor in LEARNED_SOURCES})
+    build = getattr(forecasts, "build_forecast_cache", None)
+    if not wanted:
+        return []
+    if build is None:
+        out("note: envs.forecasts.build_forecast_cache is not available; every worker computes its own forecasts")
+        return []
+    for predictor, split in wanted:
+        t0 = time.perf_counter()
+        build(predictor, split=split, part="all")
+        out(f"forecast cache {predictor}/{split} ready ({time.perf_counter() - t0:.1f} s)")
+    return wanted
+
+
+def run_grid(
+    cfg: AblationConfig,
+    *,
+    backend: str = "local",
+    workers: int | None = None,
+    address: str | None = None,
+    only: str | None = None,
+    summarize_after: bool = True,
+    out: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Run every cell that is not done (training before its evaluations) and summarise.
+
+    Returns ``{"ran": [...], "failed": {name: error}, "skipped": [...], "wall_s": ...}``.
+    """
+    if backend not in BACKENDS:
+        raise ConfigError(f"unknown backend {backend!r}; valid: {', '.join(BACKENDS)}")
+    t_start = time.perf_counter()
+    cells = select(expand(cfg), only)
+    workers = workers or default_workers(cells)
+    statuses = plan(cfg, cells)
+    todo = [s for s in statuses if s.state != "done"]
+    out(f"grid {cfg.name}: {len(cells)} cells, {len(cells) - len(todo)} done, {len(todo)} to run ({backend} backend)")
+    for policy in {s.cell.policy.name: s.cell.policy for s in todo if s.cell.policy.learned}.values():
+        if not Path(policy.config or "").is_file():
+            raise FileNotFoundError(f"policies.{policy.name}.config: agent config {policy.config!r} not found")
+    for st in todo:
+        _prepare(cfg, st)
+    build_forecast_caches(cfg, [s.cell for s in todo], out=out)
+
+    waiting = {s.cell.name: s.cell for s in todo}
+    done_names = {s.cell.name for s in statuses if s.state == "done"}
+    ran: list[str] = []
+    failed: dict[str, str] = {}
+    skipped: list[str] = []
+    runner: _Backend
+    if backend == "ray":
+        widest = max((c.cpus for c in waiting.values()), default=1)
+        runner = _Ray(address, num_cpus=None if address else workers * widest)
+    elif workers <= 1:
+        runner = _Serial()
+    else:
+        runner = _Pool(workers)
+    running: dict[Any, Cell] = {}
+    try:
+        while waiting or running:
+            ready = [c for c in waiting.values() if c.needs is None or c.needs in done_names]
+            for cell in ready:
+                del waiting[cell.name]
+                out(f"start {cell.name}")
+                running[runner.submit(_task(cfg, cell))] = cell
+            if not running:  # what waits depends on failed cells
+                skipped.extend(sorted(waiting))
+                break
+            handle, result = runner.wait_one(running)
+            cell = running.pop(handle)
+            if result.get("ok"):
+                done_names.add(cell.name)
+                ran.append(cell.name)
+                out(f"done  {cell.name} ({_hms(float(result.get('wall_s', 0.0)))})")
+            else:
+                failed[cell.name] = str(result.get("error"))
+                out(f"FAILED {cell.name}: {str(result.get('error')).splitlines()[0]}")
+                for name in [n for n, c in waiting.items() if c.needs == cell.name]:
+                    skipped.append(waiting.pop(name).name)
+    finally:
+        runner.close()
+    wall = time.perf_counter() - t_start
+    out(f"grid {cfg.name}: ran {len(ran)}, failed {len(failed)}, skipped {len(skipped)} in {_hms(wall)}")
+    if summarize_after:
+        summarize(cfg, out=out)
+    return {"ran": ran, "failed": failed, "skipped": skipped, "wall_s": wall}
+
+
+def replicate(
+    cfg: AblationConfig,
+    only: str,
+    into: str | os.PathLike[str],
+    workers: int | None = None,
+    out: Callable[[str], None] = print,
+) -> int:
+    """Run the cells ``only`` selects (with the training runs their evaluations need) afresh in the empty
+    scratch folder ``into``, then compare every replicated evaluation with the grid's own, episode by episode
+    and column by column (outcome, times, distances, return, ...).
+
+    Training and evaluation are seeded, so a replicate at the same code, seed and forecasts should give
+    identical episodes; a difference points at nondeterminism or at a change of behaviour between the code
+    that ran the grid's cell (``cells.json``) and this one. Only grid cells that are ``done`` (spec and
+    weights as now) are compared. Returns the number of selected evaluations that failed, could not be
+    compared, or differ.
+    """
+    cells = select(expand(cfg), only)  # adds the training run of every selected evaluation
+    evals = [c for c in cells if c.kind == "eval"]
+    if not evals:
+        raise ConfigError(f"--only {only!r} selects no evaluation cell: there would be nothing to compare")
+    into = Path(into).resolve()
+    for own in (cfg.runs_path().resolve(), cfg.out_path().resolve()):
+        if into.is_relative_to(own) or own.is_relative_to(into):
+            raise ConfigError(
+                f"--replicate {str(into)!r} overlaps the grid's folder {str(own)!r}; give a scratch folder"
+            )
+    if into.exists() and any(into.iterdir()):
+        raise ConfigError(
+            f"--replicate {str(into)!r} is not empty; give a new or empty folder (a replicate starts afresh)"
+        )
+    states = {st.cell.name: st for st in plan(cfg, evals)}
+    scratch = dataclasses.replace(cfg, runs_dir=str(into / "runs"), out_dir=str(into / "results"))
+    result = run_grid(scratch, workers=workers, only=",".join(c.name for c in cells), summarize_after=False, out=out)
+    for name, error in result["failed"].items():
+        out(f"failed: {name}\n{error}")
+    differing = 0
+    for cell in evals:
+        grid = states[cell.name]
+        ours = {(r.get("seed"), r["episode"]): r for r in read_episodes(cell_dir(scratch, cell) / "episodes.csv")}
+        theirs = {(r.get("seed"), r["episode"]): r for r in read_episodes(cell_dir(cfg, cell) / "episodes.csv")}
+        if grid.state != "done" or not theirs or not ours:
+            why = f"the grid's cell is {grid.state}" + (f" ({grid.reason})" if grid.reason else "")
+            out(
+                f"{cell.name}: not compared: " + (why if grid.state != "done" or not theirs else "the replicate failed")
+            )
+            differing += 1
+            continue
+        columns = sorted(set(next(iter(ours.values()))) | set(next(iter(theirs.values()))))
+        shared = sorted(set(ours) & set(theirs))
+        same = sum(ours[k] == theirs[k] for k in shared)
+        outcomes = sum(ours[k].get("outcome") == theirs[k].get("outcome") for k in shared)
+        rate = {
+            n: sum(e["outcome"] == "success" for e in side.values()) / len(side)
+            for n, side in (("o", ours), ("t", theirs))
+        }
+        out(
+            f"{cell.name}: {same}/{len(shared)} episodes identical in all {len(columns)} columns, "
+            f"{outcomes}/{len(shared)} outcomes; {len(ours)} episodes here, {len(theirs)} in the grid; "
+            f"success {100 * rate['o']:.1f} % here, {100 * rate['t']:.1f} % in the grid"
+        )
+        differing += same != len(shared) or len(ours) != len(theirs) or len(shared) != len(ours)
+    return differing

@@ -1,0 +1,320 @@
+"""Cells (one training run or one evaluation), their specs, folders and states; throughput estimates and the dry run."""
+
+from __future__ import annotations
+
+import dataclasses
+import fnmatch
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.ablation.config import (
+    CELL_JSON,
+    CELL_STATES,
+    DONE,
+    LEARNED_SOURCES,
+    TRAIN_RUN,
+    AblationConfig,
+    Arm,
+    PolicySpec,
+)
+from crowdnav_mesrnn.config import load_yaml
+from crowdnav_mesrnn.data.constants import SPLITS
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One unit of work: a training run or an evaluation."""
+
+    kind: str
+    """``train`` or ``eval``."""
+    split: str
+    policy: PolicySpec
+    arm: Arm
+    seed: int | None
+    """Training seed (``None`` for non-learned policies)."""
+
+    @property
+    def name(self) -> str:
+        base = f"{self.kind}/{self.split}/{self.policy.name}/{self.arm.label}"
+        return base if self.seed is None else f"{base}/seed{self.seed}"
+
+    @property
+    def needs(self) -> str | None:
+        """The training cell an evaluation cell evaluates (``None`` for planners and training cells)."""
+        if self.kind == "eval" and self.policy.learned:
+            return dataclasses.replace(self, kind="train").name
+        return None
+
+    @property
+    def cpus(self) -> int:
+        """CPUs the cell keeps busy."""
+        return self.policy.cpus if self.kind == "train" else 1
+
+
+def expand(cfg: AblationConfig) -> list[Cell]:
+    """Every cell of the grid: training cells first, then evaluation cells (split, policy, arm, seed order)."""
+    train: list[Cell] = []
+    evals: list[Cell] = []
+    for split in cfg.splits:
+        for policy in cfg.policies:
+            for arm in (a for a in cfg.arms if policy.uses(a)):
+                if policy.learned:
+                    for seed in cfg.seeds:
+                        train.append(Cell("train", split, policy, arm, seed))
+                        evals.append(Cell("eval", split, policy, arm, seed))
+                else:
+                    evals.append(Cell("eval", split, policy, arm, None))
+    return train + evals
+
+
+def _canonical_yaml_sha256(path: str) -> str | None:
+    """sha256 of an agent YAML's parsed content (comments and layout do not count); None if missing."""
+    try:
+        content = load_yaml(path)
+    except FileNotFoundError:
+        return None
+    return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def cell_spec(cfg: AblationConfig, cell: Cell) -> dict[str, Any]:
+    """Everything that defines a cell's result; a finished cell whose recorded spec differs is stale."""
+    spec: dict[str, Any] = {
+        "kind": cell.kind,
+        "split": cell.split,
+        "policy": cell.policy.name,
+        "policy_kind": cell.policy.kind,
+        "arm": cell.arm.label,
+        "predictor": cell.arm.predictor,
+        "noisy_oracle_ade_m": cell.arm.noisy_oracle_ade_m,
+        "seed": cell.seed,
+        "env": dict(sorted(cfg.env.items())),
+    }
+    if cell.kind == "train":
+        spec.update(
+            agent_config=cell.policy.config,
+            agent_config_sha256=_canonical_yaml_sha256(cell.policy.config or ""),
+            timesteps=cell.policy.timesteps,
+            n_envs=cell.policy.n_envs,
+            overrides=dict(cell.policy.overrides),
+        )
+    else:
+        spec.update(episodes=cfg.episodes, eval_seed=cfg.eval_seed)
+        if cell.policy.learned:
+            spec["model"] = cell.policy.model
+    return json.loads(json.dumps(spec, default=str))
+
+
+_WEIGHTS_CACHE: dict[tuple[str, str, float, int], str] = {}
+
+
+def _file_sha256(path: Path) -> str:
+    st = path.stat()
+    key = (path.name, str(path), st.st_mtime, st.st_size)
+    if key not in _WEIGHTS_CACHE:
+        digest = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(chunk)
+        _WEIGHTS_CACHE[key] = digest.hexdigest()
+    return _WEIGHTS_CACHE[key]
+
+
+def weights_fingerprint(predictor: str) -> dict[str, str]:
+    """sha256 of every shipped weights file an arm with this source uses (empty for sources without weights).
+
+    A split's cells use the weights of all five splits: its held-out scene is forecast by its own
+    split's predictor, each training scene by the predictor of the split holding that scene out.
+    A missing file is recorded as ``"missing"``.
+    """
+    if predictor not in LEARNED_SOURCES:
+        return {}
+    from crowdnav_mesrnn.models.pretrained import pretrained_path
+
+    out: dict[str, str] = {}
+    for split in SPLITS:
+        path = pretrained_path(predictor, split)
+        out[path.name] = _file_sha256(path) if path.is_file() else "missing"
+    return out
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+        return data if isinstance(data, dict) else None
+    except (OSError, ValueError):
+        return None
+
+
+def cell_dir(cfg: AblationConfig, cell: Cell | str) -> Path:
+    return cfg.runs_path() / (cell if isinstance(cell, str) else cell.name)
+
+
+def trained_model(train_dir: Path, which: str) -> Path | None:
+    """The ``best``/``final`` model zip of a finished training cell folder (``None`` if absent)."""
+    meta = _read_json(train_dir / CELL_JSON) or {}
+    run = train_dir / meta.get("run_dir", TRAIN_RUN)
+    for candidate in (run / f"{which}_model.zip", run / "final_model.zip"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+@dataclass
+class CellStatus:
+    cell: Cell
+    state: str
+    reason: str = ""
+    meta: dict[str, Any] | None = None
+
+
+def cell_status(cfg: AblationConfig, cell: Cell, train_states: Mapping[str, CellStatus] | None = None) -> CellStatus:
+    """The state of a cell on disk (see the module docstring); ``train_states`` resolves evaluation dependencies."""
+    folder = cell_dir(cfg, cell)
+    if not folder.exists():
+        return CellStatus(cell, "todo")
+    meta = _read_json(folder / CELL_JSON)
+    done = (folder / DONE).is_file()
+    if meta is None:
+        return CellStatus(cell, "partial" if not done else "stale", "no cell.json", None)
+    if meta.get("spec") != cell_spec(cfg, cell):
+        changed = sorted(
+            k
+            for k in set(meta.get("spec") or {}) | set(cell_spec(cfg, cell))
+            if (meta.get("spec") or {}).get(k) != cell_spec(cfg, cell).get(k)
+        )
+        return CellStatus(cell, "stale", "spec changed: " + ", ".join(changed), meta)
+    if meta.get("weights", {}) != weights_fingerprint(cell.arm.predictor):
+        return CellStatus(cell, "stale", "predictor weights changed", meta)
+    if cell.needs is not None:
+        train = (train_states or {}).get(cell.needs)
+        if train is not None and train.state != "done":
+            return CellStatus(cell, "stale" if done else "partial", f"waits for {cell.needs}", meta)
+        model = trained_model(cell_dir(cfg, cell.needs), cell.policy.model)
+        if done and (model is None or meta.get("model_sha256") != _file_sha256(model)):
+            return CellStatus(cell, "stale", "the trained model changed", meta)
+    if not done:
+        return CellStatus(cell, "partial", "interrupted", meta)
+    return CellStatus(cell, "done", "", meta)
+
+
+def plan(cfg: AblationConfig, cells: Sequence[Cell] | None = None) -> list[CellStatus]:
+    """States of ``cells`` (default: the whole grid), training cells resolved before their evaluations."""
+    cells = list(expand(cfg) if cells is None else cells)
+    train_states: dict[str, CellStatus] = {}
+    for cell in expand(cfg):
+        if cell.kind == "train":
+            train_states[cell.name] = cell_status(cfg, cell)
+    return [train_states[c.name] if c.kind == "train" else cell_status(cfg, c, train_states) for c in cells]
+
+
+def select(cells: Sequence[Cell], patterns: str | None) -> list[Cell]:
+    """Cells whose name matches one of the comma-separated glob ``patterns`` (plus the training cells
+    their evaluations need); all cells without patterns."""
+    if not patterns:
+        return list(cells)
+    pats = [p.strip() for p in patterns.split(",") if p.strip()]
+    chosen = {c.name for c in cells if any(fnmatch.fnmatchcase(c.name, p) for p in pats)}
+    chosen |= {c.needs for c in cells if c.name in chosen and c.needs is not None}
+    if not chosen:
+        raise ValueError(f"--only {patterns!r} matches no cell; cell names look like {cells[0].name!r}")
+    return [c for c in cells if c.name in chosen]
+
+
+def measured_rates(cfg: AblationConfig) -> dict[tuple[str, str, str], float]:
+    """Median measured throughput of finished cells: ``(kind, policy kind, arm source) -> rate``
+    (training: env steps/s, evaluation: episodes/s)."""
+    samples: dict[tuple[str, str, str], list[float]] = {}
+    root = cfg.runs_path()
+    if not root.is_dir():
+        return {}
+    for path in root.glob(f"**/{CELL_JSON}"):
+        meta = _read_json(path)
+        if not meta or not (path.parent / DONE).is_file():
+            continue
+        spec = meta.get("spec") or {}
+        rate = meta.get("steps_per_s") if spec.get("kind") == "train" else meta.get("episodes_per_s")
+        if isinstance(rate, int | float) and rate > 0:
+            key = (str(spec.get("kind")), str(spec.get("policy_kind")), str(spec.get("predictor")))
+            samples.setdefault(key, []).append(float(rate))
+    return {k: float(np.median(v)) for k, v in samples.items()}
+
+
+def estimate_seconds(cfg: AblationConfig, cell: Cell, rates: Mapping[tuple[str, str, str], float]) -> tuple[float, str]:
+    """Estimated run time of a cell and where the rate comes from (``measured`` or ``default``)."""
+    key = (cell.kind, cell.policy.kind, cell.arm.predictor)
+    if cell.kind == "train":
+        work = float(cell.policy.timesteps or 0)
+        defaults = cfg.train_steps_per_s
+        default = defaults.get(cell.arm.label, defaults.get(cell.arm.predictor, defaults.get("default", 1000.0)))
+    else:
+        work = float(cfg.episodes)
+        defaults = cfg.eval_episodes_per_s
+        default = defaults.get(cell.policy.name, defaults.get(cell.policy.kind, defaults.get("default", 2.0)))
+    if key in rates:
+        return work / rates[key], "measured"
+    return work / default, "default"
+
+
+def _hms(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def default_workers(cells: Iterable[Cell]) -> int:
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    widest = max((c.cpus for c in cells), default=1)
+    return max(1, cores // widest)
+
+
+def dry_run(cfg: AblationConfig, cells: Sequence[Cell], workers: int, out: Callable[[str], None] = print) -> None:
+    """Print every cell with its state and estimated time, and the totals."""
+    statuses = plan(cfg, cells)
+    rates = measured_rates(cfg)
+
+    def describe(p: PolicySpec) -> str:
+        arms = f"arms {'/'.join(p.arms)}" if p.arms else "all arms"
+        budget = f", {p.timesteps:,} steps x {p.n_envs} envs" if p.learned else ""
+        return f"{p.name} ({p.kind}, {arms}{budget})"
+
+    pol = "; ".join(describe(p) for p in cfg.policies)
+    out(
+        f"grid {cfg.name}: splits {', '.join(cfg.splits)}; arms {', '.join(cfg.arm_labels)}; "
+        f"seeds {', '.join(map(str, cfg.seeds))}; policies {pol}; {cfg.episodes} evaluation episodes per cell"
+    )
+    out(f"cells in {cfg.runs_path()}/, summaries in {cfg.out_path()}/")
+    out(f"{'state':<8} {'estimate':>9}  {'rate':<8} cell")
+    total = 0.0
+    counts = dict.fromkeys(CELL_STATES, 0)
+    for st in statuses:
+        counts[st.state] += 1
+        secs, src = estimate_seconds(cfg, st.cell, rates)
+        if st.state != "done":
+            total += secs
+        est = "-" if st.state == "done" else _hms(secs)
+        reason = f"  ({st.reason})" if st.reason else ""
+        out(f"{st.state:<8} {est:>9}  {src:<8} {st.cell.name}{reason}")
+    n_train = sum(c.kind == "train" for c in cells)
+    out(
+        f"{len(cells)} cells ({n_train} train, {len(cells) - n_train} eval): "
+        + ", ".join(f"{k} {v}" for k, v in counts.items())
+    )
+    out(
+        f"estimated compute left {_hms(total)}; with {workers} worker(s) at a time, wall time >= {_hms(total / workers)} "
+        "(evaluations wait for their training runs)"
+    )
+
+
+def _now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S%z")

@@ -1,0 +1,75 @@
+"""The command line of the ablation: ``python -m agents.ablation`` and ``crowdnav-mesrnn ablation``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from agents.ablation.backends import replicate, run_grid
+from agents.ablation.cells import default_workers, dry_run, expand, select
+from agents.ablation.config import BACKENDS, load_config
+from agents.ablation.summary import summarize
+from crowdnav_mesrnn.config import ConfigError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``python -m agents.ablation`` and ``crowdnav-mesrnn ablation``."""
+    p.add_argument("config", help="grid YAML, e.g. configs/ablation/planning_aid.yaml")
+    p.add_argument("--dry-run", action="store_true", help="list every cell with its state and estimated time")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="cells at a time (default: cores // the largest cpus of a cell; 1 = in this process)",
+    )
+    p.add_argument("--backend", choices=BACKENDS, default="local", help="local process pool (default) or Ray tasks")
+    p.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster address (ray://host:10001 or host:6379; default: start a local Ray instance)",
+    )
+    p.add_argument("--only", default=None, help="comma-separated globs of cell names, e.g. 'eval/zara1/planner/*'")
+    p.add_argument("--summarize-only", action="store_true", help="write summary.json/.md and plots from finished cells")
+    p.add_argument(
+        "--replicate",
+        metavar="DIR",
+        default=None,
+        help="run the --only cells (and the training runs they need) afresh in scratch folder DIR and compare "
+        "their evaluations with the grid's, episode by episode (a determinism and code-change check)",
+    )
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """Handler shared by both entry points; 1 when a cell failed."""
+    cfg = load_config(args.config)
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    if args.address and args.backend != "ray":
+        raise ConfigError("--address needs --backend ray")
+    if args.replicate and (args.dry_run or args.summarize_only):
+        raise ConfigError("--replicate cannot be combined with --dry-run or --summarize-only")
+    if args.dry_run:
+        cells = select(expand(cfg), args.only)
+        dry_run(cfg, cells, args.workers or default_workers(cells))
+        return 0
+    if args.summarize_only:
+        summarize(cfg)
+        return 0
+    if args.replicate:
+        if not args.only:
+            raise ConfigError("--replicate needs --only (the cells to replicate, e.g. 'eval/zara1/ppo/cv/seed1')")
+        if args.backend != "local":
+            raise ConfigError(f"--replicate runs on the local backend; got --backend {args.backend}")
+        return 1 if replicate(cfg, args.only, args.replicate, args.workers) else 0
+    result = run_grid(cfg, backend=args.backend, workers=args.workers, address=args.address, only=args.only)
+    for name, error in result["failed"].items():
+        print(f"failed: {name}\n{error}", file=sys.stderr)
+    return 1 if result["failed"] or result["skipped"] else 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m agents.ablation ...`` is ``crowdnav-mesrnn ablation ...`` (same parser, same error handling)."""
+    from crowdnav_mesrnn.cli import main as cli_main
+
+    return cli_main(["ablation", *(sys.argv[1:] if argv is None else argv)])

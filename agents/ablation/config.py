@@ -1,0 +1,388 @@
+"""The ablation's grid config: arms, policies, the frozen :class:`AblationConfig`, parsing and validation."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml
+from crowdnav_mesrnn.data.constants import SPLITS
+
+#: Forecast sources an arm may use.
+ARM_SOURCES: Final[tuple[str, ...]] = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
+
+
+#: Sources that load shipped predictor weights (their sha256 is recorded per cell).
+LEARNED_SOURCES: Final[tuple[str, ...]] = ("mesrnn", "srnn", "vlstm")
+
+
+#: Policy kinds: learned ones are trained per arm and seed, the others only evaluated.
+POLICY_KINDS: Final[tuple[str, ...]] = ("ppo", "sac", "planner", "straight")
+
+
+LEARNED_KINDS: Final[tuple[str, ...]] = ("ppo", "sac")
+
+
+#: Which model of a training run an evaluation cell uses.
+MODEL_CHOICES: Final[tuple[str, ...]] = ("best", "final")
+
+
+BACKENDS: Final[tuple[str, ...]] = ("local", "ray")
+
+
+OUTCOMES: Final[tuple[str, ...]] = ("success", "collision", "timeout")
+
+
+DONE: Final[str] = "DONE"
+
+
+CELL_JSON: Final[str] = "cell.json"
+
+
+TRAIN_RUN: Final[str] = "run"
+
+
+AGENT_CONFIG: Final[str] = "agent_config.yaml"
+
+
+CELL_STATES: Final[tuple[str, ...]] = ("done", "partial", "stale", "todo")
+
+
+_TOP_KEYS: Final[tuple[str, ...]] = (
+    "name",
+    "description",
+    "out_dir",
+    "runs_dir",
+    "splits",
+    "arms",
+    "noisy_oracle_ade_m",
+    "seeds",
+    "policies",
+    "evaluation",
+    "env",
+    "comparisons",
+    "policy_comparisons",
+    "density_bins",
+    "alpha",
+    "power",
+    "estimates",
+)
+
+
+_POLICY_KEYS: Final[tuple[str, ...]] = ("kind", "arms", "config", "timesteps", "n_envs", "cpus", "model", "overrides")
+
+
+_EVAL_KEYS: Final[tuple[str, ...]] = ("episodes", "seed")
+
+
+_ESTIMATE_KEYS: Final[tuple[str, ...]] = ("train_steps_per_s", "eval_episodes_per_s")
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One forecast arm: a forecast source, and for ``noisy_oracle`` its target ADE."""
+
+    label: str
+    """Name in cell paths and the summary (``mesrnn``, ``noisy_oracle-0.25``)."""
+    predictor: str
+    """Forecast source passed to the environment (one of :data:`ARM_SOURCES`)."""
+    noisy_oracle_ade_m: float | None = None
+    """Target ADE of ``noisy_oracle`` arms, metres."""
+
+    def env_overrides(self) -> dict[str, Any]:
+        """Environment keys this arm sets besides ``predictor``."""
+        return {} if self.noisy_oracle_ade_m is None else {"noisy_oracle_ade_m": self.noisy_oracle_ade_m}
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """One policy of the grid (a key of ``policies:`` in the config)."""
+
+    name: str
+    """Its key in the config (``ppo``, ``planner``), used in cell paths and the summary."""
+    kind: str
+    """``ppo`` or ``sac`` (trained per arm and seed), ``planner`` or ``straight`` (evaluated only)."""
+    config: str | None = None
+    """Learned kinds: the agent YAML (``configs/agent/ppo.yaml``), relative to the working directory."""
+    timesteps: int | None = None
+    """Learned kinds: environment steps of training per run."""
+    n_envs: int = 1
+    """Learned kinds: vectorised environments per training run (the agent config's ``n_envs`` is replaced)."""
+    cpus: int = 1
+    """Learned kinds: CPUs a training run keeps busy (1 when the agent config steps its environments in one
+    process, ``vec_env: dummy``; ``n_envs`` with subprocess workers); sizes the local pool and Ray's ``num_cpus``."""
+    model: str = "best"
+    """Learned kinds: ``best`` (selected on validation episodes of the training scenes) or ``final`` model."""
+    overrides: Mapping[str, Any] = field(default_factory=dict)
+    """Learned kinds: further overrides passed to ``agents.train.load_train_config``."""
+    arms: tuple[str, ...] = ()
+    """Arm labels this policy runs (empty = every arm of the grid); e.g. the cheap planner runs the
+    noisy-oracle sweep while PPO trains only the main arms."""
+
+    @property
+    def learned(self) -> bool:
+        return self.kind in LEARNED_KINDS
+
+    def uses(self, arm: Arm) -> bool:
+        return not self.arms or arm.label in self.arms
+
+
+@dataclass(frozen=True)
+class AblationConfig:
+    """A grid (see ``configs/ablation/planning_aid.yaml``); load with :func:`load_config`."""
+
+    name: str
+    splits: tuple[str, ...]
+    arms: tuple[Arm, ...]
+    seeds: tuple[int, ...]
+    policies: tuple[PolicySpec, ...]
+    episodes: int
+    """Evaluation episodes per cell (the fixed list of ``agents.evaluate.evaluation_seeds``)."""
+    eval_seed: int = 0
+    """Seed of the fixed evaluation episode list."""
+    env: Mapping[str, Any] = field(default_factory=dict)
+    """Environment overrides applied alike in every cell (training and evaluation)."""
+    out_dir: str = ""
+    runs_dir: str = ""
+    comparisons: tuple[tuple[str, str], ...] = ()
+    """Arm pairs tested within every policy and split, declared before any result exists."""
+    policy_comparisons: tuple[tuple[str, str], ...] = ()
+    """Policy pairs tested within every arm and split."""
+    density_bins: int | tuple[float, ...] = 3
+    """An integer = that many quantile bins of ``crowd_density`` over the fixed episode lists of all splits;
+    a list = bin edges (pedestrians within sensor range)."""
+    alpha: float = 0.05
+    power: float = 0.8
+    train_steps_per_s: Mapping[str, float] = field(default_factory=lambda: {"default": 1000.0})
+    """Fallback training throughputs per arm label or source (``default`` for the others), env steps/s."""
+    eval_episodes_per_s: Mapping[str, float] = field(default_factory=lambda: {"default": 2.0})
+    """Fallback evaluation throughputs per policy kind (``default`` for the others), episodes/s."""
+    description: str = ""
+    source: str = ""
+    """The YAML file it was read from."""
+
+    @property
+    def arm_labels(self) -> tuple[str, ...]:
+        return tuple(a.label for a in self.arms)
+
+    def policy(self, name: str) -> PolicySpec:
+        return next(p for p in self.policies if p.name == name)
+
+    def arm(self, label: str) -> Arm:
+        return next(a for a in self.arms if a.label == label)
+
+    def runs_path(self) -> Path:
+        return Path(self.runs_dir or f"runs/ablation/{self.name}")
+
+    def out_path(self) -> Path:
+        return Path(self.out_dir or f"results/ablation/{self.name}")
+
+
+def _bad(key: str, value: Any, allowed: str) -> ConfigError:
+    return ConfigError(f"ablation config key {key!r}: got {value!r}; allowed: {allowed}")
+
+
+def _str_list(raw: Mapping[str, Any], key: str, allowed: Sequence[str] | None = None) -> tuple[str, ...]:
+    value = raw.get(key)
+    allowed_text = ", ".join(allowed) if allowed else "a non-empty list of names"
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
+        raise _bad(key, value, f"a non-empty list of {allowed_text}" if allowed else allowed_text)
+    for v in value:
+        if allowed is not None and v not in allowed:
+            raise _bad(key, v, allowed_text)
+    if len(set(value)) != len(value):
+        raise _bad(key, value, "a list without repeats")
+    return tuple(value)
+
+
+def _positive_int(value: Any, key: str, minimum: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise _bad(key, value, f"an integer >= {minimum}")
+    return int(value)
+
+
+def _rates(value: Any, key: str) -> dict[str, float]:
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        value = {"default": value}
+    if not isinstance(value, dict) or not all(
+        isinstance(v, int | float) and not isinstance(v, bool) and v > 0 for v in value.values()
+    ):
+        raise _bad(key, value, "a positive number or a mapping of names to positive numbers")
+    return {str(k): float(v) for k, v in value.items()}
+
+
+def _pairs(value: Any, key: str, names: Sequence[str]) -> tuple[tuple[str, str], ...]:
+    if value is None:
+        return ()
+    if not isinstance(value, list):
+        raise _bad(key, value, "a list of [a, b] pairs")
+    out = []
+    for pair in value:
+        if not (isinstance(pair, list | tuple) and len(pair) == 2 and all(isinstance(v, str) for v in pair)):
+            raise _bad(key, pair, "a pair [a, b] of names")
+        for v in pair:
+            if v not in names:
+                raise _bad(key, v, ", ".join(names))
+        if pair[0] == pair[1]:
+            raise _bad(key, pair, "two different names")
+        out.append((pair[0], pair[1]))
+    return tuple(out)
+
+
+def _noisy_label(ade: float) -> str:
+    return f"noisy_oracle-{ade:g}"
+
+
+def _policies(value: Any) -> tuple[PolicySpec, ...]:
+    if not isinstance(value, dict) or not value:
+        raise _bad("policies", value, "a mapping of policy names to {kind: ppo|sac|planner|straight, ...}")
+    out = []
+    for name, spec in value.items():
+        where = f"policies.{name}"
+        if not isinstance(spec, dict):
+            raise _bad(where, spec, "a mapping with keys " + ", ".join(_POLICY_KEYS))
+        check_keys(spec, _POLICY_KEYS, f"ablation config {where!r}")
+        kind = spec.get("kind", name)
+        if kind not in POLICY_KINDS:
+            raise _bad(f"{where}.kind", kind, ", ".join(POLICY_KINDS))
+        model = spec.get("model", "best")
+        if model not in MODEL_CHOICES:
+            raise _bad(f"{where}.model", model, ", ".join(MODEL_CHOICES))
+        overrides = spec.get("overrides") or {}
+        if not isinstance(overrides, dict):
+            raise _bad(f"{where}.overrides", overrides, "a mapping")
+        if kind in LEARNED_KINDS:
+            config = spec.get("config")
+            if not isinstance(config, str) or not config:
+                raise _bad(f"{where}.config", config, "the path of an agent YAML (configs/agent/ppo.yaml)")
+            timesteps = _positive_int(spec.get("timesteps"), f"{where}.timesteps")
+            n_envs = _positive_int(spec.get("n_envs", 1), f"{where}.n_envs")
+            cpus = _positive_int(spec.get("cpus", 1), f"{where}.cpus")
+            out.append(PolicySpec(str(name), kind, config, timesteps, n_envs, cpus, model, overrides))
+        else:
+            extra = sorted(set(spec) & {"config", "timesteps", "n_envs", "cpus", "overrides"})
+            if extra:
+                raise _bad(f"{where}.{extra[0]}", spec[extra[0]], f"nothing: a {kind!r} policy is not trained")
+            out.append(PolicySpec(str(name), kind))
+    return tuple(out)
+
+
+def _policy_arms(policy: PolicySpec, raw: Mapping[str, Any], arms: Sequence[Arm]) -> PolicySpec:
+    """Resolve ``policies.<name>.arms`` (arm labels, or sources: ``noisy_oracle`` = the whole sweep)."""
+    value = raw.get("arms")
+    if value is None:
+        return policy
+    key = f"policies.{policy.name}.arms"
+    names = [a.label for a in arms] + sorted({a.predictor for a in arms} - {a.label for a in arms})
+    if not isinstance(value, list) or not value:
+        raise _bad(key, value, "a non-empty list of " + ", ".join(names))
+    chosen: list[str] = []
+    for v in value:
+        if v not in names:
+            raise _bad(key, v, ", ".join(names))
+        chosen += [a.label for a in arms if v in (a.label, a.predictor) and a.label not in chosen]
+    return dataclasses.replace(policy, arms=tuple(chosen))
+
+
+def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationConfig:
+    """Validate a grid mapping (the YAML's content); every error is a :class:`ConfigError` naming the key."""
+    check_keys(raw, _TOP_KEYS, "ablation config")
+    name = raw.get("name")
+    if not isinstance(name, str) or not name or any(c in name for c in "/\\ "):
+        raise _bad("name", name, "a non-empty name without slashes or spaces")
+    splits = _str_list(raw, "splits", SPLITS)
+    sources = _str_list(raw, "arms", ARM_SOURCES)
+    arms: list[Arm] = []
+    for src in sources:
+        if src != "noisy_oracle":
+            arms.append(Arm(src, src))
+            continue
+        ades = raw.get("noisy_oracle_ade_m")
+        if (
+            not isinstance(ades, list)
+            or not ades
+            or not all(isinstance(v, int | float) and not isinstance(v, bool) and v >= 0 for v in ades)
+        ):
+            raise _bad("noisy_oracle_ade_m", ades, "a non-empty list of target ADEs >= 0 (metres) for arm noisy_oracle")
+        if len(set(ades)) != len(ades):
+            raise _bad("noisy_oracle_ade_m", ades, "a list without repeats")
+        arms.extend(Arm(_noisy_label(float(v)), "noisy_oracle", float(v)) for v in ades)
+    if "noisy_oracle_ade_m" in raw and "noisy_oracle" not in sources:
+        raise _bad("noisy_oracle_ade_m", raw["noisy_oracle_ade_m"], "only with 'noisy_oracle' in arms")
+    seeds = raw.get("seeds")
+    if (
+        not isinstance(seeds, list)
+        or not seeds
+        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds)
+        or len(set(seeds)) != len(seeds)
+    ):
+        raise _bad("seeds", seeds, "a non-empty list of distinct integers >= 0")
+    policies = _policies(raw.get("policies"))
+    labels = [a.label for a in arms]
+    policies = tuple(_policy_arms(p, raw["policies"][p.name], arms) for p in policies)
+    evaluation = raw.get("evaluation")
+    if not isinstance(evaluation, dict):
+        raise _bad("evaluation", evaluation, "a mapping {episodes: N, seed: S}")
+    check_keys(evaluation, _EVAL_KEYS, "ablation config 'evaluation'")
+    episodes = _positive_int(evaluation.get("episodes"), "evaluation.episodes")
+    eval_seed = _positive_int(evaluation.get("seed", 0), "evaluation.seed", minimum=0)
+    env = raw.get("env") or {}
+    if not isinstance(env, dict):
+        raise _bad("env", env, "a mapping of environment config keys")
+    if "predictor" in env or "split" in env or "part" in env:
+        raise _bad("env", env, "environment keys other than predictor, split and part (the grid sets those)")
+    comparisons = _pairs(raw.get("comparisons"), "comparisons", labels)
+    policy_comparisons = _pairs(raw.get("policy_comparisons"), "policy_comparisons", [p.name for p in policies])
+    bins = raw.get("density_bins", 3)
+    if isinstance(bins, list):
+        if len(bins) < 2 or not all(isinstance(v, int | float) for v in bins) or list(bins) != sorted(set(bins)):
+            raise _bad("density_bins", bins, "an integer >= 1 (quantile bins) or increasing bin edges")
+        bins = tuple(float(v) for v in bins)
+    else:
+        bins = _positive_int(bins, "density_bins")
+    alpha, power = raw.get("alpha", 0.05), raw.get("power", 0.8)
+    for key, value in (("alpha", alpha), ("power", power)):
+        if not isinstance(value, float) or not 0.0 < value < 1.0:
+            raise _bad(key, value, "a number in (0, 1)")
+    estimates = raw.get("estimates") or {}
+    if not isinstance(estimates, dict):
+        raise _bad("estimates", estimates, "a mapping with keys " + ", ".join(_ESTIMATE_KEYS))
+    check_keys(estimates, _ESTIMATE_KEYS, "ablation config 'estimates'")
+    for key in ("out_dir", "runs_dir", "description"):
+        if not isinstance(raw.get(key, ""), str):
+            raise _bad(key, raw[key], "a string")
+    return AblationConfig(
+        name=name,
+        splits=splits,
+        arms=tuple(arms),
+        seeds=tuple(int(s) for s in seeds),
+        policies=policies,
+        episodes=episodes,
+        eval_seed=eval_seed,
+        env=dict(env),
+        out_dir=raw.get("out_dir", ""),
+        runs_dir=raw.get("runs_dir", ""),
+        comparisons=comparisons,
+        policy_comparisons=policy_comparisons,
+        density_bins=bins,
+        alpha=float(alpha),
+        power=float(power),
+        train_steps_per_s=_rates(estimates.get("train_steps_per_s", 1000.0), "estimates.train_steps_per_s"),
+        eval_episodes_per_s=_rates(estimates.get("eval_episodes_per_s", 2.0), "estimates.eval_episodes_per_s"),
+        description=str(raw.get("description", "")),
+        source=source,
+    )
+
+
+def load_config(path: str | os.PathLike[str]) -> AblationConfig:
+    """Read and validate a grid YAML (:class:`ConfigError` messages start with the file name)."""
+    try:
+        return config_from_mapping(load_yaml(path), source=str(path))
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None

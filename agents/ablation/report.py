@@ -1,0 +1,210 @@
+"""The Markdown summary (``summary.md``) of the ablation."""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from agents.ablation.cells import _hms
+from agents.ablation.config import AblationConfig
+
+
+def _pct(rate: Any, ci: Any) -> str:
+    if rate is None:
+        return "-"
+    lo, hi = ci if ci else (None, None)
+    bounds = f" [{100 * lo:.1f}, {100 * hi:.1f}]" if lo is not None and hi is not None else ""
+    return f"{100 * rate:.1f}{bounds}"
+
+
+def _mean(entry: Mapping[str, Any], metric: str, digits: int = 2) -> str:
+    v = entry.get(f"{metric}_mean")
+    if v is None:
+        return "-"
+    lo, hi = entry.get(f"{metric}_ci") or (None, None)
+    bounds = f" [{lo:.{digits}f}, {hi:.{digits}f}]" if lo is not None and hi is not None else ""
+    return f"{v:.{digits}f}{bounds}"
+
+
+def _rate_table(entries: Mapping[str, Mapping[str, Any]], with_seeds: bool) -> list[str]:
+    head = "| arm | " + ("seeds | " if with_seeds else "") + "episodes | success % | collision % | timeout % | "
+    head += "nav. time s (successes) | path ratio (successes) | min gap m | forecast ADE m |"
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for arm, e in entries.items():
+        seeds = (", ".join(map(str, e.get("seeds", []))) + " | ") if with_seeds else ""
+        lines.append(
+            f"| {arm} | {seeds}{e['episodes']} | {_pct(e['success_rate'], e['success_ci'])} | "
+            f"{_pct(e['collision_rate'], e['collision_ci'])} | {_pct(e['timeout_rate'], e['timeout_ci'])} | "
+            f"{_mean(e, 'navigation_time_s', 1)} | {_mean(e, 'path_ratio')} | {_mean(e, 'min_gap_m')} | "
+            f"{_mean(e, 'forecast_ade_m')} |"
+        )
+    return lines
+
+
+def _p(v: Any) -> str:
+    if v is None:
+        return "-"
+    return f"{v:.2g}" if v < 0.001 else f"{v:.3f}"
+
+
+def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: Sequence[str] = ()) -> str:
+    """The human-readable report of :func:`summarize`."""
+    lines = [f"# Ablation `{summary['name']}`", ""]
+    if cfg.description:
+        lines += [cfg.description.strip(), ""]
+    lines += [
+        f"Config `{summary['config']}`, code {summary['code_version']}, generated {summary['generated']}. "
+        f"Held-out splits {', '.join(summary['splits'])}; {summary['episodes_per_cell']} evaluation episodes per "
+        f"cell (episode list seed {summary['evaluation_seed']}, the same list in every cell of a split).",
+        "",
+    ]
+    if not summary["complete"]:
+        lines += [
+            f"**Incomplete:** {len(summary['missing_cells'])} cell(s) not finished; tables cover finished cells only.",
+            "",
+        ]
+    lines += ["## Training budget and wall time", ""]
+    for name, pol in summary["policies"].items():
+        if pol["timesteps"]:
+            lines.append(
+                f"- `{name}` ({pol['kind']}): {pol['timesteps']:,} environment steps per run, {pol['n_envs']} "
+                f"environments, agent config `{pol['agent_config']}`, evaluated with its {pol['model']} model; "
+                f"seeds {', '.join(map(str, summary['seeds']))}."
+            )
+        else:
+            lines.append(f"- `{name}` ({pol['kind']}): not trained; deterministic, evaluated once per arm and split.")
+    wall = summary["wall_time"]
+    cells = wall["cells_s"]
+    lines += [
+        f"- Compute in finished cells: training {_hms(cells.get('train', 0.0))}, evaluation "
+        f"{_hms(cells.get('eval', 0.0))} (sum over cells). Grid wall time "
+        + (
+            f"{_hms(wall['span_s'])}, from the first cell's start ({wall['first_start']}) to the last cell's end "
+            f"({wall['last_finish']}), pauses between sessions included."
+            if wall.get("span_s") is not None
+            else "unknown (no timings recorded)."
+        ),
+        "",
+        "## Rates per policy and arm (pooled over splits and seeds)",
+        "",
+        "Rates in % with 95 % Wilson intervals; means with 95 % bootstrap intervals. Navigation time and path "
+        "ratio average successful episodes only; the forecast ADE is closed-loop (forecasts made during the "
+        "episodes, scored against the replay).",
+        "",
+    ]
+    for name, pol in summary["policies"].items():
+        lines += [f"### {name}", "", *_rate_table(pol["arms"], bool(pol["timesteps"])), ""]
+        for split in summary["splits"] if len(summary["splits"]) > 1 else ():
+            per = {a: e["by_split"][split] for a, e in pol["arms"].items() if split in e.get("by_split", {})}
+            if per:
+                lines += [f"{name} on `{split}`:", "", *_rate_table(per, False), ""]
+    edges = summary["density_bins"]
+    if edges:
+        lines += [
+            "## Success by crowd density",
+            "",
+            "Crowd density = mean number of pedestrians within sensor range of the straight start-goal segment "
+            "over the episode (policy-independent); bins: "
+            + ", ".join(f"[{lo:.2f}, {hi:.2f}]" for lo, hi in itertools.pairwise(edges))
+            + ".",
+            "",
+        ]
+        for name, pol in summary["policies"].items():
+            head = "| arm | " + " | ".join(f"{lo:.2f}-{hi:.2f}" for lo, hi in itertools.pairwise(edges))
+            lines += [f"{name}: success % [95 % CI] (episodes)", "", head + " |", "|---" * len(edges) + "|"]
+            for arm, e in pol["arms"].items():
+                cells_txt = [f"{_pct(r['success_rate'], r['success_ci'])} ({r['episodes']})" for r in e["by_density"]]
+                lines.append(f"| {arm} | " + " | ".join(cells_txt) + " |")
+            lines.append("")
+    mc = summary["multiple_comparisons"]
+    fam = mc["family_sizes"]
+    lines += [
+        "## Paired tests",
+        "",
+        f"Declared in the config before any result: arm comparisons {', '.join(f'{a} vs {b}' for a, b in cfg.comparisons) or '(none declared)'} "
+        f"within each policy and split; policy comparisons {', '.join(f'{a} vs {b}' for a, b in cfg.policy_comparisons) or '(none declared)'} "
+        "within each arm and split. Pairs are (training seed, episode); a policy without seeds pairs its episode "
+        "with that episode of every seed. Success: exact McNemar test (two-sided binomial test on the discordant "
+        "pairs); navigation time: Wilcoxon signed-rank test over episodes both sides finished. "
+        f"Holm-Bonferroni correction within each endpoint: {fam.get('success', 0)} success tests and "
+        f"{fam.get('navigation_time_s', 0)} navigation-time tests; significant = Holm-adjusted p <= {mc['alpha']}.",
+        "",
+        f"Minimum detectable difference (MDD): the difference in success rate the McNemar design detects with "
+        f"{100 * summary['power']:.0f} % power at the observed discordant fraction (Connor's 1987 normal "
+        f"approximation), at alpha = {mc['alpha']} and at the strictest Holm level alpha / {max(fam.get('success', 0), 1)}; "
+        "'-' where no difference the observed discordance allows reaches that power (or no pair is discordant).",
+        "",
+        "| split | a | b | n | b10 (a only) | b01 (b only) | success diff a-b [95 % CI] | p | p Holm | MDD | MDD Holm |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def side(s: Mapping[str, str]) -> str:
+        return f"{s['policy']}/{s['arm']}"
+
+    for t in summary["tests"]:
+        if t["endpoint"] != "success":
+            continue
+        if t.get("missing"):
+            lines.append(f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | missing | | | | | | | |")
+            continue
+        lo, hi = t["difference_ci"]
+        diff = f"{100 * t['difference']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}]" if lo is not None else "-"
+        mdd = "-" if t.get("mdd") is None else f"{100 * t['mdd']:.1f}"
+        mddh = "-" if t.get("mdd_holm_strictest") is None else f"{100 * t['mdd_holm_strictest']:.1f}"
+        star = " *" if t.get("significant") else ""
+        lines.append(
+            f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | {t['n']} | {t['b10']} | {t['b01']} | {diff} | "
+            f"{_p(t['p_value'])} | {_p(t['p_holm'])}{star} | {mdd} | {mddh} |"
+        )
+    seed_rows = [t for t in summary["tests"] if t["endpoint"] == "success" and t.get("seed_level")]
+    if seed_rows:
+        lines += [
+            "",
+            "Seed level (secondary): the McNemar test above is conditional on the trained policies, so it does not "
+            "count the variance between training seeds. Here each training seed's success rate over the same paired "
+            "episodes is one observation: Welch's t-test and 95 % t-interval on the difference of mean per-seed "
+            "rates (a policy without seeds is one fixed rate, which makes it a one-sample test), Holm-corrected over "
+            f"the {fam.get('success_seed_level', 0)} seed-level tests. With three seeds per arm these intervals are "
+            "wide: a difference can be clear episode by episode and still undetermined across training seeds.",
+            "",
+            "| split | a | b | per-seed rates a | per-seed rates b | diff a-b [95 % CI] | df | p | p Holm |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for t in seed_rows:
+            sl = t["seed_level"]
+            lo, hi = sl["difference_ci"]
+            diff = f"{100 * sl['difference']:+.1f}" + (
+                f" [{100 * lo:+.1f}, {100 * hi:+.1f}]" if lo is not None and hi is not None else ""
+            )
+            ra = " / ".join(f"{100 * r:.1f}" for r in sl["rates_a"])
+            rb = " / ".join(f"{100 * r:.1f}" for r in sl["rates_b"])
+            df = "-" if sl.get("df") is None else f"{sl['df']:.1f}"
+            star = " *" if sl.get("significant") else ""
+            lines.append(
+                f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | {ra} | {rb} | {diff} | {df} | "
+                f"{_p(sl.get('p_value'))} | {_p(sl.get('p_holm'))}{star} |"
+            )
+    lines += [
+        "",
+        "Navigation time (s) of episodes both sides finished, a - b:",
+        "",
+        "| split | a | b | pairs | median diff | mean diff | p | p Holm |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for t in summary["tests"]:
+        if t["endpoint"] != "navigation_time_s":
+            continue
+        med = "-" if t.get("median_difference") is None else f"{t['median_difference']:+.2f}"
+        mean = "-" if t.get("mean_difference") is None else f"{t['mean_difference']:+.2f}"
+        star = " *" if t.get("significant") else ""
+        lines.append(
+            f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | {t['n']} | {med} | {mean} | {_p(t['p_value'])} | "
+            f"{_p(t['p_holm'])}{star} |"
+        )
+    lines.append("")
+    if figures:
+        lines += ["## Plots", "", *[f"![{Path(f).stem}]({Path(f).name})" for f in figures], ""]
+    lines += [f"Reproduce: `python -m agents.ablation {summary['config']}` (then `--summarize-only` to redraw).", ""]
+    return "\n".join(lines)

@@ -1,0 +1,32 @@
+"""The ``main()`` of the ``python -m agents.<module>`` commands (``agents.train``, ``agents.evaluate``).
+
+A neutral module: the layers import it, and it imports no layer and no command line (``agents.cli`` imports the
+layers, never the reverse).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+
+def module_main(
+    prog: str,
+    doc: str | None,
+    add_arguments: Callable[[argparse.ArgumentParser], None],
+    run: Callable[[argparse.Namespace], int],
+    argv: Sequence[str] | None = None,
+) -> int:
+    """``main()`` of a ``python -m agents.<module>`` command: parse, run, and turn configuration and input errors
+    into a message and exit status 2 (as ``crowdnav-mesrnn`` does)."""
+    from crowdnav_mesrnn.config import ConfigError
+
+    parser = argparse.ArgumentParser(prog=prog, description=(doc or "").split("\n\n")[0] or None)
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run(args)
+    except (ConfigError, ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
