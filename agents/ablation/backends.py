@@ -376,8 +376,15 @@ def build_forecast_caches(
     computes the forecasts it needs). Returns the pairs built.
     """
     import envs.forecasts as forecasts
+    from envs.config import is_plugin_source
 
-    wanted = sorted({(c.arm.predictor, c.split) for c in cells if c.arm.predictor in LEARNED_SOURCES})
+    wanted = sorted(
+        {
+            (c.arm.predictor, c.split)
+            for c in cells
+            if c.arm.predictor in LEARNED_SOURCES or is_plugin_source(c.arm.predictor)
+        }
+    )
     build = getattr(forecasts, "build_forecast_cache", None)
     if not wanted:
         return []

@@ -128,12 +128,20 @@ def _file_sha256(path: Path) -> str:
 
 
 def weights_fingerprint(predictor: str) -> dict[str, str]:
-    """sha256 of every shipped weights file an arm with this source uses (empty for sources without weights).
+    """sha256 of every shipped weights file an arm with this source uses (empty for sources without weights; for a
+    predictor plug-in, its forecast-cache key per split: identity and weights).
 
     A split's cells use the weights of all five splits: its held-out scene is forecast by its own
     split's predictor, each training scene by the predictor of the split holding that scene out.
     A missing file is recorded as ``"missing"``.
     """
+    from envs.config import is_plugin_source
+
+    if is_plugin_source(predictor):  # a plug-in: the forecast cache's key of the predictor each split loads
+        from crowdnav_mesrnn.predictors import load
+        from envs.forecast_cache import predictor_fingerprint
+
+        return {f"{predictor}@{s}": predictor_fingerprint(load(predictor, s)) or "unhashable" for s in SPLITS}
     if predictor not in LEARNED_SOURCES:
         return {}
     from crowdnav_mesrnn.models.pretrained import pretrained_path

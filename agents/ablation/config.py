@@ -89,7 +89,7 @@ class Arm:
     label: str
     """Name in cell paths and the summary (``mesrnn``, ``noisy_oracle-0.25``)."""
     predictor: str
-    """Forecast source passed to the environment (one of :data:`ARM_SOURCES`)."""
+    """Forecast source passed to the environment (one of :data:`ARM_SOURCES`, or a predictor plug-in)."""
     noisy_oracle_ade_m: float | None = None
     """Target ADE of ``noisy_oracle`` arms, metres."""
 
@@ -297,7 +297,14 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
     if not isinstance(name, str) or not name or any(c in name for c in "/\\ "):
         raise _bad("name", name, "a non-empty name without slashes or spaces")
     splits = _str_list(raw, "splits", SPLITS)
-    sources = _str_list(raw, "arms", ARM_SOURCES)
+    sources = _str_list(raw, "arms")
+    from envs.config import is_plugin_source
+
+    for src in sources:  # a forecast source, or an installed predictor plug-in (crowdnav-mesrnn bench's arm)
+        if src not in ARM_SOURCES and not is_plugin_source(src):
+            raise _bad(
+                "arms", src, ", ".join(ARM_SOURCES) + ", an installed predictor plug-in or package.module:Factory"
+            )
     arms: list[Arm] = []
     for src in sources:
         if src != "noisy_oracle":

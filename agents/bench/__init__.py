@@ -7,9 +7,8 @@ Two halves, each resumable and cached under ``--out``:
 2. :mod:`agents.bench.planner` — the sampling planner on the held-out scenes with the predictor's forecasts,
    against cv, the oracle and the noisy-oracle sweep on the same episodes (exact McNemar, Holm).
 
-:mod:`agents.bench.report` writes ``report.md``, ``report.json`` and ``success_vs_ade.png``. The planner cells go
-through a :data:`~agents.bench.planner.CellRunner`; the local runner evaluates them in this process (the
-ablation grid's process-pool and Ray backends can take its place: a cell is a folder with a key, as there).
+:mod:`agents.bench.report` writes ``report.md``, ``report.json`` and ``success_vs_ade.png``. The planner cells run
+on the ablation's grid machinery (:mod:`agents.ablation`: a local process pool, or Ray with ``--backend ray``).
 """
 
 from __future__ import annotations
@@ -23,16 +22,13 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from agents.bench.metrics import predictor_identity, predictor_metrics
+from agents.bench.metrics import predictor_metrics
 from agents.bench.planner import (
     DEFAULT_SCENES,
     NOISY_ORACLE_ADE_M,
-    CellRunner,
-    PlannerCell,
-    local_runner,
-    planner_cells,
+    bench_grid,
     planner_results,
-    run_cells,
+    run_planner_cells,
 )
 from agents.bench.report import write_report
 from crowdnav_mesrnn.data.constants import SPLITS
@@ -75,14 +71,21 @@ def default_out(predictor: str) -> Path:
 def run_bench(
     cfg: BenchConfig,
     out_dir: str | Path,
-    runner: CellRunner | None = None,
+    *,
+    backend: str = "local",
+    workers: int | None = None,
+    address: str | None = None,
     command: str = "",
     log: Callable[[str], None] = lambda _m: None,
 ) -> dict[str, Any]:
     """Run (or resume) a bench and write its report into ``out_dir``; returns the report's content.
 
+    Args:
+        backend, workers, address: how the planner cells run (:func:`agents.ablation.run_grid`).
+
     Raises:
         ValueError: bad settings (unknown split, scene, predictor; episodes < 1).
+        RuntimeError: a planner cell failed.
     """
     from crowdnav_mesrnn.data.constants import check_split
     from crowdnav_mesrnn.predictors import resolve
@@ -94,6 +97,10 @@ def run_bench(
     if cfg.episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {cfg.episodes}")
     out = Path(out_dir)
+    grid = None
+    if cfg.planner and cfg.scenes:  # built first: a bad setting fails before any work
+        env = {"data_dir": cfg.data_dir} if cfg.data_dir else {}
+        grid = bench_grid(cfg.predictor, out, cfg.scenes, cfg.episodes, cfg.seed, cfg.noisy_oracle_ade_m, env)
     started = time.perf_counter()
     report: dict[str, Any] = {
         "predictor": cfg.predictor,
@@ -108,35 +115,13 @@ def run_bench(
         report["predictor_metrics"] = predictor_metrics(
             cfg.predictor, cfg.splits, out / "windows", cfg.data_dir, cfg.block_len, cfg.resamples, 0, log
         )
-    if cfg.planner and cfg.scenes:
-        cells = planner_cells(cfg.predictor, cfg.scenes, cfg.noisy_oracle_ade_m)
-        fingerprints = {s: predictor_identity(cfg.predictor, s)[1] for s in cfg.scenes}
-
-        def fingerprint_of(cell: PlannerCell) -> str:
-            return fingerprints[cell.scene] if cell.predictor == cfg.predictor else f"reference:{cell.arm}"
-
-        runner = runner or local_runner()
-        if cfg.data_dir:
-            runner = _with_overrides(runner, {"data_dir": cfg.data_dir})
-        log(f"planner cells: {len(cells)} ({', '.join(cfg.scenes)})")
-        counts = run_cells(cells, out / "planner", cfg.episodes, cfg.seed, fingerprint_of, runner, log)
-        report["planner"] = planner_results(cfg.predictor, cells, out / "planner")
-        report["planner"]["cells"] = counts
+    if grid is not None:
+        counts = run_planner_cells(grid, backend, workers, address, log)
+        report["planner"] = planner_results(grid, cfg.predictor)
+        report["planner"]["cells"] = {"ran": counts["ran"], "skipped": counts["skipped"]}
     report["seconds"] = round(time.perf_counter() - started, 1)
     write_report(report, out)
     return report
-
-
-def _with_overrides(runner: CellRunner, overrides: dict[str, Any]) -> CellRunner:
-    def run(cell: PlannerCell, folder: Path, episodes: int, seed: int) -> None:
-        runner(
-            PlannerCell(cell.scene, cell.arm, cell.predictor, {**overrides, **cell.env_overrides}),
-            folder,
-            episodes,
-            seed,
-        )
-
-    return run
 
 
 # ---------------------------------------------------------------------------- command line
@@ -169,7 +154,11 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--out", default=None, help="output folder (default: runs/bench/PREDICTOR)")
     p.add_argument("--data-dir", default=None, help="ETH/UCY folder (default: $CROWDNAV_MESRNN_DATA, ...)")
     p.add_argument("--no-planner", action="store_true", help="forecast accuracy only (no planner cells)")
-    p.add_argument("--n-envs", type=int, default=4, help="environments per planner evaluation (default: 4)")
+    p.add_argument(
+        "--backend", default="local", choices=("local", "ray"), help="how planner cells run (default: local pool)"
+    )
+    p.add_argument("--workers", type=int, default=None, help="planner cells at a time (default: the ablation's rule)")
+    p.add_argument("--address", default=None, help="Ray cluster address HOST:PORT (--backend ray; default: local)")
     p.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default: 10000)")
     p.add_argument(
         "--block-len",
@@ -193,9 +182,16 @@ def _run(args: argparse.Namespace) -> int:
         data_dir=args.data_dir,
     )
     out = Path(args.out) if args.out else default_out(args.predictor)
-    runner = local_runner(n_envs=args.n_envs)
     command = "crowdnav-mesrnn " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else ""
-    run_bench(cfg, out, runner, command, log=lambda m: print(m, flush=True))
+    run_bench(
+        cfg,
+        out,
+        backend=args.backend,
+        workers=args.workers,
+        address=args.address,
+        command=command,
+        log=lambda m: print(m, flush=True),
+    )
     print(f"report: {out / 'report.md'} (+ report.json{', success_vs_ade.png' if cfg.planner else ''})")
     return 0
 

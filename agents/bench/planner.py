@@ -2,27 +2,26 @@
 predictor's forecasts, against constant velocity, the true future (oracle) and the noisy-oracle sweep on the same
 seeded episodes, with paired tests.
 
-These are the planner cells of the planning-aid ablation (``configs/ablation/planning_aid.yaml``) with one more
-forecast arm. A cell is one (scene, arm) evaluation (:class:`PlannerCell`); :func:`run_cells` runs the cells that
-are not done yet through a runner (:data:`CellRunner`): the local one evaluates them one after another in this
-process. Each cell is a folder holding ``episodes.csv``, ``summary.json`` and ``cell.json`` (its key); a cell whose
-``cell.json`` matches is skipped, so an interrupted bench resumes where it stopped and a re-run recomputes nothing.
-The cells' key holds the predictor's fingerprint (weights, or a plug-in's identity), the episode count and seed.
+These are the planner cells of the planning-aid ablation (``configs/ablation/planning_aid.yaml``) with the
+predictor as one more arm, run by the ablation's grid machinery (:func:`agents.ablation.run_grid`: a local process
+pool, or Ray with ``--backend ray``). Each cell is a folder under ``<out>/cells/`` with its spec and the
+predictor's fingerprint (for a plug-in: its identity and weights, per split); a finished cell whose spec and
+fingerprint match is reused, a stale one re-run, an interrupted one redone, so a bench resumes where it stopped.
 """
 
 from __future__ import annotations
 
-import csv
-import json
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from agents.ablation.cells import Cell, cell_dir, expand
+from agents.ablation.config import AblationConfig, config_from_mapping
+from agents.ablation.episodes import read_episodes
 from agents.stats import holm, mcnemar_exact, wilson_interval
-from crowdnav_mesrnn.utils import atomic_write_json
+from crowdnav_mesrnn.config import ConfigError
 
 #: Held-out scenes of the planning-aid ablation (its planner cells).
 DEFAULT_SCENES: tuple[str, ...] = ("univ", "zara1")
@@ -32,146 +31,89 @@ NOISY_ORACLE_ADE_M: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
 REFERENCES: tuple[str, ...] = ("cv", "oracle")
 
 
-@dataclass(frozen=True)
-class PlannerCell:
-    """One evaluation of the sampling planner: a forecast arm on a held-out scene."""
-
-    scene: str
-    """The split whose held-out scene is replayed."""
-    arm: str
-    """Arm label: the predictor's name, ``cv``, ``oracle`` or ``noisy_oracle_<ade>``."""
-    predictor: str
-    """The environment's ``predictor`` (a forecast source, plug-in name or import path)."""
-    env_overrides: Mapping[str, Any] = field(default_factory=dict)
-    """Environment settings of the arm (``noisy_oracle_ade_m`` for the sweep)."""
-
-    @property
-    def path(self) -> str:
-        """Folder of the cell relative to the bench's ``planner/`` folder."""
-        return f"{self.scene}/{self.arm.replace(':', '_').replace('/', '_')}"
-
-
-def planner_cells(
-    predictor: str, scenes: Sequence[str] = DEFAULT_SCENES, noisy: Sequence[float] = NOISY_ORACLE_ADE_M
-) -> list[PlannerCell]:
-    """The bench's planner cells: per scene the predictor, cv, oracle and the noisy-oracle sweep."""
-    cells = []
-    for scene in scenes:
-        cells.append(PlannerCell(scene, predictor, predictor))
-        cells += [PlannerCell(scene, ref, ref) for ref in REFERENCES if ref != predictor]
-        cells += [
-            PlannerCell(scene, f"noisy_oracle_{ade:g}", "noisy_oracle", {"noisy_oracle_ade_m": float(ade)})
-            for ade in noisy
-        ]
-    return cells
-
-
-#: Runs one cell: ``(cell, folder, episodes, seed) -> None``, writing ``episodes.csv`` and ``summary.json``.
-CellRunner = Callable[[PlannerCell, Path, int, int], None]
-
-
-def local_runner(n_envs: int = 4, progress: bool = False) -> CellRunner:
-    """Evaluate a cell in this process (:func:`agents.evaluate.evaluate` with the sampling planner)."""
-
-    def run(cell: PlannerCell, folder: Path, episodes: int, seed: int) -> None:
-        from agents.evaluate import evaluate
-
-        evaluate(
-            "planner",
-            cell.predictor,
-            cell.scene,
-            episodes,
-            seed=seed,
-            out_dir=folder,
-            env_overrides=dict(cell.env_overrides),
-            n_envs=n_envs,
-            progress=progress,
-        )
-
-    return run
-
-
-def cell_key(cell: PlannerCell, episodes: int, seed: int, fingerprint: str) -> dict[str, Any]:
-    """What a finished cell must match to be reused."""
-    return {"cell": asdict(cell), "episodes": episodes, "seed": seed, "fingerprint": fingerprint}
-
-
-def _done(folder: Path, key: Mapping[str, Any]) -> bool:
-    try:
-        held = json.loads((folder / "cell.json").read_text())
-    except (OSError, ValueError):
-        return False
-    return held == json.loads(json.dumps(key)) and (folder / "episodes.csv").is_file()
-
-
-def run_cells(
-    cells: Sequence[PlannerCell],
+def bench_grid(
+    predictor: str,
     root: str | Path,
-    episodes: int,
-    seed: int,
-    fingerprint_of: Callable[[PlannerCell], str],
-    runner: CellRunner,
+    scenes: Sequence[str] = DEFAULT_SCENES,
+    episodes: int = 500,
+    seed: int = 0,
+    noisy: Sequence[float] = NOISY_ORACLE_ADE_M,
+    env: Mapping[str, Any] | None = None,
+) -> AblationConfig:
+    """The bench's grid: the sampling planner with arms ``predictor``, cv, oracle and the noisy-oracle sweep on
+    ``scenes``; cells under ``root/cells``. Comparisons: the predictor against each reference."""
+    arms = list(dict.fromkeys([predictor, *REFERENCES]))
+    raw: dict[str, Any] = {
+        "name": "bench",
+        "description": f"crowdnav-mesrnn bench {predictor}: the planner cells of the planning-aid ablation",
+        "splits": list(scenes),
+        "arms": [*arms, *(["noisy_oracle"] if noisy else [])],
+        "seeds": [0],
+        "policies": {"planner": {"kind": "planner"}},
+        "evaluation": {"episodes": int(episodes), "seed": int(seed)},
+        "env": dict(env or {}),
+        "comparisons": [[predictor, ref] for ref in REFERENCES if ref != predictor],
+        "runs_dir": str(Path(root) / "cells"),
+        "out_dir": str(Path(root) / "grid"),
+    }
+    if noisy:
+        raw["noisy_oracle_ade_m"] = [float(v) for v in noisy]
+    return config_from_mapping(raw, source="crowdnav-mesrnn bench")
+
+
+def run_planner_cells(
+    cfg: AblationConfig,
+    backend: str = "local",
+    workers: int | None = None,
+    address: str | None = None,
     log: Callable[[str], None] = lambda _m: None,
-) -> dict[str, int]:
-    """Run every cell not yet done (resumable); returns ``{"ran", "skipped"}``.
+) -> dict[str, Any]:
+    """Run the cells not done yet through the grid machinery; ``{"ran", "failed", "skipped", "wall_s"}``.
 
-    Args:
-        fingerprint_of: what determines a cell's forecasts (the predictor's fingerprint for its scene; a constant
-            for cv/oracle/noisy oracle).
-        runner: evaluates one cell (:func:`local_runner`).
+    Raises:
+        RuntimeError: a cell failed (its error, from its ``cell.json``).
     """
-    ran = skipped = 0
-    for cell in cells:
-        folder = Path(root) / cell.path
-        key = cell_key(cell, episodes, seed, fingerprint_of(cell))
-        if _done(folder, key):
-            skipped += 1
-            continue
-        log(f"  planner {cell.scene} / {cell.arm}: {episodes} episodes")
-        runner(cell, folder, episodes, seed)
-        atomic_write_json(folder / "cell.json", key)
-        ran += 1
-    log(f"  planner cells: ran {ran}, reused {skipped}")
-    return {"ran": ran, "skipped": skipped}
+    from agents.ablation.backends import run_grid
+
+    result = run_grid(cfg, backend=backend, workers=workers, address=address, summarize_after=False, out=log)
+    if result["failed"]:
+        name, error = next(iter(result["failed"].items()))
+        raise RuntimeError(f"bench cell {name} failed: {error}")
+    return result
 
 
-def read_cell(root: str | Path, cell: PlannerCell) -> dict[str, Any]:
-    """A finished cell: ``summary`` (summary.json) and ``success`` ``(episodes,)`` bool in episode order."""
-    folder = Path(root) / cell.path
-    summary = json.loads((folder / "summary.json").read_text())
-    with open(folder / "episodes.csv", newline="") as fh:
-        rows = sorted(csv.DictReader(fh), key=lambda r: int(r["episode"]))
-    success = np.array([r["outcome"] == "success" for r in rows], dtype=bool)
-    return {"summary": summary, "success": success}
-
-
-def planner_results(predictor: str, cells: Sequence[PlannerCell], root: str | Path) -> dict[str, Any]:
-    """Per scene and arm: success rate with its Wilson interval and closed-loop forecast ADE; and the paired
-    tests (exact McNemar on success, same episodes) of the predictor against each reference, Holm-corrected over
-    all of them.
-    """
+def planner_results(cfg: AblationConfig, predictor: str) -> dict[str, Any]:
+    """Per scene and arm: success rate with its Wilson interval and closed-loop forecast ADE; and the paired tests
+    (exact McNemar on success, same episodes) of ``predictor`` against each reference, Holm-corrected over all."""
     arms: dict[str, dict[str, Any]] = {}
     success: dict[tuple[str, str], np.ndarray] = {}
-    for cell in cells:
-        data = read_cell(root, cell)
-        s = data["success"]
-        success[(cell.scene, cell.arm)] = s
+    for cell in expand(cfg):
+        s, ade = _cell_outcomes(cfg, cell)
+        success[(cell.split, cell.arm.label)] = s
         lo, hi = wilson_interval(int(s.sum()), len(s))
-        arms.setdefault(cell.scene, {})[cell.arm] = {
+        arms.setdefault(cell.split, {})[cell.arm.label] = {
             "episodes": len(s),
             "success_rate": float(s.mean()) if len(s) else float("nan"),
             "success_ci": [lo, hi],
-            "forecast_ade_m": data["summary"].get("forecast_ade_m_mean"),
-            "noisy_oracle_ade_m": cell.env_overrides.get("noisy_oracle_ade_m"),
+            "forecast_ade_m": ade,
+            "noisy_oracle_ade_m": cell.arm.noisy_oracle_ade_m,
         }
     tests = []
-    for scene in dict.fromkeys(c.scene for c in cells):
-        for ref in REFERENCES:
-            if ref == predictor or (scene, ref) not in success:
-                continue
-            t = mcnemar_exact(success[(scene, predictor)], success[(scene, ref)])
-            tests.append({"scene": scene, "a": predictor, "b": ref, **t})
-    if tests:
-        for t, adj in zip(tests, holm([t["p_value"] for t in tests]), strict=True):
-            t["p_holm"] = adj
+    for scene in cfg.splits:
+        for a, b in cfg.comparisons:
+            t = mcnemar_exact(success[(scene, a)], success[(scene, b)])
+            tests.append({"scene": scene, "a": a, "b": b, **t})
+    for t, adj in zip(tests, holm([t["p_value"] for t in tests]) if tests else [], strict=True):
+        t["p_holm"] = adj
     return {"arms": arms, "tests": tests}
+
+
+def _cell_outcomes(cfg: AblationConfig, cell: Cell) -> tuple[np.ndarray, float | None]:
+    """``success (episodes,)`` bool in episode order and the mean closed-loop forecast ADE of a finished cell."""
+    path = cell_dir(cfg, cell) / "episodes.csv"
+    if not path.is_file():
+        raise ConfigError(f"bench cell {cell.name} has no {path}; run the bench again to finish it")
+    rows = sorted(read_episodes(path), key=lambda r: int(r["episode"]))
+    success = np.array([r["outcome"] == "success" for r in rows], dtype=bool)
+    ades = [float(r["forecast_ade_m"]) for r in rows if r.get("forecast_ade_m") not in (None, "", "nan")]
+    return success, (float(np.mean(ades)) if ades else None)

@@ -12,7 +12,7 @@ import pytest
 
 from agents.bench import BenchConfig, run_bench
 from agents.bench.metrics import protocol_batch_fn
-from agents.bench.planner import PlannerCell, local_runner, planner_cells
+from agents.bench.planner import bench_grid
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data.windows import split_windows
 from crowdnav_mesrnn.evaluation import cv_predict_batch, split_norm, window_errors
@@ -62,28 +62,25 @@ def test_protocol_wrapper_scores_constant_velocity_like_the_batched_code(data_di
     )
 
 
-def test_planner_cells_pair_the_predictor_with_the_references() -> None:
-    cells = planner_cells("mine", ("univ",), (0.5,))
-    assert [c.arm for c in cells] == ["mine", "cv", "oracle", "noisy_oracle_0.5"]
-    assert cells[-1].env_overrides == {"noisy_oracle_ade_m": 0.5}
-    assert [c.arm for c in planner_cells("cv", ("univ",), ())] == ["cv", "oracle"]  # cv is not its own reference
+def test_bench_grid_pairs_the_predictor_with_the_references(tmp_path: Path) -> None:
+    from agents.ablation.cells import expand
+
+    cfg = bench_grid("mesrnn", tmp_path, ("univ",), 10, 0, (0.5,))
+    assert [c.name for c in expand(cfg)] == [
+        f"eval/univ/planner/{a}" for a in ("mesrnn", "cv", "oracle", "noisy_oracle-0.5")
+    ]
+    assert cfg.comparisons == (("mesrnn", "cv"), ("mesrnn", "oracle"))
+    assert [a.label for a in bench_grid("cv", tmp_path, ("univ",), 10, 0, ()).arms] == ["cv", "oracle"]
 
 
 def test_bench_writes_the_report_and_resumes(data_dir: Path, tmp_path: Path, still_plugin: str) -> None:
-    ran: list[str] = []
-    base = local_runner(n_envs=1)
-
-    def runner(cell: PlannerCell, folder: Path, episodes: int, seed: int) -> None:
-        ran.append(cell.arm)
-        base(cell, folder, episodes, seed)
-
     cfg = BenchConfig(
         still_plugin, splits=("eth",), scenes=("zara1",), episodes=3, noisy_oracle_ade_m=(1.0,), resamples=200
     )
     out = tmp_path / "bench"
-    report = run_bench(cfg, out, runner)
-    assert sorted(ran) == sorted([still_plugin, "cv", "oracle", "noisy_oracle_1"])
-    assert {p.name for p in out.iterdir()} >= {"report.md", "report.json", "success_vs_ade.png", "windows", "planner"}
+    report = run_bench(cfg, out, workers=1)
+    assert len(report["planner"]["cells"]["ran"]) == 4
+    assert {p.name for p in out.iterdir()} >= {"report.md", "report.json", "success_vs_ade.png", "windows", "cells"}
     eth = report["predictor_metrics"]["splits"]["eth"]
     assert eth["windows"] == 70 and eth["ade_m"] > eth["cv_ade_m"]  # standing still loses to CV on ETH
     assert eth["ade_m_diff_ci"][0] > 0
@@ -94,15 +91,14 @@ def test_bench_writes_the_report_and_resumes(data_dir: Path, tmp_path: Path, sti
     assert "| eth | 70 |" in page and "exact McNemar" in page and "success_vs_ade.png" in page
     assert json.loads((out / "report.json").read_text())["predictor"] == still_plugin
 
-    ran.clear()
-    run_bench(cfg, out, runner)  # everything done: nothing runs again
-    assert ran == []
+    again = run_bench(cfg, out, workers=1)  # everything done: nothing runs again
+    assert again["planner"]["cells"]["ran"] == []
 
     # a new version of the plug-in (its fingerprint) re-runs its own cell only
-    (Path(sys.modules["still_bench_plugin"].__file__)).write_text(textwrap.dedent(PLUGIN.format(version="2")))
+    Path(sys.modules["still_bench_plugin"].__file__).write_text(textwrap.dedent(PLUGIN.format(version="2")))
     sys.modules.pop("still_bench_plugin", None)
-    run_bench(cfg, out, runner)
-    assert ran == [still_plugin]
+    third = run_bench(cfg, out, workers=1)
+    assert third["planner"]["cells"]["ran"] == [f"eval/zara1/planner/{still_plugin}"]
 
 
 def test_bench_cli_forecast_accuracy_only(data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
