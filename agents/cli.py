@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from crowdnav_mesrnn.data.constants import SPLITS
+from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
 
 _PREDICTORS = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
 
@@ -139,7 +140,7 @@ def add_demo(sub: Any) -> None:
     p.add_argument("--out", default="demo.gif", help="GIF path (default: demo.gif)")
     p.add_argument("--no-gif", action="store_true", help="do not render or write a GIF")
     p.add_argument("--synthetic", action="store_true", help="use the synthetic crowd even when ETH/UCY data is found")
-    p.add_argument("--data-dir", default=None, help="data folder (default: $CROWDNAV_MESRNN_DATA, ...)")
+    p.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     p.add_argument("--json", action="store_true", help="print the metrics as one JSON object")
     p.set_defaults(func=_demo)
 

@@ -26,6 +26,10 @@ def module_main(
     add_arguments(parser)
     args = parser.parse_args(argv)
     try:
+        if getattr(args, "data_dir_env", None):
+            from crowdnav_mesrnn.data.paths import use_data_dir
+
+            use_data_dir(args.data_dir_env)
         return run(args)
     except (ConfigError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)

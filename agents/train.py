@@ -71,6 +71,7 @@ from agents.evaluate import SB3Policy, evaluation_seeds, parse_set, prepare_fore
 from agents.pretrain import PretrainConfig
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import SPLITS
+from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
 from envs.config import FORECAST_SOURCES, LEARNED_SOURCES, check_predictor_name, config_from, episode_recordings
 
@@ -939,6 +940,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         "package.module:Factory (default: mesrnn)",
     )
     p.add_argument("--split", default=None, choices=SPLITS, help="train on its four training scenes (default: zara1)")
+    p.add_argument("--data-dir", dest="data_dir_env", default=None, help=DATA_DIR_ENV_HELP)
     p.add_argument("--seed", type=int, default=None, help="seed (default: 0)")
     p.add_argument("--timesteps", type=float, default=None, help="total environment steps (overrides n_timesteps)")
     p.add_argument("--out", default=None, help="run folder (default: runs/<algo>_<predictor>_<split>_s<seed>_<time>)")

@@ -71,11 +71,9 @@ def _data_download(args: argparse.Namespace) -> int:
     return 0
 
 
-DATA_DIR_HELP = "ETH/UCY folder (default: $CROWDNAV_MESRNN_DATA, ./data/eth_ucy, ~/.cache/crowdnav-mesrnn/eth_ucy)"
-
-
 def add_data(sub: Any) -> None:
     from crowdnav_mesrnn.data.download import DEFAULT_DEST, DEFAULT_TIMEOUT_S
+    from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
 
     p = sub.add_parser("data", help="download, inspect and verify the ETH/UCY data")
     dsub = p.add_subparsers(dest="data_cmd", required=True)
@@ -135,6 +133,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser(command if command in COMMANDS else None)
     args = parser.parse_args(argv)
     try:
+        if getattr(args, "data_dir_env", None):  # commands whose workers find the data through the variable
+            from crowdnav_mesrnn.data.paths import use_data_dir
+
+            use_data_dir(args.data_dir_env)
         return int(args.func(args) or 0)
     except (DataNotFoundError, DataFormatError, ConfigError, FileNotFoundError, ValueError) as exc:
         print(f"crowdnav-mesrnn: error: {exc}", file=sys.stderr)

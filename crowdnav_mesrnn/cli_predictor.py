@@ -11,6 +11,7 @@ from typing import Any
 import yaml
 
 from crowdnav_mesrnn.data.constants import SPLITS
+from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
 from crowdnav_mesrnn.models.base import LEARNED_MODELS, MODELS
 
 
@@ -180,43 +181,49 @@ def _plot(args: argparse.Namespace) -> int:
 
 def add_parser(sub: Any) -> None:
     p = sub.add_parser("predictor", help="train, evaluate, export and plot trajectory predictors")
-    psub = p.add_subparsers(dest="predictor_cmd", required=True)
+    psub = p.add_subparsers(dest="predictor_cmd", required=True, metavar="ACTION")
 
     t = psub.add_parser("train", help="train a structural RNN on a split's train part (val for selection)")
-    t.add_argument("--model", required=True, choices=LEARNED_MODELS)
-    t.add_argument("--split", required=True, choices=SPLITS)
+    t.add_argument("--model", required=True, choices=LEARNED_MODELS, help="which structural RNN")
+    t.add_argument("--split", required=True, choices=SPLITS, help="leave-one-out split: trained without its test scene")
     t.add_argument("--config", default=None, help="YAML with model: and train: (default configs/predictor/MODEL.yaml)")
     t.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a model or train key")
-    t.add_argument("--epochs", type=int, default=None)
+    t.add_argument("--epochs", type=int, default=None, help="epochs (default: the config's train.epochs)")
     t.add_argument("--out", default=None, help="run folder (default runs/predictor/MODEL_SPLIT)")
     t.add_argument("--resume", action="store_true", help="continue the run in --out from last.pt")
-    t.add_argument("--data-dir", default=None)
+    t.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     t.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     t.add_argument("--tensorboard", action="store_true", help="log to RUN/tb (needs the tb extra)")
-    t.add_argument("--no-progress", action="store_true")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=_train)
 
-    e = psub.add_parser("eval", help="ADE/FDE on the test parts with a true autoregressive rollout")
-    e.add_argument("--model", required=True, choices=MODELS)
-    e.add_argument("--split", default="all", choices=(*SPLITS, "all"))
-    e.add_argument("--part", default="test", choices=("test", "val"))
+    e = psub.add_parser(
+        "evaluate",
+        aliases=["eval"],
+        help="ADE/FDE on the test parts with a true autoregressive rollout (alias: eval)",
+        description="ADE/FDE of a shipped model, a checkpoint or constant velocity on the leave-one-out test (or "
+        "val) parts. Any predictor plug-in: crowdnav-mesrnn bench PREDICTOR --no-planner.",
+    )
+    e.add_argument("--model", required=True, choices=MODELS, help="which model (shipped weights unless --checkpoint)")
+    e.add_argument("--split", default="all", choices=(*SPLITS, "all"), help="split(s) to score (default: all)")
+    e.add_argument("--part", default="test", choices=("test", "val"), help="part of the split (default: test)")
     e.add_argument("--checkpoint", default=None, help="checkpoint path; may contain {split} and {model}")
-    e.add_argument("--json", action="store_true")
+    e.add_argument("--json", action="store_true", help="print the result as one JSON object")
     e.add_argument("--out", default=None, help="also write the JSON result here (atomically)")
-    e.add_argument("--data-dir", default=None)
-    e.add_argument("--threads", type=int, default=1)
+    e.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
+    e.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     e.set_defaults(func=_eval)
 
     x = psub.add_parser("export", help="copy a trained checkpoint into the package's pretrained weights")
-    x.add_argument("checkpoint")
-    x.add_argument("--model", required=True, choices=LEARNED_MODELS)
-    x.add_argument("--split", required=True, choices=SPLITS)
+    x.add_argument("checkpoint", help="a training checkpoint (RUN/best.pt)")
+    x.add_argument("--model", required=True, choices=LEARNED_MODELS, help="the model it holds (checked)")
+    x.add_argument("--split", required=True, choices=SPLITS, help="the split it was trained for (checked)")
     x.add_argument("--note", default="", help="why this configuration was selected")
     x.set_defaults(func=_export)
 
     sel = psub.add_parser("select", help="export the run with the lowest validation ADE as the shipped weights")
-    sel.add_argument("--model", required=True, choices=LEARNED_MODELS)
-    sel.add_argument("--split", required=True, choices=SPLITS)
+    sel.add_argument("--model", required=True, choices=LEARNED_MODELS, help="the model the runs hold (checked)")
+    sel.add_argument("--split", required=True, choices=SPLITS, help="the split they were trained for (checked)")
     sel.add_argument("runs", nargs="+", help="run folders holding best.pt")
     sel.set_defaults(func=_select)
 
@@ -228,8 +235,8 @@ def add_parser(sub: Any) -> None:
     r.add_argument("--plan", default=None, help="plan file whose seeds to report (configs/predictor/candidates.yaml)")
     r.add_argument("--block-len", type=int, default=20, help="block bootstrap block length in windows (default 20)")
     r.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
-    r.add_argument("--data-dir", default=None)
-    r.add_argument("--threads", type=int, default=1)
+    r.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
+    r.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     r.add_argument(
         "--render-only", action="store_true", help="rewrite the page from its .json (after a change of wording only)"
     )
@@ -248,19 +255,21 @@ def add_parser(sub: Any) -> None:
         "Finished runs are skipped, interrupted ones resumed.",
     )
     pl.add_argument("file", help="plan file, e.g. configs/predictor/candidates.yaml")
-    pl.add_argument("--stage", default="all", choices=("candidates", "seeds", "all", "export"))
+    pl.add_argument(
+        "--stage", default="all", choices=("candidates", "seeds", "all", "export"), help="which stage (default: all)"
+    )
     pl.add_argument("--dry-run", action="store_true", help="print every run, its status and the CPU-time estimate")
     pl.add_argument("--shard", default="0/1", metavar="I/N", help="run only runs I, I+N, ... (one process per core)")
     pl.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     pl.add_argument("--measure-batches", type=int, default=3, help="training batches timed per config (dry run)")
     pl.add_argument("--remeasure", action="store_true", help="ignore the cached throughputs (dry run)")
-    pl.add_argument("--data-dir", default=None)
+    pl.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     pl.set_defaults(func=_plan)
 
     g = psub.add_parser("plot", help="draw observed paths, true futures and forecasts of one test window")
-    g.add_argument("--split", required=True, choices=SPLITS)
+    g.add_argument("--split", required=True, choices=SPLITS, help="whose test windows (its held-out scene)")
     g.add_argument("--window", type=int, required=True, help="index among the split's test windows (>= 2 scored)")
-    g.add_argument("--models", default="cv,vlstm,srnn,mesrnn")
+    g.add_argument("--models", default="cv,vlstm,srnn,mesrnn", help="comma-separated models to draw (default: all)")
     g.add_argument("--out", default=None, help="PNG path (default docs/results/SPLIT_window_N.png)")
-    g.add_argument("--data-dir", default=None)
+    g.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     g.set_defaults(func=_plot)

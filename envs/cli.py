@@ -11,6 +11,7 @@ import json
 from typing import Any
 
 from crowdnav_mesrnn.data.constants import SPLITS
+from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
 from envs.config import FORECAST_MEMORIES, LEARNED_SOURCES
 
 
@@ -81,7 +82,7 @@ def add_forecasts(sub: Any) -> None:
     b.add_argument("--split", default=None, choices=SPLITS, help="default: every replayable recording")
     b.add_argument("--part", default="all", choices=("train", "test", "all"), help="default: all")
     b.add_argument("--memory", default="window", choices=FORECAST_MEMORIES, help="forecast memory (default: window)")
-    b.add_argument("--data-dir", default=None, help="data folder (default: $CROWDNAV_MESRNN_DATA, ...)")
+    b.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     b.add_argument("--cache-dir", default=None, help="cache folder (default: $CROWDNAV_MESRNN_CACHE, ...)")
     b.add_argument("--threads", type=int, default=1, help="torch threads (default: 1)")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")

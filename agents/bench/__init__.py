@@ -32,6 +32,7 @@ from agents.bench.planner import (
 )
 from agents.bench.report import write_report
 from crowdnav_mesrnn.data.constants import SPLITS
+from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
 from crowdnav_mesrnn.stats import DEFAULT_BLOCK_LEN
 
 __all__ = ["BenchConfig", "run_bench"]
@@ -59,8 +60,6 @@ class BenchConfig:
     """Moving-block length of the bootstrap, windows."""
     resamples: int = 10_000
     """Bootstrap resamples."""
-    data_dir: str | None = None
-    """ETH/UCY folder (default: the usual search)."""
 
 
 def default_out(predictor: str) -> Path:
@@ -81,7 +80,13 @@ def run_bench(
     """Run (or resume) a bench and write its report into ``out_dir``; returns the report's content.
 
     Args:
-        backend, workers, address: how the planner cells run (:func:`agents.ablation.run_grid`).
+        cfg: what to run.
+        out_dir: the bench's folder (report, cached window errors, planner cells).
+        backend: how the planner cells run: ``local`` (a process pool) or ``ray`` (:func:`agents.ablation.run_grid`).
+        workers: planner cells at a time (default: the grid's rule).
+        address: a Ray cluster's address (default: a local Ray instance).
+        command: the command line recorded in the report.
+        log: called with one line of progress text at a time.
 
     Raises:
         ValueError: bad settings (unknown split, scene, predictor; episodes < 1).
@@ -99,8 +104,7 @@ def run_bench(
     out = Path(out_dir)
     grid = None
     if cfg.planner and cfg.scenes:  # built first: a bad setting fails before any work
-        env = {"data_dir": cfg.data_dir} if cfg.data_dir else {}
-        grid = bench_grid(cfg.predictor, out, cfg.scenes, cfg.episodes, cfg.seed, cfg.noisy_oracle_ade_m, env)
+        grid = bench_grid(cfg.predictor, out, cfg.scenes, cfg.episodes, cfg.seed, cfg.noisy_oracle_ade_m)
     started = time.perf_counter()
     report: dict[str, Any] = {
         "predictor": cfg.predictor,
@@ -113,7 +117,7 @@ def run_bench(
     if cfg.splits:
         log(f"forecast accuracy of {cfg.predictor} on {', '.join(cfg.splits)}")
         report["predictor_metrics"] = predictor_metrics(
-            cfg.predictor, cfg.splits, out / "windows", cfg.data_dir, cfg.block_len, cfg.resamples, 0, log
+            cfg.predictor, cfg.splits, out / "windows", None, cfg.block_len, cfg.resamples, 0, log
         )
     if grid is not None:
         counts = run_planner_cells(grid, backend, workers, address, log)
@@ -152,7 +156,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--episodes", type=int, default=500, help="episodes per planner cell (default: 500)")
     p.add_argument("--seed", type=int, default=0, help="which seeded list of episodes (default: 0)")
     p.add_argument("--out", default=None, help="output folder (default: runs/bench/PREDICTOR)")
-    p.add_argument("--data-dir", default=None, help="ETH/UCY folder (default: $CROWDNAV_MESRNN_DATA, ...)")
+    p.add_argument("--data-dir", dest="data_dir_env", default=None, help=DATA_DIR_ENV_HELP)
     p.add_argument("--no-planner", action="store_true", help="forecast accuracy only (no planner cells)")
     p.add_argument(
         "--backend", default="local", choices=("local", "ray"), help="how planner cells run (default: local pool)"
@@ -179,7 +183,6 @@ def _run(args: argparse.Namespace) -> int:
         planner=not args.no_planner,
         block_len=args.block_len,
         resamples=args.resamples,
-        data_dir=args.data_dir,
     )
     out = Path(args.out) if args.out else default_out(args.predictor)
     command = "crowdnav-mesrnn " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else ""

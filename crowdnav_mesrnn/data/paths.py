@@ -20,6 +20,13 @@ HOW_TO_GET_DATA = (
 )
 
 
+#: Help text of every ``--data-dir`` option.
+DATA_DIR_HELP = f"ETH/UCY folder (default: ${ENV_VAR}, ./data/eth_ucy, ~/.cache/crowdnav-mesrnn/eth_ucy)"
+#: Help text of ``--data-dir`` on commands whose environments and workers find the data through ``$ENV_VAR``
+#: (:func:`use_data_dir`).
+DATA_DIR_ENV_HELP = f"{DATA_DIR_HELP}; sets ${ENV_VAR} for this command and its workers"
+
+
 class DataNotFoundError(FileNotFoundError):
     """No ETH/UCY data folder was found; the message lists where the project looked."""
 
@@ -68,3 +75,15 @@ def data_available(data_dir: str | os.PathLike[str] | None = None) -> bool:
     except DataNotFoundError:
         return False
     return True
+
+
+def use_data_dir(data_dir: str | os.PathLike[str]) -> Path:
+    """Check ``data_dir`` holds the data and set ``$CROWDNAV_MESRNN_DATA`` to it for this process and the worker
+    processes it starts (commands whose environments and grid cells find the data through the variable).
+
+    Raises:
+        DataNotFoundError: ``data_dir`` holds no ``all_data/``.
+    """
+    path = find_data_dir(data_dir).resolve()
+    os.environ[ENV_VAR] = str(path)
+    return path
