@@ -102,9 +102,12 @@ def _demo(args: argparse.Namespace) -> int:
         record = {"scene": info["recording"], "predictor": env.predictor_name, "policy": str(spec), **metrics}
         print(json.dumps(record, indent=2))
     else:
-        width = max(len(k) for k in metrics)
+        from envs.rewards import METRIC_LABELS
+
+        labels = {key: METRIC_LABELS.get(key, key) for key in metrics}
+        width = max(len(v) for v in labels.values())
         for key, value in metrics.items():
-            print(f"  {key:<{width}}  {_fmt(value)}")
+            print(f"  {labels[key]:<{width}}  {_fmt(value)}")
     if not args.no_gif:
         path = save_gif(frames, args.out, fps=env.metadata["render_fps"])
         print(f"wrote {path} ({len(frames)} frames)")

@@ -481,6 +481,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._done = False
         self._started = True
         self._collided_last = False
+        self._outcome: str | None = None  # drawn on the frames once the episode has ended
         self._touch_fault: dict[int, str] = {}
         self._trails: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=cfg.render_trail_steps)
         k0 = round(ep.t0_s / cfg.dt_s)
@@ -599,6 +600,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                 outcome = "success"
             else:
                 outcome = "timeout"
+            self._outcome = outcome
             # info["episode"] belongs to Gymnasium's RecordEpisodeStatistics and SB3's Monitor
             self._forecast_errors()
             info["episode_metrics"] = self._metrics.summary(outcome, self._n * cfg.dt_s, self.with_forecasts)
@@ -726,7 +728,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             pts = [p[row] for p, pr in self._trails if pr[row]]
             trails.append(np.array(pts))
         ep = self.episode
-        status = f"{ep.recording.name}  t={self._n * cfg.dt_s:4.1f}s  forecasts: {self.predictor_name}"
+        status = f"scene {ep.recording.name}   t = {self._n * cfg.dt_s:4.1f} s   forecasts: {self.predictor_name}"
         scene = Scene(
             robot=self.world.robot_position,
             robot_radius_m=cfg.robot_radius_m,
@@ -742,6 +744,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             center=self._view_center(),
             text=status,
             collided=self._collided_last,
+            outcome=getattr(self, "_outcome", None),
+            forecast_source=self.predictor_name if self.with_forecasts else None,
         )
         return self._renderer.draw(scene)
 

@@ -38,8 +38,22 @@ UNSEEN = (160, 170, 190)
 TRAIL = (150, 175, 225)
 FORECAST = (240, 140, 20)
 TRUTH = (120, 120, 120)
-SENSOR = (225, 225, 240)
+SENSOR = (200, 200, 225)
 TEXT = (30, 30, 30)
+SCALE_BAR = (20, 20, 20)
+PANEL = (255, 255, 255)
+PANEL_EDGE = (200, 200, 200)
+#: Banner colour of each episode outcome.
+OUTCOME_COLOURS = {"success": (40, 150, 60), "collision": (200, 40, 30), "timeout": (200, 130, 20)}
+#: Banner text of each episode outcome.
+OUTCOME_TEXT = {
+    "success": "SUCCESS: reached the goal",
+    "collision": "COLLISION",
+    "timeout": "TIMEOUT: time limit reached",
+}
+#: Scale-bar lengths tried, metres (the shortest at least :data:`SCALE_BAR_MIN_PX` long is drawn).
+SCALE_BAR_STEPS_M = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
+SCALE_BAR_MIN_PX = 50
 #: Pixel coordinates and radii are clipped to this (Pillow overflows on huge ones, and slows down from ~1e5).
 FAR_PX = 1 << 16
 HUMAN_NEEDS_PYGAME = (
@@ -64,8 +78,12 @@ class Scene:
         forecasts: ``(m, H, 2)`` forecasts of the observed pedestrians (or None).
         sensor_range_m: sensor range.
         center: ``(2,)`` centre of the view.
-        text: a status line.
+        text: the title line (scene, time, forecast source).
         collided: draw the robot as collided.
+        outcome: the episode's outcome once it has ended (``success``, ``collision``, ``timeout``), drawn as a
+            banner; None while it runs.
+        forecast_source: name of the forecast source, for the legend (None: a legend entry only on frames with
+            forecasts).
     """
 
     robot: np.ndarray
@@ -82,6 +100,29 @@ class Scene:
     center: np.ndarray
     text: str
     collided: bool = False
+    outcome: str | None = None
+    forecast_source: str | None = None
+
+
+def scale_bar_m(px_per_m: float) -> float:
+    """Length of the scale bar, metres: the shortest of :data:`SCALE_BAR_STEPS_M` drawn at least
+    :data:`SCALE_BAR_MIN_PX` pixels long (the longest when none is)."""
+    for length in SCALE_BAR_STEPS_M:
+        if length * px_per_m >= SCALE_BAR_MIN_PX:
+            return length
+    return SCALE_BAR_STEPS_M[-1]
+
+
+def _font(size: int) -> Any:
+    """Pillow's default font at ``size`` px (a scalable one when Pillow has FreeType), or None."""
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1: the fixed bitmap font
+        return ImageFont.load_default()
+    except OSError:  # fonts are optional decoration
+        return None
 
 
 class Renderer:
@@ -98,8 +139,6 @@ class Renderer:
     """
 
     def __init__(self, size_px: tuple[int, int], px_per_m: float, mode: str, fps: float) -> None:
-        from PIL import ImageFont
-
         self.size = (int(size_px[0]), int(size_px[1]))
         self.scale = float(px_per_m)
         self.mode = mode
@@ -119,10 +158,9 @@ class Renderer:
             self.window = pygame.display.set_mode(self.size)
             pygame.display.set_caption("CrowdNav-MESRNN")
             self.clock = pygame.time.Clock()
-        try:
-            self.font: Any = ImageFont.load_default()
-        except OSError:  # fonts are optional decoration
-            self.font = None
+        self.font: Any = _font(14)
+        self.small: Any = _font(12)
+        self.big: Any = _font(20)
 
     def to_px(self, p: np.ndarray, center: np.ndarray) -> tuple[int, int]:
         """Pixel of a world point, clipped to :data:`FAR_PX` around the frame (Pillow overflows far beyond it)."""
@@ -182,8 +220,14 @@ class Renderer:
         disk(scene.robot, scene.robot_radius_m, (0, 0, 0) if scene.collided else ROBOT)
         tip = scene.robot + scene.robot_radius_m * np.array([np.cos(scene.heading), np.sin(scene.heading)])
         pen.line((*self.to_px(scene.robot, c), *self.to_px(tip, c)), fill=(255, 255, 255), width=2)
+        self._legend(pen, scene)
+        self._scale_bar(pen)
         if self.font is not None and scene.text:
-            pen.text((8, 8), scene.text, fill=TEXT, font=self.font)
+            pen.rectangle((0, 0, width, 24), fill=PANEL)
+            pen.line((0, 24, width, 24), fill=PANEL_EDGE)
+            pen.text((8, 4), scene.text, fill=TEXT, font=self.font)
+        if scene.outcome is not None:
+            self._banner(pen, scene.outcome)
         frame = np.asarray(image, dtype=np.uint8)
         if self.mode == "human":
             pg = self.pygame
@@ -193,6 +237,69 @@ class Renderer:
             self.clock.tick(self.fps)
             return None
         return frame.copy()
+
+    def _legend(self, pen: Any, scene: Scene) -> None:
+        """Key of the symbols, bottom left: robot, goal, observed and unobserved pedestrians, trail, forecast
+        (when drawn), sensor range."""
+        if self.small is None:
+            return
+        items: list[tuple[str, str, tuple[int, int, int]]] = [
+            ("disk", "robot", ROBOT),
+            ("goal", "goal", GOAL),
+            ("disk", "observed pedestrian", PEDESTRIAN),
+            ("disk", "unobserved pedestrian", UNSEEN),
+            ("line", "observed path", TRAIL),
+        ]
+        if scene.forecast_source is not None:
+            items.append(("dots", f"forecast ({scene.forecast_source})", FORECAST))
+        elif scene.forecasts is not None:
+            items.append(("dots", "forecast", FORECAST))
+        items.append(("ring", f"sensor range ({scene.sensor_range_m:g} m)", SENSOR))
+        row, pad = 16, 6
+        w = 24 + max(round(pen.textlength(label, font=self.small)) for _, label, _ in items) + 2 * pad
+        h = row * len(items) + 2 * pad
+        x0, y0 = pad, self.size[1] - h - pad
+        pen.rectangle((x0, y0, x0 + w, y0 + h), fill=PANEL, outline=PANEL_EDGE)
+        for k, (kind, label, colour) in enumerate(items):
+            cx, cy = x0 + pad + 8, y0 + pad + row * k + row // 2
+            if kind == "disk":
+                pen.ellipse((cx - 5, cy - 5, cx + 5, cy + 5), fill=colour)
+            elif kind == "goal":
+                pen.ellipse((cx - 6, cy - 6, cx + 6, cy + 6), outline=colour, width=2)
+                pen.line((cx - 4, cy - 4, cx + 4, cy + 4), fill=colour, width=2)
+                pen.line((cx - 4, cy + 4, cx + 4, cy - 4), fill=colour, width=2)
+            elif kind == "line":
+                pen.line((cx - 8, cy, cx + 8, cy), fill=colour, width=2)
+            elif kind == "dots":
+                for dx in (-8, -2, 4):
+                    pen.ellipse((cx + dx - 2, cy - 2, cx + dx + 2, cy + 2), fill=colour)
+            else:
+                pen.ellipse((cx - 6, cy - 6, cx + 6, cy + 6), outline=colour, width=1)
+            pen.text((cx + 14, cy - 7), label, fill=TEXT, font=self.small)
+
+    def _scale_bar(self, pen: Any) -> None:
+        """A bar of :func:`scale_bar_m` metres with its length written above it, bottom right."""
+        length = scale_bar_m(self.scale)
+        px = round(length * self.scale)
+        x1, y = self.size[0] - 12, self.size[1] - 14
+        x0 = x1 - px
+        pen.line((x0, y, x1, y), fill=SCALE_BAR, width=3)
+        pen.line((x0, y - 5, x0, y + 4), fill=SCALE_BAR, width=2)
+        pen.line((x1, y - 5, x1, y + 4), fill=SCALE_BAR, width=2)
+        if self.small is not None:
+            label = f"{length:g} m"
+            tw = pen.textlength(label, font=self.small)
+            pen.text(((x0 + x1 - tw) / 2, y - 20), label, fill=SCALE_BAR, font=self.small)
+
+    def _banner(self, pen: Any, outcome: str) -> None:
+        """The episode's outcome across the top of the last frame."""
+        colour = OUTCOME_COLOURS.get(outcome, TEXT)
+        text = OUTCOME_TEXT.get(outcome, outcome.upper())
+        font = self.big or self.font
+        tw = pen.textlength(text, font=font) if font is not None else 8 * len(text)
+        x0 = (self.size[0] - tw) / 2 - 12
+        pen.rectangle((x0, 32, x0 + tw + 24, 64), fill=colour)
+        pen.text((x0 + 12, 37), text, fill=(255, 255, 255), font=font)
 
     def close(self) -> None:
         if self.window is not None:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 
@@ -65,6 +65,29 @@ def reward_components(
 def total_reward(components: dict[str, float]) -> float:
     """The reward: the plain sum of the components in :data:`REWARD_COMPONENTS` order."""
     return float(sum(components[k] for k in REWARD_COMPONENTS))
+
+
+#: A readable name of every key of the episode metrics (:meth:`EpisodeMetrics.summary`), with its unit.
+METRIC_LABELS: Final[dict[str, str]] = {
+    "outcome": "outcome",
+    "collision_fault": "collision: who moved into whom",
+    "collisions": "collisions (contacts begun)",
+    "navigation_time_s": "navigation time, s",
+    "path_length_m": "path length, m",
+    "path_ratio": "path length / straight-line distance",
+    "min_gap_m": "closest gap to a pedestrian, m",
+    "discomfort_frequency": "share of steps closer than the discomfort distance",
+    "intrusion_ratio": "share of steps on a pedestrian's future path",
+    "mean_jerk_mps3": "mean jerk, m/s^3",
+    "forecast_ade_m": "forecast error, average over the horizon (ADE), m",
+    "forecast_fde_m": "forecast error at the horizon's end (FDE), m",
+    "mean_visible_pedestrians": "pedestrians observed per step (mean)",
+    "crowd_density": "crowd density: pedestrians near the straight path (mean)",
+    "pedestrians_near_path": "pedestrians near the straight path (distinct)",
+    "steps": "steps",
+    "r": "return (sum of rewards)",
+    "l": "length, steps",
+}
 
 
 @dataclass
