@@ -13,6 +13,15 @@ import numpy as np
 from agents.ablation.config import OUTCOMES
 from crowdnav_mesrnn.utils import atomic_write
 
+#: Arms drawn in the density plot, each in its own fixed colour (the sweep and the other predictors are in
+#: ``rates_vs_ade.png``; ten lines in one panel cannot be told apart).
+DENSITY_ARMS: dict[str, str] = {"none": "tab:grey", "cv": "tab:blue", "mesrnn": "tab:orange", "oracle": "tab:green"}
+
+
+def _edge(value: float) -> str:
+    """A density bin edge: whole pedestrians as integers, others to one decimal."""
+    return f"{value:.0f}" if float(value).is_integer() else f"{value:.1f}"
+
 
 def _err(entry: Mapping[str, Any], key: str) -> tuple[float, float, float]:
     rate = entry.get(f"{key}_rate")
@@ -62,9 +71,17 @@ def write_plots(summary: Mapping[str, Any], dest: Path) -> list[str]:
                 if e["predictor"] == "oracle" and ade is None:
                     ade = 0.0
                 r, lo, hi = _err(e, o)
-                if ade is None:  # the none arm: a horizontal reference
+                if ade is None:  # the none arm: a horizontal reference, labelled at the right edge
                     ax.axhline(r, color=colours[o], ls=":", lw=1)
-                    ax.annotate(f"{arm} ({o})", (0.0, r), fontsize=7, color=colours[o], va="bottom")
+                    ax.annotate(
+                        f"{arm} ({o})",
+                        (1.0, r),
+                        xycoords=("axes fraction", "data"),
+                        fontsize=7,
+                        color=colours[o],
+                        ha="right",
+                        va="bottom",
+                    )
                     continue
                 pts.append((ade, r, lo, hi, arm, e["predictor"]))
             pts.sort()
@@ -75,8 +92,8 @@ def write_plots(summary: Mapping[str, Any], dest: Path) -> list[str]:
             sweep = np.asarray([p[:2] for p in pts if p[5] in ("noisy_oracle", "oracle")], dtype=float)
             if len(sweep) > 1:
                 ax.plot(sweep[:, 0], sweep[:, 1], "--", color=colours[o], lw=1)
-            for ade, r, _, _, arm, _ in pts:
-                ax.annotate(arm, (ade, r), fontsize=7, xytext=(3, 3), textcoords="offset points")
+            if o == "success":  # arm names once per arm (collision points share the x of their success point)
+                _label_points(ax, [(p[0], p[1], p[4]) for p in pts])
         ax.set_title(name)
         ax.set_xlabel("closed-loop forecast ADE (m)")
         ax.set_ylim(0, 1)
@@ -85,42 +102,76 @@ def write_plots(summary: Mapping[str, Any], dest: Path) -> list[str]:
     edges = summary.get("density_bins") or []
     if len(edges) >= 2:
         fig, axes = plt.subplots(2, len(policies), figsize=(5 * len(policies), 6), squeeze=False, sharey=True)
-        labels = [f"{lo:.1f}-{hi:.1f}" for lo, hi in itertools.pairwise(edges)]
+        labels = [f"{_edge(lo)}-{_edge(hi)}" for lo, hi in itertools.pairwise(edges)]
         for col, (name, pol) in enumerate(policies.items()):
+            shown = {a: e for a, e in pol["arms"].items() if a in DENSITY_ARMS} or pol["arms"]
             for row, o in enumerate(("success", "collision")):
                 ax = axes[row][col]
-                n_arms = max(len(pol["arms"]), 1)
-                for k, (arm, e) in enumerate(pol["arms"].items()):
+                n_arms = max(len(shown), 1)
+                for k, (arm, e) in enumerate(shown.items()):
                     vals = np.asarray([_err(b, o) for b in e["by_density"]])
                     if vals.size == 0:
                         continue
                     x = np.arange(len(vals)) + (k - (n_arms - 1) / 2) * 0.8 / n_arms
-                    ax.errorbar(x, vals[:, 0], yerr=vals[:, 1:].T, fmt="o-", capsize=2, label=arm, ms=3)
+                    colour = DENSITY_ARMS.get(arm)
+                    ax.errorbar(x, vals[:, 0], yerr=vals[:, 1:].T, fmt="o-", capsize=2, label=arm, ms=3, color=colour)
                 ax.set_xticks(np.arange(len(labels)), labels)
                 ax.set_ylim(0, 1)
                 ax.set_title(f"{name}: {o}")
                 if row == 1:
-                    ax.set_xlabel("crowd density (pedestrians near the path)")
-            if axes[0][col].get_legend_handles_labels()[0]:
-                axes[0][col].legend(fontsize=7)
+                    ax.set_xlabel("crowd density: mean pedestrians near the path")
         axes[0][0].set_ylabel("success rate")
         axes[1][0].set_ylabel("collision rate")
-        fig.tight_layout()
+        fig.tight_layout(rect=(0.0, 0.0, 1.0, _figure_legend(fig, axes)))
         written.append(str(_save(fig, dest / "rates_by_density.png")))
         plt.close(fig)
     return written
 
 
+def _label_points(ax: Any, points: list[tuple[float, float, str]]) -> None:
+    """Name each point without labels overlapping: labels of points closer than a tenth of the x range are stacked
+    at least 4 % of the y range apart, and joined to their point by a thin line when moved."""
+    if not points:
+        return
+    x0, x1 = ax.get_xlim()
+    y0, y1 = ax.get_ylim()
+    near, gap = 0.1 * (x1 - x0), 0.065 * (y1 - y0)
+    placed: list[tuple[float, float]] = []
+    for x, y, name in sorted(points, key=lambda p: (-p[1], p[0])):
+        ly = y + 0.02 * (y1 - y0)
+        while any(abs(x - px) < near and abs(ly - py) < gap for px, py in placed):
+            ly -= gap
+        placed.append((x, ly))
+        moved = abs(ly - y) > 0.04 * (y1 - y0)
+        ax.annotate(
+            name,
+            (x, y),
+            xytext=(x + 0.03 * (x1 - x0), ly),
+            fontsize=7,
+            va="center",
+            arrowprops={"arrowstyle": "-", "lw": 0.6, "color": "0.4", "shrinkA": 0, "shrinkB": 3} if moved else None,
+        )
+
+
+def _figure_legend(fig: Any, axes: Any) -> float:
+    """One legend for the whole figure, above the panels (never over a bar or a point); returns the top of the
+    panels' area (a figure fraction) to leave it room."""
+    for ax in np.ravel(axes):
+        handles, labels = ax.get_legend_handles_labels()
+        if handles:
+            fig.legend(handles, labels, loc="upper center", ncol=min(len(labels), 6), fontsize=8, frameon=False)
+            rows = math.ceil(len(labels) / 6)
+            return 1.0 - (0.1 + 0.25 * rows) / fig.get_figheight()
+    return 1.0
+
+
 def _finish(fig: Any, axes: Any, path: Path) -> str:
-    """Label and save a figure of rates (legends in the first row), then close it."""
+    """Label and save a figure of rates (one legend above the panels), then close it."""
     import matplotlib.pyplot as plt
 
     for row in axes:
         row[0].set_ylabel("rate (95 % Wilson CI)")
-    for ax in axes[0]:
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, _figure_legend(fig, axes)))
     saved = _save(fig, path)
     plt.close(fig)
     return str(saved)

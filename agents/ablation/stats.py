@@ -13,7 +13,8 @@ from agents.ablation.episodes import _Episodes
 
 
 def density_edges(cfg: AblationConfig, pooled: Mapping[tuple[str, str], _Episodes]) -> list[float]:
-    """Crowd-density bin edges: the configured edges, or quantiles over the fixed episode list of every split.
+    """Crowd-density bin edges: the configured edges, or quantiles over the fixed episode list of every split,
+    rounded to whole pedestrians.
 
     The episode list is the same in every cell of a split, so each (split, episode) counts once.
     """
@@ -28,6 +29,9 @@ def density_edges(cfg: AblationConfig, pooled: Mapping[tuple[str, str], _Episode
         return []
     values = np.asarray(list(per_episode.values()))
     edges = np.quantile(values, np.linspace(0.0, 1.0, cfg.density_bins + 1))
+    # whole pedestrians: the density counts people, so the bins are read as "1-5 pedestrians" (the outer edges
+    # rounded outwards, so every episode stays inside)
+    edges = np.concatenate([[np.floor(edges[0])], np.round(edges[1:-1]), [np.ceil(edges[-1])]])
     edges = np.unique(edges)
     return [float(e) for e in edges] if edges.size >= 2 else [float(values.min()), float(values.max())]
 

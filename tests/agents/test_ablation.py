@@ -348,7 +348,9 @@ def test_summary_statistics_on_hand_made_episodes(tmp_path: Path, fakes: Fakes) 
     raw["density_bins"] = 3
     del raw["policy_comparisons"]
     cfg = ab.config_from_mapping(raw)
-    density = [float(v) for v in range(12)]  # terciles: [0, 3.67), [3.67, 7.33), [7.33, 11]
+    density = [
+        float(v) for v in range(12)
+    ]  # terciles 3.67, 7.33, rounded to whole pedestrians: [0, 4), [4, 7), [7, 11]
     #            episode: 0123456789ab
     none_outcomes = "SCCSCCTSCSCS"  # 5 successes
     cv_outcomes = "SSSSCSSSCSSS"  # 10 successes
@@ -373,10 +375,10 @@ def test_summary_statistics_on_hand_made_episodes(tmp_path: Path, fakes: Fakes) 
     assert none["navigation_time_s_mean"] == pytest.approx(np.mean(succ))
     assert none["forecast_ade_m_mean"] is None  # no such column: undefined, not zero
 
-    # density terciles over the 12 episodes, computed once for every arm
-    assert summary["density_bins"] == pytest.approx([0.0, 11 / 3, 22 / 3, 11.0])
+    # density terciles over the 12 episodes in whole pedestrians, computed once for every arm
+    assert summary["density_bins"] == [0.0, 4.0, 7.0, 11.0]
     bins = none["by_density"]
-    assert [b["episodes"] for b in bins] == [4, 4, 4]
+    assert [b["episodes"] for b in bins] == [4, 3, 5]
     assert bins[0]["success_rate"] == pytest.approx(2 / 4)  # episodes 0-3: S C C S
 
     tests = summary["tests"]
