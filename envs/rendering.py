@@ -258,6 +258,8 @@ class Renderer:
         row, pad = 16, 6
         w = 24 + max(round(pen.textlength(label, font=self.small)) for _, label, _ in items) + 2 * pad
         h = row * len(items) + 2 * pad
+        if w > self.size[0] / 2 or h > self.size[1] / 2:  # a small frame: the legend would hide the scene
+            return
         x0, y0 = pad, self.size[1] - h - pad
         pen.rectangle((x0, y0, x0 + w, y0 + h), fill=PANEL, outline=PANEL_EDGE)
         for k, (kind, label, colour) in enumerate(items):
@@ -280,7 +282,10 @@ class Renderer:
     def _scale_bar(self, pen: Any) -> None:
         """A bar of :func:`scale_bar_m` metres with its length written above it, bottom right."""
         length = scale_bar_m(self.scale)
-        px = round(length * self.scale)
+        px = length * self.scale
+        if not 2 <= px <= self.size[0] / 2:  # no round length fits the frame (extreme scales): no bar
+            return
+        px = round(px)
         x1, y = self.size[0] - 12, self.size[1] - 14
         x0 = x1 - px
         pen.line((x0, y, x1, y), fill=SCALE_BAR, width=3)
