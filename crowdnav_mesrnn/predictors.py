@@ -247,8 +247,8 @@ def resolve(name: str) -> PredictorSpec:
     if is_import_path(name):
         return PredictorSpec(name, name)
     raise PluginError(
-        f"unknown predictor {name!r}; registered: {', '.join(sorted(specs))} (entry-point group "
-        f"{ENTRY_POINT_GROUP!r}), or give an import path 'package.module:Factory'"
+        f"unknown predictor {name!r}; valid: {', '.join([*SHIPPED, *plugin_names()])} (registered under the "
+        f"entry-point group {ENTRY_POINT_GROUP!r}), or an import path 'package.module:Factory'"
     )
 
 

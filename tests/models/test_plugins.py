@@ -115,7 +115,7 @@ def test_bad_registrations_are_refused(monkeypatch: pytest.MonkeyPatch, entries:
 
 
 def test_unknown_names_and_broken_plugins_are_clear_errors(plugin_module: str) -> None:
-    with pytest.raises(PluginError, match=r"unknown predictor 'nope'; registered: .*mesrnn.*package\.module:Factory"):
+    with pytest.raises(PluginError, match=r"unknown predictor 'nope'; valid: .*mesrnn.*package\.module:Factory"):
         load("nope")
     with pytest.raises(PluginError, match="cannot import 'missing_mod_xyz:F'"):
         load("missing_mod_xyz:F")
