@@ -14,6 +14,7 @@ on the ablation's grid machinery (:mod:`agents.ablation`: a local process pool, 
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 import sys
 import time
@@ -31,6 +32,7 @@ from agents.bench.planner import (
     run_planner_cells,
 )
 from agents.bench.report import write_report
+from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
 from crowdnav_mesrnn.stats import DEFAULT_BLOCK_LEN
@@ -75,6 +77,7 @@ def run_bench(
     workers: int | None = None,
     address: str | None = None,
     command: str = "",
+    force: bool = False,
     log: Callable[[str], None] = lambda _m: None,
 ) -> dict[str, Any]:
     """Run (or resume) a bench and write its report into ``out_dir``; returns the report's content.
@@ -86,6 +89,7 @@ def run_bench(
         workers: planner cells at a time (default: the grid's rule).
         address: a Ray cluster's address (default: a local Ray instance).
         command: the command line recorded in the report.
+        force: replace a report in ``out_dir`` that holds more (other splits, scenes or predictor, planner cells).
         log: called with one line of progress text at a time.
 
     Raises:
@@ -102,6 +106,8 @@ def run_bench(
     if cfg.episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {cfg.episodes}")
     out = Path(out_dir)
+    if not force:
+        _check_not_less(cfg, out / "report.json")
     grid = None
     if cfg.planner and cfg.scenes:  # built first: a bad setting fails before any work
         grid = bench_grid(cfg.predictor, out, cfg.scenes, cfg.episodes, cfg.seed, cfg.noisy_oracle_ade_m)
@@ -126,6 +132,26 @@ def run_bench(
     report["seconds"] = round(time.perf_counter() - started, 1)
     write_report(report, out)
     return report
+
+
+def _check_not_less(cfg: BenchConfig, path: Path) -> None:
+    """Refuse to replace a report that holds data this run would not (a subset run into the same folder)."""
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return
+    held = old.get("config") or {}
+    lost = []
+    if old.get("predictor") != cfg.predictor:
+        lost.append(f"predictor {old.get('predictor')!r}")
+    if set(held.get("splits") or ()) - set(cfg.splits):
+        lost.append(f"splits {sorted(set(held['splits']) - set(cfg.splits))}")
+    if old.get("planner") and not (cfg.planner and set(held.get("scenes") or ()) <= set(cfg.scenes)):
+        lost.append("planner cells" if not cfg.planner else f"scenes {sorted(set(held['scenes']) - set(cfg.scenes))}")
+    if lost:
+        raise ConfigError(
+            f"{path} holds {', '.join(lost)} that this run would drop; choose another --out, or pass --force"
+        )
 
 
 # ---------------------------------------------------------------------------- command line
@@ -158,6 +184,9 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--out", default=None, help="output folder (default: runs/bench/PREDICTOR)")
     p.add_argument("--data-dir", dest="data_dir_env", default=None, help=DATA_DIR_ENV_HELP)
     p.add_argument("--no-planner", action="store_true", help="forecast accuracy only (no planner cells)")
+    p.add_argument(
+        "--force", action="store_true", help="replace a report in --out holding more (other splits, scenes, cells)"
+    )
     p.add_argument(
         "--backend", default="local", choices=("local", "ray"), help="how planner cells run (default: local pool)"
     )
@@ -193,6 +222,7 @@ def _run(args: argparse.Namespace) -> int:
         workers=args.workers,
         address=args.address,
         command=command,
+        force=args.force,
         log=lambda m: print(m, flush=True),
     )
     print(f"report: {out / 'report.md'} (+ report.json{', success_vs_ade.png' if cfg.planner else ''})")

@@ -109,6 +109,10 @@ def test_bench_cli_forecast_accuracy_only(data_dir: Path, tmp_path: Path, capsys
     eth = report["predictor_metrics"]["splits"]["eth"]
     assert eth["ade_m_diff"] == pytest.approx(0.0, abs=1e-6) and "planner" not in report
     assert "not run" in (out / "report.md").read_text()
+    # a subset run into the same folder would drop the eth row: refused, the report kept
+    assert main(["bench", "cv", "--splits", "hotel", "--no-planner", "--resamples", "200", "--out", str(out)]) == 2
+    assert "holds splits ['eth'] that this run would drop" in capsys.readouterr().err
+    assert json.loads((out / "report.json").read_text())["predictor_metrics"]["splits"].keys() == {"eth"}
 
 
 def test_bench_rejects_unknown_predictors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
