@@ -474,6 +474,7 @@ def compute_claims(
     seeds, weights = weights_for(plan)
     log(f"claims: using {weights}")
     measured = measure_all(data_dir, seeds, cfg, log=log)
-    if seeds is None and headline is not None:
+    checked = seeds is None and headline is not None
+    if checked:
         check_headline(measured, headline)
-    return claims_results(measured, weights, cfg, block_len, n_resamples)
+    return claims_results(measured, weights, cfg, block_len, n_resamples) | {"headline_checked": checked}

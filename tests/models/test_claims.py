@@ -360,3 +360,37 @@ def test_add_claims_keeps_every_key(tmp_path, monkeypatch) -> None:
     assert seen["plan"] == "configs/predictor/candidates.yaml"  # the plan the page was made with
     page = out.read_text()
     assert page == render(written) and "### Verdicts" in page and "## Paired differences" in page
+
+
+def test_the_whole_report_includes_the_claims(monkeypatch) -> None:
+    """``build_report`` (``predictor report [--plan]``) computes the claims with the same plan and puts
+    them on the page (evaluation and measurement replaced by synthetic ones)."""
+    from crowdnav_mesrnn import report
+
+    saved = saved_results()
+    m = fake_measured(windows=40)
+
+    def fake_eval(model, splits="all", data_dir=None, window_sums=None, **_):
+        for s, runs in m[model].items():
+            window_sums[s] = {
+                "ade_m": runs[0]["ade_m"],
+                "fde_m": runs[0]["fde_m"],
+                "pedestrians": runs[0]["pedestrians"],
+            }
+        return saved[model]
+
+    seen = {}
+
+    def fake_compute(data_dir, plan, block_len, n_resamples, headline=None):
+        seen["plan"], seen["headline"] = plan, headline
+        return compute.claims_results(m, "synthetic", n_resamples=50) | {"headline_checked": True}
+
+    monkeypatch.setattr(report, "evaluate_model", fake_eval)
+    monkeypatch.setattr(compute, "compute_claims", fake_compute)
+    page, results = report.build_report(n_resamples=50)
+    assert seen["plan"] is None and seen["headline"] is results and "claims" in results
+    assert "**(b) Near-stationary pedestrians predicted much better" in page
+    assert "equals the headline table's (same windows, same weights" in page
+    assert "do not include seed-to-seed variation" in page
+    page, results = report.build_report(n_resamples=50, claims=False)
+    assert "claims" not in results and "Not computed: run `crowdnav-mesrnn predictor report --claims" in page
