@@ -394,3 +394,36 @@ def test_the_whole_report_includes_the_claims(monkeypatch) -> None:
     assert "do not include seed-to-seed variation" in page
     page, results = report.build_report(n_resamples=50, claims=False)
     assert "claims" not in results and "Not computed: run `crowdnav-mesrnn predictor report --claims" in page
+
+
+def test_weights_are_the_plan_seeds_only_when_its_folders_hold_them_all(tmp_path) -> None:
+    """Shipped weights without a plan, or while any (model, split) lacks a seed; the plan's seed
+    checkpoints (in seed order) once every seed of every (model, split) is done."""
+    from crowdnav_mesrnn.plan import REPO_ROOT, load_plan, run_dir
+
+    text = (REPO_ROOT / "configs/predictor/candidates.yaml").read_text()
+    (tmp_path / "plan.yaml").write_text(text.replace("out_dir: runs/predictor/plan", f"out_dir: {tmp_path}"))
+    plan = load_plan(tmp_path / "plan.yaml")
+
+    def done(model: str, split: str, cand: str, seed: int, val: float) -> None:
+        out = run_dir(plan, model, split, cand, seed)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "done.json").write_text(json.dumps({"best_val_ade_m": val, "epochs": 1}))
+
+    assert compute.weights_for(None)[0] is None and "without a plan" in compute.weights_for(None)[1]
+    for m in plan.models:
+        for s in plan.splits:
+            for i, c in enumerate(plan.candidates):
+                done(m, s, c.name, plan.selection_seed, 0.5 + 0.1 * i)  # the first candidate is selected
+            for k in plan.seeds[:-1]:
+                done(m, s, plan.candidates[0].name, k, 0.5)
+    seeds, why = compute.weights_for(tmp_path / "plan.yaml")
+    assert seeds is None and "do not hold every seed of 15 of 15" in why
+    for m in plan.models:
+        for s in plan.splits:
+            done(m, s, plan.candidates[0].name, plan.seeds[-1], 0.5)
+    seeds, why = compute.weights_for(tmp_path / "plan.yaml")
+    assert why.startswith(f"seeds {list(plan.seeds)} of plan") and set(seeds) == {"vlstm", "srnn", "mesrnn"}
+    assert seeds["mesrnn"]["zara2"] == [
+        str(run_dir(plan, "mesrnn", "zara2", plan.candidates[0].name, k) / "best.pt") for k in plan.seeds
+    ]
