@@ -148,6 +148,8 @@ def _report(args: argparse.Namespace) -> int:
         print(f"wrote {out} from {source} (nothing re-evaluated)")
         return 0
     torch.set_num_threads(args.threads)
+    if args.claims:
+        return _report_claims(args, out)
     if args.plan_only:
         if args.plan is None or args.extra:
             print("error: --plan-only needs --plan and takes no --extra rows", file=sys.stderr)
@@ -162,6 +164,31 @@ def _report(args: argparse.Namespace) -> int:
     atomic_write_json(out.with_suffix(".json"), results)
     print(text)
     print(f"wrote {out} and {out.with_suffix('.json')}")
+    return 0
+
+
+def _report_claims(args: argparse.Namespace, out: Path) -> int:
+    """``report --claims``: test the paper's further claims and merge them into the page's JSON (every
+    other key kept), then re-render the page. The plan's seeds are used where its run folders hold them
+    all (``--plan``, else the plan the page was made with), else the shipped weights."""
+    from crowdnav_mesrnn.claims.compute import compute_claims
+    from crowdnav_mesrnn.report import add_claims, render
+    from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text
+
+    source = out.with_suffix(".json")
+    if args.plan_only or args.extra or args.render_only:
+        print("error: --claims takes no --plan-only, --extra or --render-only", file=sys.stderr)
+        return 2
+    if not source.is_file():
+        print(f"error: --claims adds to an existing page: {source} not found (run the whole report)", file=sys.stderr)
+        return 2
+    saved = json.loads(source.read_text())
+    plan = args.plan or (saved.get("seeds") or {}).get("plan")
+    claims = compute_claims(args.data_dir, plan, args.block_len, args.resamples, headline=saved)
+    merged = add_claims(saved, claims)
+    atomic_write_json(source, merged)
+    atomic_write_text(out, render(merged))
+    print(f"wrote {out} and {source} (claims added; every other key kept)")
     return 0
 
 
@@ -239,6 +266,12 @@ def add_parser(sub: Any) -> None:
     r.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     r.add_argument(
         "--render-only", action="store_true", help="rewrite the page from its .json (after a change of wording only)"
+    )
+    r.add_argument(
+        "--claims",
+        action="store_true",
+        help="test the paper's further claims (density, motion type, collisions, difficulty) and add them to the "
+        "existing page and its .json, keeping everything else",
     )
     r.add_argument(
         "--plan-only",

@@ -39,6 +39,24 @@ def cv_predict_batch(positions: torch.Tensor, mask: torch.Tensor) -> torch.Tenso
     return last.unsqueeze(1) + k * vel.unsqueeze(1)
 
 
+def predicted_batches(
+    predict: BatchPredictFn, windows: Sequence[Window], batch_size: int = 64
+) -> Iterator[tuple[list[int], torch.Tensor, torch.Tensor, np.ndarray, torch.Tensor]]:
+    """Roll ``predict`` out on ``windows`` in size-bucketed batches.
+
+    Yields:
+        ``(chunk, positions, present, scored, pred)``: the indices into ``windows``; positions
+        ``(B, T, N, 2)`` metres and present ``(B, T, N)`` (tensors, :func:`collate`); scored ``(B, N)``
+        bool array; the forecast ``(B, pred_len, N, 2)`` metres.
+    """
+    for chunk in batches(windows, batch_size):
+        pos, pres, scored = collate([windows[i] for i in chunk])
+        pos_t, pres_t = torch.from_numpy(pos), torch.from_numpy(pres)
+        with torch.no_grad():
+            pred = predict(pos_t, pres_t)
+        yield chunk, pos_t, pres_t, scored, pred
+
+
 def window_errors(
     predict: BatchPredictFn, windows: Sequence[Window], norm: MinMax, batch_size: int = 64
 ) -> dict[str, np.ndarray]:
@@ -53,11 +71,7 @@ def window_errors(
     out = {k: np.zeros(len(windows), np.float64) for k in METRIC_KEYS}
     out["pedestrians"] = np.zeros(len(windows), np.int64)
     scale = torch.as_tensor(norm.scale, dtype=torch.float32)
-    for chunk in batches(windows, batch_size):
-        pos, pres, scored = collate([windows[i] for i in chunk])
-        pos_t, pres_t = torch.from_numpy(pos), torch.from_numpy(pres)
-        with torch.no_grad():
-            pred = predict(pos_t, pres_t)  # (B, P, N, 2)
+    for chunk, pos_t, _, scored, pred in predicted_batches(predict, windows, batch_size):
         err = pred.float() - pos_t[:, OBS_LEN:].float()
         d_m = err.norm(dim=-1)  # (B, P, N)
         d_n = (err * scale).norm(dim=-1)

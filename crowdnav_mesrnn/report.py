@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from crowdnav_mesrnn.claims.compute import COMMAND as CLAIMS_COMMAND
+from crowdnav_mesrnn.claims.render import render_claims
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.evaluation import evaluate_model
 from crowdnav_mesrnn.models.learned import load_predictor
@@ -64,6 +66,8 @@ PUBLISHED_SGAN: dict[str, dict[str, tuple[float, float]]] = {
     },
 }
 COLS = (*SPLITS, "average")
+#: Keys of the results that are not rows of the headline table.
+SECTIONS = ("comparisons", "bootstrap", "seeds", "claims")
 
 NAMES = {"cv": "CV", "vlstm": "VLSTM", "srnn": "SRNN", "mesrnn": "MESRNN"}
 LABELS = {
@@ -282,10 +286,13 @@ def build_report(
     plan: str | os.PathLike[str] | None = None,
     block_len: int = DEFAULT_BLOCK_LEN,
     n_resamples: int = DEFAULT_RESAMPLES,
+    claims: bool = True,
 ) -> tuple[str, dict[str, Any]]:
     """Evaluate CV and the shipped VLSTM, SRNN, MESRNN on every split; ``extra`` maps a row label
     ``"<model>:<label>"`` to a checkpoint template with ``{split}`` (rows only for existing files);
-    ``plan`` adds the seeds of the comparison plan. Returns the page and the JSON results."""
+    ``plan`` adds the seeds of the comparison plan; ``claims`` the test of the paper's further claims
+    (:mod:`crowdnav_mesrnn.claims`; over the plan's seeds where they are all finished). Returns the page
+    and the JSON results."""
     results: dict[str, Any] = {}
     errors: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     for model in ("cv", "vlstm", "srnn", "mesrnn"):
@@ -309,7 +316,24 @@ def build_report(
     results["bootstrap"] = _bootstrap_info(block_len, n_resamples)
     if plan is not None:
         results["seeds"] = seed_results(plan, data_dir, errors["cv"], block_len, n_resamples)
+    if claims:
+        from crowdnav_mesrnn.claims.compute import compute_claims
+
+        results["claims"] = compute_claims(data_dir, plan, block_len, n_resamples, headline=results)
     return render(results), results
+
+
+def add_claims(saved: dict[str, Any], claims: dict[str, Any]) -> dict[str, Any]:
+    """The saved results of the main page with their ``claims`` object set to ``claims`` (added or
+    replaced); every other key is kept as it was (``predictor report --claims``)."""
+    if saved.get("plan_only"):
+        raise ValueError("the claims belong on the main page (predictors.md), not on a --plan-only page")
+    missing = [k for k in ("cv", "comparisons", "bootstrap") if k not in saved]
+    if missing:
+        raise ValueError(f"not the results of a predictor report: no {', '.join(missing)}")
+    merged = dict(saved)
+    merged["claims"] = claims
+    return merged
 
 
 def build_plan_report(
@@ -443,7 +467,7 @@ def _shipped_protocol(results: dict[str, Any]) -> str:
 
 def render(results: dict[str, Any]) -> str:
     head = "| model | " + " | ".join(COLS) + " |\n|---|" + "---|" * len(COLS)
-    rows = [k for k in results if k not in ("comparisons", "bootstrap", "seeds")]
+    rows = [k for k in results if k not in SECTIONS]
     lines = [
         "# Trajectory prediction results (ETH/UCY, leave-one-out, 8 observed → 12 predicted)",
         "",
@@ -474,6 +498,7 @@ def render(results: dict[str, Any]) -> str:
         srnn_fde = (results.get("srnn", {}).get("splits", {}).get("average") or {}).get("fde_m")
     lines += ["", "## Does the paper's ordering hold?", "", source_line, "", *ordering(chosen, sources, srnn_fde)]
     lines += candidate_confounds(seeds)
+    lines += ["", *render_claims(results.get("claims"))]
     lines += [
         "",
         "## ADE / FDE in the paper's min-max-normalised units",
@@ -728,7 +753,7 @@ def reproduce_rows(results: dict[str, Any]) -> list[str]:
     """One reproduce command per row of the headline table (and where its weights came from)."""
     lines = ["| row | evaluate | weights from |", "|---|---|---|"]
     for key in results:
-        if key in ("comparisons", "bootstrap", "seeds"):
+        if key in SECTIONS:
             continue
         if key == "cv":
             lines.append("| Constant velocity | `crowdnav-mesrnn predictor eval --model cv --split all` | – |")
@@ -758,6 +783,10 @@ def reproduce_rows(results: dict[str, Any]) -> list[str]:
         f"| Seeds, intervals, verdicts | `crowdnav-mesrnn predictor report --plan {PLAN_FILE}` | "
         f"`crowdnav-mesrnn predictor plan {PLAN_FILE}` |"
     )
+    lines.append(
+        f"| The paper's further claims | `{CLAIMS_COMMAND}` (or the whole report) | the shipped weights, "
+        "or the plan's seeds where its run folders hold them all |"
+    )
     return lines
 
 
@@ -769,8 +798,10 @@ crowdnav-mesrnn predictor plan {PLAN_FILE} --shard 0/2 &          # one process 
 crowdnav-mesrnn predictor plan {PLAN_FILE} --shard 1/2
 crowdnav-mesrnn predictor plan {PLAN_FILE}                        # again, until nothing is left
 crowdnav-mesrnn predictor plan {PLAN_FILE} --stage export         # ship the best-validation seeds
-# this page (evaluates the shipped weights, the plan's seeds and any --extra rows)
+# this page (evaluates the shipped weights, the plan's seeds and any --extra rows; the claims section too)
 crowdnav-mesrnn predictor report --plan {PLAN_FILE} --out docs/results/predictors.md
+# the claims section alone, added to the existing page and its JSON (nothing else re-evaluated)
+{CLAIMS_COMMAND}
 # any single row
 crowdnav-mesrnn predictor eval --model mesrnn --split all
 """

@@ -122,6 +122,19 @@ def _block_totals(values: np.ndarray, starts: np.ndarray, block_len: int) -> np.
     return out
 
 
+def block_totals_replicates(
+    values: np.ndarray, block_len: int, n_resamples: int, rng: np.random.Generator
+) -> np.ndarray:
+    """``(K, n_resamples)`` moving-block bootstrap replicates of the totals of each row of ``values``
+    ``(K, W)`` (windows in time order), all rows resampled with the same blocks (as
+    :func:`block_bootstrap_replicates`, whose statistic is the ratio of two such rows)."""
+    _check(block_len, n_resamples, 0.5)
+    values = np.asarray(values, dtype=float)
+    if values.ndim != 2 or values.shape[1] == 0:
+        raise ValueError(f"values must be (rows, windows) with at least one window, got {values.shape}")
+    return _block_totals(values, _block_starts(values.shape[1], block_len, n_resamples, rng), block_len)
+
+
 def _percentile_interval(replicates: np.ndarray, confidence: float) -> tuple[float, float]:
     alpha = (1.0 - confidence) / 2.0
     lo, hi = np.quantile(replicates, [alpha, 1.0 - alpha])
@@ -215,11 +228,17 @@ def _seed_means(e: SeededErrors) -> np.ndarray:
     return e.sums.sum(1) / e.count.sum()
 
 
-def _combine(
-    estimate: float, replicates: np.ndarray, seed_means: Sequence[np.ndarray], confidence: float
+def combine_interval(
+    estimate: float, replicates: np.ndarray, seed_means: Sequence[np.ndarray], confidence: float = 0.95
 ) -> SeededDifference:
     """A t interval whose variance adds the window replicates' variance and each side's ``s² / S``; with
-    one seed on every side, the percentile interval of the replicates (the plain block bootstrap)."""
+    one seed on every side, the percentile interval of the replicates (the plain block bootstrap).
+
+    Args:
+        estimate: the seed-averaged difference ``A − B``.
+        replicates: ``(R,)`` block-bootstrap replicates of it (finite).
+        seed_means: per side, ``(S,)`` the statistic of each of its seeds on the whole data.
+    """
     if all(len(m) == 1 for m in seed_means):
         return SeededDifference(
             estimate, _percentile_interval(replicates, confidence), float(np.std(replicates, ddof=1)), 0.0, math.inf
@@ -252,7 +271,7 @@ def seeded_difference_ci(
     _check_pair(a, b)
     paired = PairedErrors(a.sums.mean(0) - b.sums.mean(0), a.count)
     reps = block_bootstrap_replicates(paired, block_len, n_resamples, seed)
-    return _combine(paired.estimate, reps, [_seed_means(a), _seed_means(b)], confidence)
+    return combine_interval(paired.estimate, reps, [_seed_means(a), _seed_means(b)], confidence)
 
 
 def seeded_average_ci(
@@ -279,7 +298,7 @@ def seeded_average_ci(
     reps = np.mean([_replicates(e, block_len, n_resamples, r) for e, r in zip(paired, rngs, strict=True)], axis=0)
     estimate = float(np.mean([e.estimate for e in paired]))
     seed_means = [np.mean([_seed_means(p[side]) for p in pairs], axis=0) for side in (0, 1)]
-    return _combine(estimate, reps, seed_means, confidence)
+    return combine_interval(estimate, reps, seed_means, confidence)
 
 
 def verdict(interval: tuple[float, float], lower_is_better: bool = True) -> str:
@@ -292,3 +311,76 @@ def verdict(interval: tuple[float, float], lower_is_better: bool = True) -> str:
         return "no detectable difference"
     a_lower = hi < 0.0
     return "A better" if a_lower == lower_is_better else "B better"
+
+
+def ratio_differences(
+    a_num: Sequence[np.ndarray],
+    b_num: Sequence[np.ndarray] | None,
+    den: Sequence[np.ndarray],
+    contrasts: Sequence[tuple[int, int]] = (),
+    block_len: int = DEFAULT_BLOCK_LEN,
+    n_resamples: int = DEFAULT_RESAMPLES,
+    confidence: float = 0.95,
+    seed: int = 0,
+) -> list[tuple[SeededDifference, float]]:
+    """Differences ``A − B`` of ratio statistics per category (e.g. a density bin or a motion type),
+    pooled over one or more splits, with block-bootstrap intervals (over windows and, with several seeds,
+    seeds: :func:`combine_interval`).
+
+    The statistic of category ``c`` is ``Σ_splits Σ_windows num[c] / Σ_splits Σ_windows den[c]`` (e.g. the
+    pedestrian-weighted ADE of the pedestrians in that category, or the share of colliding pairs), each
+    side's numerator averaged over its seeds. Every split's windows are resampled in blocks independently
+    (its own stream of ``seed``) and the resampled totals added; every category is read from the same
+    resample, so a contrast ``(hi, lo)`` — the statistic of category ``hi`` minus that of ``lo`` — gets its
+    interval from the same replicates. A replicate in which a category has no weight is dropped for it;
+    the share of dropped replicates is returned beside each result (an interval from very few windows of
+    that category is not to be trusted: the caller decides from that share).
+
+    Args:
+        a_num: per split, ``(S_A, C, W)`` numerators of A, one row per seed, windows in time order.
+        b_num: the same for B (``S_B`` may differ), or None for zero (the statistic of A itself).
+        den: per split, ``(C, W)`` the weights (pedestrians, pairs), identical for both sides.
+        contrasts: ``(hi, lo)`` category pairs, each appended to the result after the ``C`` categories.
+
+    Returns:
+        ``C + len(contrasts)`` pairs ``(difference, share of replicates dropped)``; a category with no
+        weight at all has a nan estimate and interval.
+    """
+    _check(block_len, n_resamples, confidence)
+    if not den or len(a_num) != len(den) or (b_num is not None and len(b_num) != len(den)):
+        raise ValueError("need the same non-zero number of splits for a_num, b_num and den")
+    a = [np.asarray(x, float) for x in a_num]
+    b = [np.zeros((1, *np.shape(d))) for d in den] if b_num is None else [np.asarray(x, float) for x in b_num]
+    dens = [np.asarray(d, float) for d in den]
+    c = dens[0].shape[0]
+    for x, y, d in zip(a, b, dens, strict=True):
+        if x.ndim != 3 or y.ndim != 3 or d.ndim != 2 or x.shape[1:] != d.shape or y.shape[1:] != d.shape:
+            raise ValueError(
+                f"a split needs (S, C, W) numerators and (C, W) weights, got {x.shape}, {y.shape}, {d.shape}"
+            )
+        if d.shape[0] != c:
+            raise ValueError("every split needs the same categories")
+        _check_windows(x, np.ones(d.shape[1]))
+    for side in (a, b):
+        if len({x.shape[0] for x in side}) != 1:
+            raise ValueError("a model needs the same seeds on every split")
+    rngs = np.random.default_rng(seed).spawn(len(dens))
+    totals = np.zeros((2 * c, n_resamples))
+    for x, y, d, rng in zip(a, b, dens, rngs, strict=True):
+        totals += block_totals_replicates(np.concatenate([x.mean(0) - y.mean(0), d]), block_len, n_resamples, rng)
+    weight = sum(d.sum(1) for d in dens)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        reps = totals[:c] / totals[c:]  # (C, R)
+        est = sum((x.mean(0) - y.mean(0)).sum(1) for x, y in zip(a, b, strict=True)) / weight
+        seeds = [sum(x.sum(-1) for x in side) / weight for side in (a, b)]  # (S, C) each seed's statistic
+    rows = [(est[i], reps[i], [s[:, i] for s in seeds]) for i in range(c)]
+    rows += [(est[h] - est[lo], reps[h] - reps[lo], [s[:, h] - s[:, lo] for s in seeds]) for h, lo in contrasts]
+    out = []
+    for estimate, r, per_seed in rows:
+        finite = np.isfinite(r)
+        if not np.isfinite(estimate) or not finite.any():
+            nan = float("nan")
+            out.append((SeededDifference(nan, (nan, nan), nan, nan, nan), 1.0))
+            continue
+        out.append((combine_interval(float(estimate), r[finite], per_seed, confidence), 1.0 - float(finite.mean())))
+    return out
