@@ -585,7 +585,7 @@ def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
         "package.module:Factory (default: mesrnn)",
     )
     p.add_argument("--split", default="zara1", choices=SPLITS, help="its held-out scene is replayed (default: zara1)")
-    p.add_argument("--data-dir", dest="data_dir_env", default=None, help=DATA_DIR_ENV_HELP)
+    p.add_argument("--data-dir", dest="data_dir_env", metavar="DIR", default=None, help=DATA_DIR_ENV_HELP)
     p.add_argument("--episodes", type=int, default=500, help="number of episodes (default: 500)")
     p.add_argument("--seed", type=int, default=0, help="which seeded list of episodes (default: 0)")
     p.add_argument("--out", default=None, help="folder for episodes.csv and summary.json")

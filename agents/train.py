@@ -940,7 +940,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         "package.module:Factory (default: mesrnn)",
     )
     p.add_argument("--split", default=None, choices=SPLITS, help="train on its four training scenes (default: zara1)")
-    p.add_argument("--data-dir", dest="data_dir_env", default=None, help=DATA_DIR_ENV_HELP)
+    p.add_argument("--data-dir", dest="data_dir_env", metavar="DIR", default=None, help=DATA_DIR_ENV_HELP)
     p.add_argument("--seed", type=int, default=None, help="seed (default: 0)")
     p.add_argument("--timesteps", type=float, default=None, help="total environment steps (overrides n_timesteps)")
     p.add_argument("--out", default=None, help="run folder (default: runs/<algo>_<predictor>_<split>_s<seed>_<time>)")

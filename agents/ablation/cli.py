@@ -30,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="Ray cluster address (ray://host:10001 or host:6379; default: start a local Ray instance)",
     )
-    p.add_argument("--data-dir", dest="data_dir_env", default=None, help=DATA_DIR_ENV_HELP)
+    p.add_argument("--data-dir", dest="data_dir_env", metavar="DIR", default=None, help=DATA_DIR_ENV_HELP)
     p.add_argument("--only", default=None, help="comma-separated globs of cell names, e.g. 'eval/zara1/planner/*'")
     p.add_argument("--summarize-only", action="store_true", help="write summary.json/.md and plots from finished cells")
     p.add_argument(

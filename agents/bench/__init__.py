@@ -182,7 +182,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--episodes", type=int, default=500, help="episodes per planner cell (default: 500)")
     p.add_argument("--seed", type=int, default=0, help="which seeded list of episodes (default: 0)")
     p.add_argument("--out", default=None, help="output folder (default: runs/bench/PREDICTOR)")
-    p.add_argument("--data-dir", dest="data_dir_env", default=None, help=DATA_DIR_ENV_HELP)
+    p.add_argument("--data-dir", dest="data_dir_env", metavar="DIR", default=None, help=DATA_DIR_ENV_HELP)
     p.add_argument("--no-planner", action="store_true", help="forecast accuracy only (no planner cells)")
     p.add_argument(
         "--force", action="store_true", help="replace a report in --out holding more (other splits, scenes, cells)"
