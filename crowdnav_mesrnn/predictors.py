@@ -285,7 +285,15 @@ def load(name: str, split: str | None = None) -> Predictor:
     """
     spec = resolve(name)
     factory = spec.factory()
-    model = factory(split=split)
+    try:
+        model = factory(split=split)
+    except TypeError as exc:
+        if "split" not in str(exc):
+            raise
+        raise PluginError(
+            f"predictor {name!r}: its factory {spec.target!r} must accept a keyword argument split= (the "
+            f"leave-one-out split whose held-out scene it will forecast; ignore it if the model has none): {exc}"
+        ) from exc
     check_protocol(model, name)
     if not spec.shipped:
         _IDENTITIES[id(model)] = (model, spec.identity())

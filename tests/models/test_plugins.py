@@ -41,6 +41,11 @@ class StandStill:
 
 def broken(split=None):
     return object()
+
+
+class NoSplit:
+    def __init__(self):
+        pass
 '''
 
 
@@ -121,6 +126,8 @@ def test_unknown_names_and_broken_plugins_are_clear_errors(plugin_module: str) -
         load("missing_mod_xyz:F")
     with pytest.raises(PluginError, match="no forecast"):
         load(f"{plugin_module}:broken")
+    with pytest.raises(PluginError, match="must accept a keyword argument split="):
+        load(f"{plugin_module}:NoSplit")
 
 
 def test_gymnasium_make_and_config_accept_a_plugin(
