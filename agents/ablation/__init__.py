@@ -107,9 +107,10 @@ from agents.ablation.config import (
     config_from_mapping,
     load_config,
 )
-from agents.ablation.episodes import ARCHIVE_KEYS, aggregate, episodes_archive, read_episodes
+from agents.ablation.episodes import ARCHIVE_KEYS, aggregate, cell_record, episodes_archive, read_archive, read_episodes
 from agents.ablation.plots import write_plots
 from agents.ablation.report import summary_markdown
+from agents.ablation.results import ResultsKept
 from agents.ablation.stats import by_density, density_edges, paired_tests
 from agents.ablation.summary import summarize
 
@@ -133,11 +134,13 @@ __all__ = [
     "CellStatus",
     "CellTask",
     "PolicySpec",
+    "ResultsKept",
     "add_arguments",
     "aggregate",
     "build_forecast_caches",
     "by_density",
     "cell_dir",
+    "cell_record",
     "cell_spec",
     "cell_status",
     "config_from_mapping",
@@ -154,6 +157,7 @@ __all__ = [
     "measured_rates",
     "paired_tests",
     "plan",
+    "read_archive",
     "read_episodes",
     "replicate",
     "run_from_args",

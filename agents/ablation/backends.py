@@ -34,6 +34,7 @@ from agents.ablation.cells import (
 )
 from agents.ablation.config import AGENT_CONFIG, BACKENDS, CELL_JSON, DONE, LEARNED_SOURCES, TRAIN_RUN, AblationConfig
 from agents.ablation.episodes import read_episodes
+from agents.ablation.results import ResultsKept
 from agents.ablation.summary import summarize
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text, code_version
@@ -399,11 +400,14 @@ def run_grid(
     address: str | None = None,
     only: str | None = None,
     summarize_after: bool = True,
+    force: bool = False,
     out: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Run every cell that is not done (training before its evaluations) and summarise.
+    """Run every cell that is not done (training before its evaluations) and summarise (``force``: see
+    :func:`agents.ablation.summarize`; a summary that may not replace the results is reported, not raised).
 
-    Returns ``{"ran": [...], "failed": {name: error}, "skipped": [...], "wall_s": ...}``.
+    Returns ``{"ran": [...], "failed": {name: error}, "skipped": [...], "wall_s": ..., "summary": "written" |
+    "kept" | None}``.
     """
     if backend not in BACKENDS:
         raise ConfigError(f"unknown backend {backend!r}; valid: {', '.join(BACKENDS)}")
@@ -459,9 +463,15 @@ def run_grid(
         runner.close()
     wall = time.perf_counter() - t_start
     out(f"grid {cfg.name}: ran {len(ran)}, failed {len(failed)}, skipped {len(skipped)} in {_hms(wall)}")
+    summary = None
     if summarize_after:
-        summarize(cfg, out=out)
-    return {"ran": ran, "failed": failed, "skipped": skipped, "wall_s": wall}
+        try:
+            summarize(cfg, out=out, force=force)
+            summary = "written"
+        except ResultsKept as kept:
+            out(str(kept))
+            summary = "kept"
+    return {"ran": ran, "failed": failed, "skipped": skipped, "wall_s": wall, "summary": summary}
 
 
 def replicate(

@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from agents.ablation.backends import replicate, run_grid
 from agents.ablation.cells import default_workers, dry_run, expand, select
 from agents.ablation.config import BACKENDS, load_config
+from agents.ablation.results import ResultsKept
 from agents.ablation.summary import summarize
 from crowdnav_mesrnn.config import ConfigError
 
@@ -30,7 +31,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="Ray cluster address (ray://host:10001 or host:6379; default: start a local Ray instance)",
     )
     p.add_argument("--only", default=None, help="comma-separated globs of cell names, e.g. 'eval/zara1/planner/*'")
-    p.add_argument("--summarize-only", action="store_true", help="write summary.json/.md and plots from finished cells")
+    p.add_argument(
+        "--summarize-only",
+        action="store_true",
+        help="write summary.json/.md, cells.json, episodes.csv.gz and plots from finished cells (cells without a "
+        "run folder are read from the committed results); leaves the files alone when nothing but the stamps "
+        "would change, and refuses (exit 1) to replace them with a summary holding less",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the result files even with a summary holding fewer finished cells, or a re-render of an "
+        "archive that differs from them",
+    )
     p.add_argument(
         "--replicate",
         metavar="DIR",
@@ -54,7 +67,11 @@ def run_from_args(args: argparse.Namespace) -> int:
         dry_run(cfg, cells, args.workers or default_workers(cells))
         return 0
     if args.summarize_only:
-        summarize(cfg)
+        try:
+            summarize(cfg, force=args.force)
+        except ResultsKept as kept:
+            print(f"crowdnav-mesrnn: {kept}", file=sys.stderr)
+            return 1
         return 0
     if args.replicate:
         if not args.only:
@@ -62,7 +79,9 @@ def run_from_args(args: argparse.Namespace) -> int:
         if args.backend != "local":
             raise ConfigError(f"--replicate runs on the local backend; got --backend {args.backend}")
         return 1 if replicate(cfg, args.only, args.replicate, args.workers) else 0
-    result = run_grid(cfg, backend=args.backend, workers=args.workers, address=args.address, only=args.only)
+    result = run_grid(
+        cfg, backend=args.backend, workers=args.workers, address=args.address, only=args.only, force=args.force
+    )
     for name, error in result["failed"].items():
         print(f"failed: {name}\n{error}", file=sys.stderr)
     return 1 if result["failed"] or result["skipped"] else 0

@@ -549,7 +549,14 @@ def test_replicate_reruns_cells_in_a_scratch_folder_and_compares_episodes(
     with pytest.raises(ConfigError, match="selects no evaluation cell"):
         ab.replicate(cfg, "train/zara1/ppo/none/seed0", tmp_path / "replica5", workers=1)
     (tmp_path / "g.yaml").write_text(json.dumps(_raw(tmp_path)), encoding="utf-8")  # JSON is YAML
-    args = {"workers": None, "address": None, "backend": "local", "dry_run": False, "summarize_only": False}
+    args = {
+        "workers": None,
+        "address": None,
+        "backend": "local",
+        "dry_run": False,
+        "summarize_only": False,
+        "force": False,
+    }
     base = {"config": str(tmp_path / "g.yaml"), "replicate": str(tmp_path / "replica6"), "only": "eval/*"}
     for change, message in (
         ({"only": None}, "--replicate needs --only"),
@@ -558,3 +565,147 @@ def test_replicate_reruns_cells_in_a_scratch_folder_and_compares_episodes(
     ):
         with pytest.raises(ConfigError, match=message):
             ab.run_from_args(argparse.Namespace(**{**args, **base, **change}))
+
+
+# ----------------------------------------------------------------------------- the committed results
+
+
+def _planner_grid(tmp_path: Path, arms: tuple[str, ...] = ("none", "cv")) -> tuple[ab.AblationConfig, Path]:
+    """A planner-only grid written to a YAML file, its cells done with full-precision metrics and start times."""
+    raw = _raw(tmp_path, arms=list(arms), comparisons=[["cv", "none"]])
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    del raw["policy_comparisons"]
+    path = tmp_path / "grid.yaml"
+    path.write_text(json.dumps(raw), encoding="utf-8")  # JSON is YAML
+    cfg = ab.load_config(path)
+    for k, arm in enumerate(arms):
+        rows = _episode_rows("SCSS", [10.123456789012345 + k, 11.5, 9.25, 12.0], [1.0 / 3, 2.0, 3.0, 4.0])
+        name = f"eval/zara1/planner/{arm}"
+        _fake_done_cell(cfg, name, rows)
+        meta = json.loads((ab.cell_dir(cfg, name) / ab.CELL_JSON).read_text())
+        meta["attempts"] = [
+            {"started": f"2026-01-0{k + 1}T10:00:00+0000", "finished": f"2026-01-0{k + 1}T10:00:02+0000"}
+        ]
+        (ab.cell_dir(cfg, name) / ab.CELL_JSON).write_text(json.dumps(meta))
+    return cfg, path
+
+
+def _results(cfg: ab.AblationConfig) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(cfg.out_path().iterdir()) if p.is_file()}
+
+
+@pytest.fixture
+def pinned(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The summary's stamps (code version, time) fixed, so that two renders of the same data compare byte by byte."""
+    monkeypatch.setattr(ab.summary, "code_version", lambda: "0.0.0+gtest")
+    monkeypatch.setattr(ab.summary, "_now", lambda: "2026-01-09T00:00:00+0000")
+
+
+def test_summarize_only_in_a_fresh_clone_keeps_the_shipped_results(
+    tmp_path: Path, fakes: Fakes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg, path = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None)
+    shipped = _results(cfg)
+    assert {"summary.json", "summary.md", "cells.json", "episodes.csv.gz", "rates_by_arm.png"} <= set(shipped)
+    # summarising the same finished cells again changes no file (not even the time stamp)
+    stamps = {p.name: p.stat().st_mtime_ns for p in cfg.out_path().iterdir()}
+    ab.summarize(cfg, out=lambda s: None)
+    assert {p.name: p.stat().st_mtime_ns for p in cfg.out_path().iterdir()} == stamps
+    # a fresh clone: the results are committed, the run folders are not
+    import shutil
+
+    shutil.rmtree(cfg.runs_path())
+    assert ab.main([str(path), "--summarize-only"]) == 0
+    assert _results(cfg) == shipped
+    assert "up to date" in capsys.readouterr().out
+
+
+def test_the_archive_alone_rerenders_the_summary_identically(tmp_path: Path, fakes: Fakes, pinned: None) -> None:
+    import shutil
+
+    cfg, _ = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None)
+    shipped = _results(cfg)
+    assert {"rates_by_arm.png", "rates_by_density.png"} <= set(shipped)
+    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:  # every value as the evaluation wrote it
+        assert [r["navigation_time_s"] for r in csv.DictReader(fh)][:1] == [repr(10.123456789012345 + 1)]
+    cells = json.loads((cfg.out_path() / "cells.json").read_text())
+    assert cells[0]["attempts"] == [{"started": "2026-01-01T10:00:00+0000", "finished": "2026-01-01T10:00:02+0000"}]
+    shutil.rmtree(cfg.runs_path())
+    for name in ("summary.json", "summary.md", "rates_by_arm.png"):
+        (cfg.out_path() / name).unlink()
+    lines: list[str] = []
+    summary = ab.summarize(cfg, out=lines.append)
+    assert _results(cfg) == shipped
+    assert summary["complete"] and summary["wall_time"]["first_start"] == "2026-01-01T10:00:00+00:00"
+    assert "2 cell(s) from the archive" in "\n".join(lines)
+
+
+def test_an_incomplete_grid_never_replaces_a_complete_summary(
+    tmp_path: Path, fakes: Fakes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg, path = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    shipped = _results(cfg)
+    # an interrupted re-run of one cell: its folder has no DONE any more
+    (ab.cell_dir(cfg, "eval/zara1/planner/cv") / ab.DONE).unlink()
+    assert ab.main([str(path), "--summarize-only"]) == 1
+    err = capsys.readouterr().err
+    assert "eval/zara1/planner/cv" in err and "--force" in err
+    assert _results(cfg) == shipped
+    lines: list[str] = []  # a grid run ends with the same check (and says so, without failing the run)
+    ab.run_grid(cfg, workers=1, only="eval/zara1/planner/none", out=lines.append)
+    assert "missing 1 cell(s): eval/zara1/planner/cv" in "\n".join(lines)
+    assert _results(cfg) == shipped
+    # a grid that grew (a new arm) is incomplete too; the message names the cells it lacks
+    grown = ab.config_from_mapping({**json.loads(path.read_text()), "arms": ["none", "cv", "oracle"]})
+    (ab.cell_dir(cfg, "eval/zara1/planner/cv") / ab.DONE).write_text("now\n")
+    with pytest.raises(ab.ResultsKept, match="eval/zara1/planner/oracle"):
+        ab.summarize(grown, out=lambda s: None, plots=False)
+    assert _results(cfg) == shipped
+    # --force replaces them, and the new summary says it is incomplete
+    assert ab.main([str(path), "--summarize-only"]) == 0  # the cell is done again: nothing lost
+    summary = ab.summarize(grown, out=lambda s: None, plots=False, force=True)
+    assert summary["missing_cells"] == ["eval/zara1/planner/oracle"]
+    assert json.loads((cfg.out_path() / "summary.json").read_text())["complete"] is False
+
+
+def test_a_legacy_archive_is_kept_and_the_reason_given(
+    tmp_path: Path, fakes: Fakes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import shutil
+
+    cfg, path = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    # the records of an older version: no attempts (start times), no spec
+    cells = json.loads((cfg.out_path() / "cells.json").read_text())
+    for c in cells:
+        del c["attempts"], c["spec"]
+    (cfg.out_path() / "cells.json").write_text(json.dumps(cells, indent=2) + "\n")
+    shutil.rmtree(cfg.runs_path())
+    shipped = _results(cfg)
+    assert ab.main([str(path), "--summarize-only"]) == 1
+    err = capsys.readouterr().err
+    assert "start times" in err and "wall_time.first_start" in err and "--force" in err
+    assert _results(cfg) == shipped
+    assert ab.main([str(path), "--summarize-only", "--force"]) == 0
+    assert json.loads((cfg.out_path() / "summary.json").read_text())["wall_time"]["first_start"] is None
+
+
+def test_result_files_are_all_rendered_before_any_is_replaced(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg, _ = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    shipped = _results(cfg)
+    _fake_done_cell(cfg, "eval/zara1/planner/cv", _episode_rows("CCCC", [1, 1, 1, 1], [1.0, 2.0, 3.0, 4.0]))
+
+    def broken(*args: Any, **kwargs: Any) -> str:
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(ab.summary, "summary_markdown", broken)
+    with pytest.raises(RuntimeError, match="disk full"):
+        ab.summarize(cfg, out=lambda s: None, plots=False)
+    assert _results(cfg) == shipped  # all or nothing: the summary, cells and archive still agree
+    assert not [p for p in cfg.out_path().iterdir() if p.name.startswith(".")]  # no temporary file left
