@@ -32,7 +32,16 @@ from agents.ablation.cells import (
     trained_model,
     weights_fingerprint,
 )
-from agents.ablation.config import AGENT_CONFIG, BACKENDS, CELL_JSON, DONE, LEARNED_SOURCES, TRAIN_RUN, AblationConfig
+from agents.ablation.config import (
+    AGENT_CONFIG,
+    BACKENDS,
+    CELL_JSON,
+    DONE,
+    LEARNED_SOURCES,
+    TRAIN_RUN,
+    AblationConfig,
+    training_overrides,
+)
 from agents.ablation.episodes import read_episodes
 from agents.ablation.results import ResultsKept
 from agents.ablation.summary import summarize
@@ -62,19 +71,8 @@ class CellTask:
 
 
 def train_overrides(cell: Cell, env: Mapping[str, Any]) -> dict[str, Any]:
-    """Overrides of ``agents.train.load_train_config`` for a training cell: the run (predictor, split,
-    seed), the budget (``n_timesteps``, ``n_envs``), the grid's and the arm's environment settings
-    (``env.<key>``), then the policy's own ``overrides``."""
-    cell_env = {**dict(env), **cell.arm.env_overrides()}
-    return {
-        "predictor": cell.arm.predictor,
-        "split": cell.split,
-        "seed": cell.seed,
-        "n_timesteps": cell.policy.timesteps,
-        "n_envs": cell.policy.n_envs,
-        **{f"env.{k}": v for k, v in sorted(cell_env.items())},
-        **dict(cell.policy.overrides),
-    }
+    """Overrides of ``agents.train.load_train_config`` for a training cell (:func:`training_overrides`)."""
+    return training_overrides(cell.policy, cell.arm, cell.split, cell.seed, env)
 
 
 def _run_train(task: CellTask, folder: Path) -> dict[str, Any]:

@@ -23,11 +23,19 @@ from agents.stats import holm, wilson_interval
 from crowdnav_mesrnn.config import ConfigError
 
 EPISODE_COLUMNS = ("episode", "seed", "recording", "outcome", "navigation_time_s", "path_ratio", "crowd_density")
+#: A valid agent config for every arm of the tiny grids (the grid checks it, with its overrides, when loaded).
+TINY_AGENT = """\
+CrowdNav-MESRNN-v0: &ppo {policy: MultiInputPolicy, n_timesteps: 64, n_steps: 64}
+CrowdNav-NoPred-v0: *ppo
+CrowdNav-CV-v0: *ppo
+CrowdNav-Oracle-v0: *ppo
+crowdnav_mesrnn: {algo: ppo, pretrain: {episodes: 2}}
+"""
 
 
 def _raw(tmp_path: Path, **changes: Any) -> dict[str, Any]:
     agent_yaml = tmp_path / "ppo.yaml"
-    agent_yaml.write_text("CrowdNav-MESRNN-v0:\n  n_steps: 64\n", encoding="utf-8")
+    agent_yaml.write_text(TINY_AGENT, encoding="utf-8")
     raw: dict[str, Any] = {
         "name": "tiny",
         "runs_dir": str(tmp_path / "runs"),
@@ -138,6 +146,37 @@ def test_bad_policy_entries(tmp_path: Path) -> None:
     raw = _raw(tmp_path)
     raw["policies"]["ppo"]["arms"] = ["oracle"]
     with pytest.raises(ConfigError, match=r"'policies.ppo.arms'.*'oracle'.*none, mesrnn"):
+        ab.config_from_mapping(raw)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "words"),
+    [
+        ({"pretrain.episode": 3}, ["'policies.ppo.overrides'", "'episode'", "did you mean 'pretrain.episodes'?"]),
+        ({"learning_rat": 1e-3}, ["'policies.ppo.overrides'", "'learning_rat'", "did you mean 'learning_rate'?"]),
+        ({"eval.episode": 3}, ["eval key 'episode'", "did you mean 'eval.episodes'?"]),
+        ({"pretrain.episodes": -1}, ["'policies.ppo.overrides'", "episodes"]),
+        ({"n_timesteps": 5}, ["'policies.ppo.overrides.n_timesteps'", "policies.ppo.timesteps"]),
+        ({"seed": 5}, ["'policies.ppo.overrides.seed'", "seeds"]),
+    ],
+)
+def test_policy_overrides_are_checked_when_the_grid_is_loaded(
+    tmp_path: Path, overrides: dict[str, Any], words: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    raw = _raw(tmp_path)
+    raw["policies"]["ppo"]["overrides"] = overrides
+    with pytest.raises(ConfigError) as err:
+        ab.config_from_mapping(raw)
+    for word in words:
+        assert word in str(err.value)
+    # ... and so before a dry run lists the cells
+    (tmp_path / "g.yaml").write_text(json.dumps(raw), encoding="utf-8")
+    assert ab.main([str(tmp_path / "g.yaml"), "--dry-run"]) == 2
+    assert "policies.ppo.overrides" in capsys.readouterr().err
+    raw["policies"]["ppo"]["overrides"] = {"pretrain.episodes": 3, "learning_rate": 1e-3}
+    assert ab.config_from_mapping(raw).policy("ppo").overrides["pretrain.episodes"] == 3
+    raw["policies"]["ppo"]["config"] = str(tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match=r"'policies.ppo.config'.*missing.yaml.*working directory"):
         ab.config_from_mapping(raw)
 
 
