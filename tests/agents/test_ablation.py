@@ -348,8 +348,54 @@ def test_dry_run_lists_states_and_uses_measured_rates(tmp_path: Path, fakes: Fak
     lines.clear()
     ab.dry_run(cfg, ab.expand(cfg), workers=1, out=lines.append)
     row = next(line for line in lines if "eval/zara1/ppo/none/seed1" in line)
-    assert row.startswith("partial") and "measured" in row
+    assert row.startswith("partial") and "runs" in row
     assert ab.measured_rates(cfg)[("train", "ppo", "mesrnn")] > 0
+
+
+def _set_wall(cfg: ab.AblationConfig, name: str, wall_s: float) -> None:
+    """Make a finished training cell look as if it took ``wall_s`` seconds."""
+    path = ab.cell_dir(cfg, name) / ab.CELL_JSON
+    meta = json.loads(path.read_text())
+    meta.update(wall_s=wall_s, steps_per_s=meta["steps"] / wall_s)
+    path.write_text(json.dumps(meta))
+
+
+def test_dry_run_calibrates_from_finished_cells_then_the_results_then_the_config(tmp_path: Path, fakes: Fakes) -> None:
+    import shutil
+
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    for name, wall in (("none/seed0", 400.0), ("none/seed1", 200.0), ("mesrnn/seed0", 500.0), ("mesrnn/seed1", 500.0)):
+        _set_wall(cfg, f"train/zara1/ppo/{name}", wall)  # none: 256 steps in 400 s and in 200 s, 300 s per run
+    ab.summarize(cfg, out=lambda s: None, plots=False)  # the committed record of the finished cells
+    shutil.rmtree(cfg.runs_path())  # a fresh clone
+
+    def rows() -> dict[str, str]:
+        lines: list[str] = []
+        ab.dry_run(cfg, ab.expand(cfg), workers=1, out=lines.append)
+        table = {line.split()[-1]: line for line in lines if line.startswith("todo")}
+        table["totals"] = "\n".join(lines[-2:])
+        return table
+
+    table = rows()
+    # the results' record: steps over seconds of that (kind, policy kind, forecast source), pooled over cells
+    assert "5 min" in table["train/zara1/ppo/none/seed1"] and "results" in table["train/zara1/ppo/none/seed1"]
+    assert "8 min" in table["train/zara1/ppo/mesrnn/seed1"] and "results" in table["train/zara1/ppo/mesrnn/seed1"]
+    assert "results" in table["eval/zara1/planner/none"]
+    assert "10 cells (4 train, 6 eval) from the finished cells recorded in" in table["totals"]
+    assert "cells.json" in table["totals"]
+    # a finished cell of this grid counts before the results' record
+    ab.run_grid(cfg, workers=1, only="train/zara1/ppo/none/seed0", summarize_after=False, out=lambda s: None)
+    _set_wall(cfg, "train/zara1/ppo/none/seed0", 60.0)
+    table = rows()
+    assert "60 s" in table["train/zara1/ppo/none/seed1"] and "runs" in table["train/zara1/ppo/none/seed1"]
+    assert "results" in table["train/zara1/ppo/mesrnn/seed1"]
+    # without either: the config's estimates, and the dry run says so
+    shutil.rmtree(cfg.runs_path())
+    (cfg.out_path() / "cells.json").unlink()
+    table = rows()
+    assert "config" in table["train/zara1/ppo/none/seed1"]
+    assert "10 cells (4 train, 6 eval) from the config's estimates" in table["totals"]
 
 
 # ----------------------------------------------------------------------------- the summary
