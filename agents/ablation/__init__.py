@@ -66,7 +66,6 @@ from agents.ablation.backends import (
     CellTask,
     build_forecast_caches,
     execute_cell,
-    execute_shipped,
     replicate,
     run_grid,
     train_overrides,
@@ -109,6 +108,7 @@ from agents.ablation.config import (
 )
 from agents.ablation.episodes import ARCHIVE_KEYS, aggregate, cell_record, episodes_archive, read_archive, read_episodes
 from agents.ablation.plots import write_plots
+from agents.ablation.ray_backend import CONNECT_TIMEOUT_S, RayBackend, check_address, execute_shipped
 from agents.ablation.report import summary_markdown
 from agents.ablation.results import ResultsKept
 from agents.ablation.stats import by_density, density_edges, paired_tests
@@ -121,6 +121,7 @@ __all__ = [
     "BACKENDS",
     "CELL_JSON",
     "CELL_STATES",
+    "CONNECT_TIMEOUT_S",
     "DONE",
     "LEARNED_KINDS",
     "LEARNED_SOURCES",
@@ -134,6 +135,7 @@ __all__ = [
     "CellStatus",
     "CellTask",
     "PolicySpec",
+    "RayBackend",
     "ResultsKept",
     "add_arguments",
     "aggregate",
@@ -143,6 +145,7 @@ __all__ = [
     "cell_record",
     "cell_spec",
     "cell_status",
+    "check_address",
     "config_from_mapping",
     "default_workers",
     "density_edges",

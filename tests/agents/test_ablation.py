@@ -337,6 +337,47 @@ def test_failed_cell_is_reported_and_its_evaluation_skipped(tmp_path: Path, fake
     assert fakes.train_calls == [("train/zara1/ppo/mesrnn/seed0", True)]  # the partial run resumes
 
 
+def test_a_first_ctrl_c_waits_for_the_running_cells_and_a_second_stops_them(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import os
+    import signal
+
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    original = fakes.train
+    presses = {"train/zara1/ppo/none/seed0": 1, "train/zara1/ppo/none/seed1": 2}
+
+    def train(task: ab.CellTask, folder: Path) -> dict[str, Any]:  # Ctrl-C pressed while the cell runs
+        (folder / ab.TRAIN_RUN).mkdir(parents=True, exist_ok=True)  # it has begun its run folder
+        for _ in range(presses.get(task.cell.name, 0)):
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(task, folder)
+
+    monkeypatch.setattr(ab.backends, "_run_train", train)
+    lines: list[str] = []
+    only = "train/zara1/ppo/none/seed0,eval/zara1/planner/*"
+    result = ab.run_grid(cfg, workers=1, only=only, out=lines.append)
+    text = "\n".join(lines)
+    assert "waiting for the 1 running cell(s) to finish: train/zara1/ppo/none/seed0" in text
+    assert "Interrupt again (Ctrl-C) to stop them now" in text
+    assert result["ran"] == ["train/zara1/ppo/none/seed0"]  # it finished; nothing else started
+    assert result["interrupted"] == ["eval/zara1/planner/mesrnn", "eval/zara1/planner/none"]
+    assert result["summary"] is None and "summary not updated (interrupted)" in text
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+    lines.clear()
+    with pytest.raises(KeyboardInterrupt):
+        ab.run_grid(cfg, workers=1, only="train/zara1/ppo/none/seed1", out=lines.append)
+    assert "stopping 1 running cell(s) now: train/zara1/ppo/none/seed1" in "\n".join(lines)
+    meta = json.loads((ab.cell_dir(cfg, "train/zara1/ppo/none/seed1") / ab.CELL_JSON).read_text())
+    assert meta["status"] == "interrupted" and meta["attempts"][-1]["ok"] is False
+    assert _states(cfg)["train/zara1/ppo/none/seed1"] == "partial"  # resumed by the next run
+    fakes.train_calls.clear()
+    presses.clear()
+    ab.run_grid(cfg, workers=1, only="train/zara1/ppo/none/seed1", summarize_after=False, out=lambda s: None)
+    assert fakes.train_calls == [("train/zara1/ppo/none/seed1", True)]
+
+
 def test_dry_run_lists_states_and_uses_measured_rates(tmp_path: Path, fakes: Fakes) -> None:
     cfg = ab.config_from_mapping(_raw(tmp_path))
     lines: list[str] = []

@@ -4,6 +4,11 @@ planner evaluation (three cells), on the synthetic crowd so that no ETH/UCY data
 from __future__ import annotations
 
 import json
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +35,8 @@ crowdnav_mesrnn:
 CELLS = ["train/zara1/ppo/none/seed0", "eval/zara1/ppo/none/seed0", "eval/zara1/planner/none"]
 
 
-def _config(tmp_path: Path) -> ab.AblationConfig:
+def _config(tmp_path: Path, timesteps: int = 128) -> ab.AblationConfig:
+    tmp_path.mkdir(parents=True, exist_ok=True)
     agent_yaml = tmp_path / "ppo_tiny.yaml"
     agent_yaml.write_text(TINY_PPO, encoding="utf-8")
     raw: dict[str, Any] = {
@@ -41,7 +47,7 @@ def _config(tmp_path: Path) -> ab.AblationConfig:
         "arms": ["none"],
         "seeds": [0],
         "policies": {
-            "ppo": {"kind": "ppo", "config": str(agent_yaml), "timesteps": 128, "n_envs": 1},
+            "ppo": {"kind": "ppo", "config": str(agent_yaml), "timesteps": timesteps, "n_envs": 1},
             "planner": {"kind": "planner"},
         },
         "evaluation": {"episodes": 3, "seed": 0},
@@ -80,3 +86,50 @@ def test_ray_grid_gathers_cells_through_return_values(tmp_path: Path) -> None:
     pytest.importorskip("ray")
     cfg = _config(tmp_path)
     _check(cfg, ab.run_grid(cfg, backend="ray", workers=1, out=lambda s: None))
+
+
+def _press_ctrl_c(times: int, when: Callable[[], bool]) -> threading.Thread:
+    """Ctrl-C ``times`` times (SIGINT to this process, as the terminal sends it) once ``when()`` holds."""
+
+    def press() -> None:
+        deadline = time.monotonic() + 120
+        while not when() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        for _ in range(times):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.5)
+
+    thread = threading.Thread(target=press, daemon=True)
+    thread.start()
+    return thread
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_the_local_pool_waits_then_stops_training_at_a_round_boundary(tmp_path: Path) -> None:
+    # once: the running cells (the training run and the planner's evaluation) finish, nothing else starts
+    cfg = _config(tmp_path / "once", timesteps=256)
+    train = ab.cell_dir(cfg, CELLS[0])
+    lines: list[str] = []
+    _press_ctrl_c(1, lambda: (train / ab.CELL_JSON).is_file())
+    result = ab.run_grid(cfg, backend="local", workers=2, out=lines.append)
+    assert "waiting for the 2 running cell(s) to finish: eval/zara1/planner/none, train/zara1/ppo/none/seed0" in (
+        "\n".join(lines)
+    )
+    assert sorted(result["ran"]) == [CELLS[2], CELLS[0]] and result["interrupted"] == [CELLS[1]]
+    assert json.loads((train / ab.TRAIN_RUN / "DONE").read_text())["steps"] == 256
+
+    # twice: the training run stops now, at its last round boundary, and the next run ends at exactly its budget
+    cfg = _config(tmp_path / "twice", timesteps=512)
+    train = ab.cell_dir(cfg, CELLS[0])
+    _press_ctrl_c(2, lambda: (train / ab.TRAIN_RUN / "checkpoints" / "latest.json").is_file())
+    with pytest.raises(KeyboardInterrupt):
+        ab.run_grid(cfg, backend="local", workers=2, only=CELLS[0], out=lines.append)
+    meta = json.loads((train / ab.CELL_JSON).read_text())
+    assert meta["status"] == "interrupted"
+    steps = json.loads((train / ab.TRAIN_RUN / "checkpoints" / "latest.json").read_text())["steps"]
+    assert 0 < steps < 512 and steps % 64 == 0  # a round boundary (rounds of n_steps = 64)
+    assert not (train / ab.TRAIN_RUN / "DONE").exists()
+    result = ab.run_grid(cfg, backend="local", workers=2, out=lambda s: None)
+    assert not result["failed"]
+    assert json.loads((train / ab.TRAIN_RUN / "DONE").read_text())["steps"] == 512
+    assert f"# resumed from step_{steps:010d}" in (train / ab.TRAIN_RUN / "command.txt").read_text()
