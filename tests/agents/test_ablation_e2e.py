@@ -5,7 +5,12 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
+import socket
+import subprocess
+import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -54,6 +59,7 @@ def _config(tmp_path: Path, timesteps: int = 128) -> ab.AblationConfig:
         "env": {"crowd": "synthetic"},
         "policy_comparisons": [["ppo", "planner"]],
     }
+    (tmp_path / "grid.yaml").write_text(json.dumps(raw), encoding="utf-8")  # JSON is YAML: for the command line
     return ab.config_from_mapping(raw)
 
 
@@ -133,3 +139,96 @@ def test_ctrl_c_on_the_local_pool_waits_then_stops_training_at_a_round_boundary(
     assert not result["failed"]
     assert json.loads((train / ab.TRAIN_RUN / "DONE").read_text())["steps"] == 512
     assert f"# resumed from step_{steps:010d}" in (train / ab.TRAIN_RUN / "command.txt").read_text()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _accepts(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=1):
+            return True
+    except OSError:
+        return False
+
+
+@pytest.mark.slow
+def test_a_head_started_by_ray_start_with_a_token_is_joined(tmp_path: Path) -> None:
+    """The documented set-up on loopback: ``ray start --head`` where a token exists (so the head requires it),
+    then the grid with ``--address``."""
+    pytest.importorskip("ray")
+    cfg = _config(tmp_path)
+    home = tmp_path / "home"
+    (home / ".ray").mkdir(parents=True)
+    (home / ".ray" / "auth_token").write_text("a" * 32)
+    env = {k: v for k, v in os.environ.items() if k not in ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")}
+    env["HOME"] = str(home)
+    port = _free_port()
+    temp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # short: Ray's socket paths must fit in 107 bytes
+    log = open(tmp_path / "head.log", "w")
+    head = subprocess.Popen(
+        [str(Path(sys.executable).parent / "ray"), "start", "--head", "--block", "--port", str(port)]
+        + ["--num-cpus", "1", "--node-ip-address", "127.0.0.1", "--include-dashboard", "false"]
+        + ["--disable-usage-stats", "--temp-dir", temp],
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not _accepts(port) and head.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert _accepts(port), (tmp_path / "head.log").read_text()
+        assert "Token authentication is enabled" in (tmp_path / "head.log").read_text()
+        driver = subprocess.run(
+            [sys.executable, "-m", "agents.ablation", str(tmp_path / "grid.yaml"), "--backend", "ray"]
+            + ["--address", f"127.0.0.1:{port}", "--only", CELLS[2]],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert driver.returncode == 0, driver.stdout + driver.stderr
+        assert "Ray: token authentication on (token from" in driver.stdout
+        assert {st.cell.name: st.state for st in ab.plan(cfg)}[CELLS[2]] == "done"
+    finally:
+        head.terminate()  # `ray start --block` stops the processes it started
+        try:
+            head.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            head.kill()
+        log.close()
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+@pytest.mark.slow
+def test_a_killed_ray_training_task_resumes_from_its_shipped_checkpoint(tmp_path: Path) -> None:
+    pytest.importorskip("ray")
+    cfg = _config(tmp_path, timesteps=2048)
+    train = ab.cell_dir(cfg, CELLS[0])
+    latest = train / ab.TRAIN_RUN / "checkpoints" / "latest.json"
+    killed: dict[str, int] = {}
+
+    def kill() -> None:  # once a checkpoint has reached the driver's folder, the task's worker is killed
+        deadline = time.monotonic() + 300
+        while not latest.is_file() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        killed["pid"] = json.loads((train / ab.CELL_JSON).read_text())["pid"]
+        os.kill(killed["pid"], signal.SIGKILL)
+
+    threading.Thread(target=kill, daemon=True).start()
+    result = ab.run_grid(cfg, backend="ray", workers=1, only=CELLS[0], summarize_after=False, out=lambda s: None)
+    assert list(result["failed"]) == [CELLS[0]]
+    steps = json.loads(latest.read_text())["steps"]
+    assert f"its last checkpoint (step {steps:,})" in result["failed"][CELLS[0]]
+    leftovers = list(Path(tempfile.gettempdir()).glob(f"crowdnav-ablation-{killed['pid']}-*"))
+    assert leftovers  # the killed task could not clean up after itself ...
+    result = ab.run_grid(cfg, backend="ray", workers=1, summarize_after=False, out=lambda s: None)
+    assert not result["failed"], result["failed"]
+    assert not any(p.exists() for p in leftovers)  # ... the next task on the node did
+    run = train / ab.TRAIN_RUN
+    assert f"# resumed from step_{steps:010d}" in (run / "command.txt").read_text()
+    assert json.loads((run / "DONE").read_text())["steps"] == 2048
