@@ -169,10 +169,10 @@ def test_a_head_started_by_ray_start_with_a_token_is_joined(tmp_path: Path) -> N
     port = _free_port()
     temp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # short: Ray's socket paths must fit in 107 bytes
     log = open(tmp_path / "head.log", "w")
+    ray_start = [str(Path(sys.executable).parent / "ray"), "start", "--head", "--block", "--port", str(port)]
+    ray_start += ["--num-cpus", "1", "--node-ip-address", "127.0.0.1", "--include-dashboard", "false"]
     head = subprocess.Popen(
-        [str(Path(sys.executable).parent / "ray"), "start", "--head", "--block", "--port", str(port)]
-        + ["--num-cpus", "1", "--node-ip-address", "127.0.0.1", "--include-dashboard", "false"]
-        + ["--disable-usage-stats", "--temp-dir", temp],
+        [*ray_start, "--disable-usage-stats", "--temp-dir", temp],
         env=env,
         stdout=log,
         stderr=subprocess.STDOUT,
@@ -183,9 +183,9 @@ def test_a_head_started_by_ray_start_with_a_token_is_joined(tmp_path: Path) -> N
             time.sleep(0.5)
         assert _accepts(port), (tmp_path / "head.log").read_text()
         assert "Token authentication is enabled" in (tmp_path / "head.log").read_text()
+        grid = [sys.executable, "-m", "agents.ablation", str(tmp_path / "grid.yaml"), "--backend", "ray"]
         driver = subprocess.run(
-            [sys.executable, "-m", "agents.ablation", str(tmp_path / "grid.yaml"), "--backend", "ray"]
-            + ["--address", f"127.0.0.1:{port}", "--only", CELLS[2]],
+            [*grid, "--address", f"127.0.0.1:{port}", "--only", CELLS[2]],
             env=env,
             capture_output=True,
             text=True,
