@@ -431,7 +431,7 @@ def run_grid(
         + f" in {_hms(wall)}"
     )
     summary = None
-    if summarize_after and not interrupts.count:
+    if summarize_after and not not_started:
         try:
             summarize(cfg, out=out, force=force)
             summary = "written"

@@ -364,6 +364,10 @@ def test_a_first_ctrl_c_waits_for_the_running_cells_and_a_second_stops_them(
     assert result["interrupted"] == ["eval/zara1/planner/mesrnn", "eval/zara1/planner/none"]
     assert result["summary"] is None and "summary not updated (interrupted)" in text
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    (tmp_path / "g.yaml").write_text(json.dumps(_raw(tmp_path)), encoding="utf-8")
+    presses["train/zara1/ppo/mesrnn/seed0"] = 1
+    only = "train/zara1/ppo/mesrnn/seed0,eval/zara1/planner/none"
+    assert ab.main([str(tmp_path / "g.yaml"), "--workers", "1", "--only", only]) == 130  # a cell was not started
 
     lines.clear()
     with pytest.raises(KeyboardInterrupt):
