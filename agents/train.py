@@ -660,12 +660,15 @@ class Validation(BaseCallback):
 
 
 class Checkpoint(BaseCallback):
-    """Save a checkpoint every ``freq_steps``."""
+    """Save a checkpoint every ``freq_steps``, always at a round boundary (before a rollout is collected)."""
 
     def __init__(self, run_dir: Path, freq_steps: int, keep: int, validation: Any, last_step: int) -> None:
         super().__init__()
         self.run_dir, self.freq, self.keep, self.validation = run_dir, freq_steps, keep, validation
         self.last_step = last_step
+        self.round_start: int | None = None
+        """Steps when the rollout being collected began; None outside a rollout (during the update)."""
+        self._normalization: Any = None
 
     def _on_step(self) -> bool:
         return True
@@ -674,10 +677,32 @@ class Checkpoint(BaseCallback):
         # between rollouts the model is consistent (no half-collected rollout is lost on resume)
         if self.freq > 0 and self.model.num_timesteps - self.last_step >= self.freq:
             self.save()
+        self.round_start = int(self.model.num_timesteps)
+        vec_normalize = self.model.get_vec_normalize_env()
+        if vec_normalize is not None:  # its statistics move with every step of the rollout
+            self._normalization = copy.deepcopy((vec_normalize.obs_rms, vec_normalize.ret_rms))
+
+    def _on_rollout_end(self) -> None:
+        self.round_start = None
 
     def save(self) -> Path:
         self.last_step = int(self.model.num_timesteps)
         return save_checkpoint(self.model, self.run_dir, self.validation.state, self.keep)
+
+    def save_interrupted(self) -> int | None:
+        """On an interrupt: a checkpoint of the last round boundary, so a resumed run ends at exactly its
+        budget (rollouts are whole rounds). Interrupted while collecting a rollout, the weights are still
+        those of the round's start: the step count and normalisation statistics go back there and the partial
+        rollout is dropped. Interrupted during the update (weights half changed) or before the first rollout,
+        nothing is saved (the last periodic checkpoint stands). Returns the steps saved, or None."""
+        if self.round_start is None or self.round_start <= self.last_step:
+            return None
+        self.model.num_timesteps = self.round_start
+        vec_normalize = self.model.get_vec_normalize_env()
+        if vec_normalize is not None and self._normalization is not None:
+            vec_normalize.obs_rms, vec_normalize.ret_rms = self._normalization
+        self.save()
+        return self.round_start
 
 
 class Progress(BaseCallback):
@@ -878,9 +903,14 @@ def train(
             if remaining > 0:
                 model.learn(remaining, callback=callbacks, reset_num_timesteps=False, progress_bar=False)
         except KeyboardInterrupt:
-            if cfg.checkpoint_freq_steps > 0 and model.num_timesteps > start_step:
-                print(f"\ninterrupted: checkpoint at step {model.num_timesteps}; continue with --resume")
-                checkpoint.save()
+            saved = checkpoint.save_interrupted() if cfg.checkpoint_freq_steps > 0 else None
+            last = latest_checkpoint(run_dir)
+            where = (
+                f"checkpoint at step {saved}"
+                if saved is not None
+                else f"last checkpoint: {last.name if last else 'none'}"
+            )
+            print(f"\ninterrupted at step {model.num_timesteps}: {where} (a round boundary); continue with --resume")
             raise
         validation.init_callback(model)
         validation.finish()

@@ -24,8 +24,9 @@ Cells and their state
     spec, the sha256 of the shipped predictor weights it used, or the model it evaluated changed: redone),
     ``partial`` (a folder without DONE: an interrupted run; a training cell resumes with
     ``train(..., resume=True)``, an evaluation cell is redone) or ``todo``. Re-running the grid skips done
-    cells. ``--dry-run`` lists every cell with its state and an estimated time from measured throughputs
-    (finished cells' ``cell.json``), falling back to the config's ``estimates``.
+    cells. ``--dry-run`` lists every cell with its state and an estimated time from the throughput of
+    finished cells -- the grid's own (``cell.json``), else those the committed results record
+    (``cells.json``) --, falling back to the config's ``estimates``; it says which it used.
     ``--replicate DIR --only PATTERN`` runs the selected cells afresh in the scratch folder ``DIR`` and
     compares each replicated evaluation with the grid's, episode by episode (:func:`replicate`): cells are
     seeded, so a difference means nondeterminism or a change of behaviour since the grid's cell ran (only grid
@@ -35,20 +36,19 @@ Backends
     ``local`` (default): a process pool (forkserver) of ``--workers`` processes (default: cores // the
     largest ``cpus`` of a cell), each with one torch thread; ``--workers 1`` runs cells one after the
     other in this process. ``ray``: the same cell function as Ray tasks (``ray.init(address=...)`` for an
-    existing cluster, a local instance otherwise), ``num_cpus`` per task = the cell's ``cpus``. A Ray task
-    does not need shared storage: the driver sends what the cell needs (an interrupted training run's folder,
-    or the trained model being evaluated) with the task, the task works in a temporary folder on its node and
-    returns the cell folder as a tar archive, which the driver writes into ``runs_dir``. Every node needs the
-    project installed (``pip install 'crowdnav-mesrnn[ray]'``, the same version and predictor weights: a cell
-    whose node has other weights than the driver fails and says so) and the ETH/UCY data at
-    ``$CROWDNAV_MESRNN_DATA``; forecast caches are built per node on first use. On a cluster::
+    existing cluster, a local instance otherwise), ``num_cpus`` per task = the cell's ``cpus``; see
+    :mod:`agents.ablation.ray_backend` for the supported Ray versions, the set-up, token authentication and
+    how files and checkpoints travel without shared storage. On a cluster::
 
         CROWDNAV_MESRNN_DATA=/data/eth_ucy ray start --head --port=6379   # head node
         CROWDNAV_MESRNN_DATA=/data/eth_ucy ray start --address=HEAD:6379  # every other node
         python -m agents.ablation configs/ablation/planning_aid.yaml --backend ray --address HEAD:6379
 
-    Without ``--address`` a local Ray instance with ``--workers`` x the largest ``cpus`` is started
-    (no dashboard) and shut down at the end.
+    ``--address`` is probed (TCP, :data:`CONNECT_TIMEOUT_S` s) before any cell starts. Without ``--address`` a
+    local Ray instance with ``--workers`` x the largest ``cpus`` is started (no dashboard) and shut down at
+    the end. Ctrl-C: the first lets the running cells finish and starts no other (saying which it waits
+    for), the second stops them now; an interrupted training run keeps its last checkpoint, taken at a
+    round boundary, and the next run of the grid resumes it to exactly its budget, on either backend.
 
 The answer
     :func:`summarize` reads the evaluation cells and writes ``summary.json``, ``summary.md`` and plots into
@@ -57,7 +57,12 @@ The answer
     density bins, the pre-declared paired tests (exact McNemar on success, Wilcoxon signed-rank on the
     navigation time of episodes both arms finished, pairs = (training seed, episode)), Holm-corrected per
     endpoint with the family size stated, and the difference in success rate each McNemar design detects at
-    the configured power.
+    the configured power. It also writes ``cells.json`` (every cell's state, timings and spec) and
+    ``episodes.csv.gz`` (every evaluated episode, values as written); the statistics are computed from that
+    archive, and a cell without a run folder is read from it, so the committed results alone render the
+    same summary again. A summary never replaces one holding more (missing cells: refused, named; ``--force``
+    overrides), and files whose content would not change are left untouched
+    (:mod:`agents.ablation.results`).
 """
 
 from __future__ import annotations
@@ -66,7 +71,6 @@ from agents.ablation.backends import (
     CellTask,
     build_forecast_caches,
     execute_cell,
-    execute_shipped,
     replicate,
     run_grid,
     train_overrides,
@@ -107,9 +111,11 @@ from agents.ablation.config import (
     config_from_mapping,
     load_config,
 )
-from agents.ablation.episodes import ARCHIVE_KEYS, aggregate, episodes_archive, read_episodes
+from agents.ablation.episodes import ARCHIVE_KEYS, aggregate, cell_record, episodes_archive, read_archive, read_episodes
 from agents.ablation.plots import write_plots
+from agents.ablation.ray_backend import CONNECT_TIMEOUT_S, RayBackend, check_address, execute_shipped
 from agents.ablation.report import summary_markdown
+from agents.ablation.results import ResultsKept
 from agents.ablation.stats import by_density, density_edges, paired_tests
 from agents.ablation.summary import summarize
 
@@ -120,6 +126,7 @@ __all__ = [
     "BACKENDS",
     "CELL_JSON",
     "CELL_STATES",
+    "CONNECT_TIMEOUT_S",
     "DONE",
     "LEARNED_KINDS",
     "LEARNED_SOURCES",
@@ -133,13 +140,17 @@ __all__ = [
     "CellStatus",
     "CellTask",
     "PolicySpec",
+    "RayBackend",
+    "ResultsKept",
     "add_arguments",
     "aggregate",
     "build_forecast_caches",
     "by_density",
     "cell_dir",
+    "cell_record",
     "cell_spec",
     "cell_status",
+    "check_address",
     "config_from_mapping",
     "default_workers",
     "density_edges",
@@ -154,6 +165,7 @@ __all__ = [
     "measured_rates",
     "paired_tests",
     "plan",
+    "read_archive",
     "read_episodes",
     "replicate",
     "run_from_args",

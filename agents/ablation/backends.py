@@ -3,18 +3,17 @@
 from __future__ import annotations
 
 import dataclasses
-import io
 import os
 import shutil
+import signal
 import socket
-import tarfile
-import tempfile
+import threading
 import time
 import traceback
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 from agents.ablation.cells import (
     Cell,
@@ -32,11 +31,24 @@ from agents.ablation.cells import (
     trained_model,
     weights_fingerprint,
 )
-from agents.ablation.config import AGENT_CONFIG, BACKENDS, CELL_JSON, DONE, LEARNED_SOURCES, TRAIN_RUN, AblationConfig
+from agents.ablation.config import (
+    AGENT_CONFIG,
+    BACKENDS,
+    CELL_JSON,
+    DONE,
+    LEARNED_SOURCES,
+    TRAIN_RUN,
+    AblationConfig,
+    training_overrides,
+)
 from agents.ablation.episodes import read_episodes
+from agents.ablation.results import ResultsKept
 from agents.ablation.summary import summarize
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text, code_version
+
+#: Seconds a second Ctrl-C waits for the stopped cells to write their checkpoint and ``cell.json``.
+STOP_TIMEOUT_S: Final[float] = 60.0
 
 
 @dataclass(frozen=True)
@@ -61,19 +73,8 @@ class CellTask:
 
 
 def train_overrides(cell: Cell, env: Mapping[str, Any]) -> dict[str, Any]:
-    """Overrides of ``agents.train.load_train_config`` for a training cell: the run (predictor, split,
-    seed), the budget (``n_timesteps``, ``n_envs``), the grid's and the arm's environment settings
-    (``env.<key>``), then the policy's own ``overrides``."""
-    cell_env = {**dict(env), **cell.arm.env_overrides()}
-    return {
-        "predictor": cell.arm.predictor,
-        "split": cell.split,
-        "seed": cell.seed,
-        "n_timesteps": cell.policy.timesteps,
-        "n_envs": cell.policy.n_envs,
-        **{f"env.{k}": v for k, v in sorted(cell_env.items())},
-        **dict(cell.policy.overrides),
-    }
+    """Overrides of ``agents.train.load_train_config`` for a training cell (:func:`training_overrides`)."""
+    return training_overrides(cell.policy, cell.arm, cell.split, cell.seed, env)
 
 
 def _run_train(task: CellTask, folder: Path) -> dict[str, Any]:
@@ -132,6 +133,7 @@ def execute_cell(task: CellTask) -> dict[str, Any]:
         "model_sha256": task.model_sha256,
         "code_version": code_version(),
         "host": socket.gethostname(),
+        "pid": os.getpid(),
         "status": "running",
         "attempts": [*attempts, {"started": _now()}],
     }
@@ -145,11 +147,13 @@ def execute_cell(task: CellTask) -> dict[str, Any]:
     except Exception as exc:  # report and carry on with the other cells
         counts, ok = {}, False
         error = f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"
+    except KeyboardInterrupt:  # stopped (a second Ctrl-C, SIGTERM, ray.cancel): record the attempt, then stop
+        _finish_attempt(meta, time.perf_counter() - t0, False, "interrupted")
+        atomic_write_json(folder / CELL_JSON, meta)
+        raise
     wall = time.perf_counter() - t0
-    meta["attempts"][-1].update(finished=_now(), wall_s=round(wall, 3), ok=ok)
+    _finish_attempt(meta, wall, ok, "done" if ok else "failed")
     meta.update(counts)
-    meta["wall_s"] = round(sum(a.get("wall_s", 0.0) for a in meta["attempts"]), 3)
-    meta["status"] = "done" if ok else "failed"
     meta["error"] = error
     if ok:
         if task.cell.kind == "train" and meta.get("steps"):
@@ -162,81 +166,18 @@ def execute_cell(task: CellTask) -> dict[str, Any]:
     return {"name": task.cell.name, "ok": ok, "error": error, "wall_s": wall}
 
 
+def _finish_attempt(meta: dict[str, Any], wall: float, ok: bool, status: str) -> None:
+    """Close the last attempt of a cell's ``cell.json`` content: its end, wall time and status."""
+    meta["attempts"][-1].update(finished=_now(), wall_s=round(wall, 3), ok=ok)
+    meta["wall_s"] = round(sum(a.get("wall_s", 0.0) for a in meta["attempts"]), 3)
+    meta["status"] = status
+
+
 def _single_thread() -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
 
     torch.set_num_threads(1)
-
-
-def _pack(folder: Path, arcname: str = ".", skip: Sequence[str] = ()) -> bytes:
-    """A folder as gzipped tar bytes (``skip``: top-level names left out)."""
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
-        for path in sorted(folder.iterdir()) if folder.is_dir() else []:
-            if path.name in skip:
-                continue
-            tar.add(path, arcname=f"{arcname}/{path.name}")
-    return buf.getvalue()
-
-
-def _unpack(blob: bytes, dest: Path) -> None:
-    dest.mkdir(parents=True, exist_ok=True)
-    with tarfile.open(fileobj=io.BytesIO(blob), mode="r:gz") as tar:
-        tar.extractall(dest, filter="data")
-
-
-def _replace_folder(folder: Path, blob: bytes) -> None:
-    """Make ``folder`` hold exactly the archive's content, swapping it in with renames."""
-    incoming = folder.parent / f".{folder.name}.incoming"
-    old = folder.parent / f".{folder.name}.old"
-    for tmp in (incoming, old):
-        shutil.rmtree(tmp, ignore_errors=True)
-    _unpack(blob, incoming)
-    if folder.exists():
-        folder.rename(old)
-    incoming.rename(folder)
-    shutil.rmtree(old, ignore_errors=True)
-
-
-def execute_shipped(task: CellTask, inputs: bytes | None) -> tuple[dict[str, Any], bytes]:
-    """A Ray task: run the cell in a temporary folder on this node and return its folder as tar bytes.
-
-    ``inputs`` (tar bytes) holds ``cell/`` (an interrupted training run to resume) and/or ``model/`` (the
-    trained run folder whose model is evaluated); paths in ``task`` are rewritten to the temporary copies.
-    """
-    with tempfile.TemporaryDirectory(prefix="crowdnav-ablation-") as tmp:
-        root = Path(tmp)
-        if inputs:
-            _unpack(inputs, root)
-        folder = root / "cell"
-        model = None
-        if task.model is not None:
-            model = str(root / "model" / Path(task.model).name)
-        local = dataclasses.replace(task, folder=str(folder), model=model)
-        result = execute_cell(local)
-        if task.model is not None:  # record the driver's path, not the temporary one
-            meta = _read_json(folder / CELL_JSON) or {}
-            meta["model"] = task.model
-            atomic_write_json(folder / CELL_JSON, meta)
-        return result, _pack(folder)
-
-
-def _shipped_inputs(task: CellTask) -> bytes | None:
-    buf = io.BytesIO()
-    added = False
-    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
-        folder = Path(task.folder)
-        if task.cell.kind == "train" and folder.is_dir():
-            tar.add(folder, arcname="cell")
-            added = True
-        if task.model is not None:
-            run = Path(task.model).parent
-            for path in sorted(run.iterdir()):
-                if path.is_file():  # the run's top-level files: models, resolved config; not checkpoints/logs
-                    tar.add(path, arcname=f"model/{path.name}")
-            added = True
-    return buf.getvalue() if added else None
 
 
 class _Backend:
@@ -246,12 +187,15 @@ class _Backend:
     def wait_one(self, handles: Iterable[Any]) -> tuple[Any, dict[str, Any]]:  # pragma: no cover - interface
         raise NotImplementedError
 
+    def stop(self, handles: Mapping[Any, Any]) -> None:
+        """Stop the running cells now (a KeyboardInterrupt in each) and wait for them to record it."""
+
     def close(self) -> None:
         pass
 
 
 class _Serial(_Backend):
-    """Cells one after another in this process (``--workers 1``)."""
+    """Cells one after another in this process (``--workers 1``); a second Ctrl-C stops the cell itself."""
 
     def __init__(self) -> None:
         self._results: dict[int, dict[str, Any]] = {}
@@ -267,6 +211,14 @@ class _Serial(_Backend):
         return handle, self._results.pop(handle)
 
 
+def _pool_worker() -> None:
+    """A pool worker: one torch thread; Ctrl-C is the main process's to handle (the terminal sends it to the
+    whole process group), SIGTERM -- how the main process stops a cell now -- interrupts the cell."""
+    _single_thread()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+
+
 class _Pool(_Backend):
     """A process pool with forkserver (or spawn) workers, one torch thread each."""
 
@@ -276,65 +228,65 @@ class _Pool(_Backend):
 
         method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         self._cf = cf
-        self._pool = cf.ProcessPoolExecutor(workers, mp_context=mp.get_context(method), initializer=_single_thread)
+        self._pool = cf.ProcessPoolExecutor(workers, mp_context=mp.get_context(method), initializer=_pool_worker)
+        self._tasks: dict[Any, CellTask] = {}
 
     def submit(self, task: CellTask) -> Any:
-        return self._pool.submit(execute_cell, task)
+        fut = self._pool.submit(execute_cell, task)
+        self._tasks[fut] = task
+        return fut
 
     def wait_one(self, handles: Iterable[Any]) -> tuple[Any, dict[str, Any]]:
         done, _ = self._cf.wait(list(handles), return_when=self._cf.FIRST_COMPLETED)
         fut = next(iter(done))
+        self._tasks.pop(fut, None)
         try:
             return fut, fut.result()
-        except Exception as exc:  # a worker died (killed, out of memory): the cell stays partial
+        except BaseException as exc:  # a worker died (killed, out of memory) or was stopped: the cell stays partial
             return fut, {"ok": False, "error": f"worker failed: {type(exc).__name__}: {exc}"}
+
+    def stop(self, handles: Mapping[Any, Any]) -> None:
+        """SIGTERM to the worker of each running cell (its pid is in the cell's ``cell.json``): a KeyboardInterrupt
+        there, so a training run checkpoints its last round boundary; then wait for them."""
+        futures = [f for f in handles if f in self._tasks and not f.done()]
+        for fut in futures:
+            pid = (_read_json(Path(self._tasks[fut].folder) / CELL_JSON) or {}).get("pid")
+            if isinstance(pid, int) and pid in getattr(self._pool, "_processes", {}):
+                os.kill(pid, signal.SIGTERM)
+        self._cf.wait(futures, timeout=STOP_TIMEOUT_S)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
-class _Ray(_Backend):
-    """Cells as Ray tasks; files travel with the task and its return value (no shared storage needed)."""
+class _Interrupts:
+    """Ctrl-C (SIGINT) while a grid runs: the first lets the running cells finish, starts no other, and says
+    which it waits for; the second stops them now (``KeyboardInterrupt``). In the main thread only."""
 
-    def __init__(self, address: str | None, num_cpus: int | None) -> None:
-        try:
-            import ray
-        except ImportError as exc:
-            raise ConfigError(
-                "--backend ray needs Ray: pip install 'crowdnav-mesrnn[ray]' (or pip install 'ray>=2.9')"
-            ) from exc
-        self._ray = ray
-        self._started = not ray.is_initialized()
-        if self._started:
-            kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": True}
-            if address:
-                kwargs["address"] = address
-                kwargs["runtime_env"] = {"env_vars": {"OMP_NUM_THREADS": "1"}}
-            elif num_cpus:
-                kwargs["num_cpus"] = num_cpus
-            ray.init(**kwargs)
-        self._remote = ray.remote(execute_shipped)
-        self._tasks: dict[Any, CellTask] = {}
+    def __init__(self, out: Callable[[str], None]) -> None:
+        self.out = out
+        self.count = 0
+        self.running: list[str] = []
+        self._previous: Any = None
 
-    def submit(self, task: CellTask) -> Any:
-        ref = self._remote.options(num_cpus=task.cell.cpus, num_returns=1).remote(task, _shipped_inputs(task))
-        self._tasks[ref] = task
-        return ref
+    def __enter__(self) -> _Interrupts:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
 
-    def wait_one(self, handles: Iterable[Any]) -> tuple[Any, dict[str, Any]]:
-        ready, _ = self._ray.wait(list(handles), num_returns=1)
-        ref = ready[0]
-        task = self._tasks.pop(ref)
-        try:
-            result, blob = self._ray.get(ref)
-        except Exception as exc:  # the task itself died (node lost, worker killed)
-            return ref, {"name": task.cell.name, "ok": False, "error": f"ray task failed: {type(exc).__name__}: {exc}"}
-        _replace_folder(Path(task.folder), blob)
-        return ref, result
+    def __exit__(self, *exc: object) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
 
-    def close(self) -> None:
-        if self._started:
-            self._ray.shutdown()
+    def _handle(self, signum: int, frame: Any) -> None:
+        self.count += 1
+        if self.count > 1 or not self.running:
+            raise KeyboardInterrupt
+        self.out(
+            f"\ninterrupted: no other cell starts; waiting for the {len(self.running)} running cell(s) to finish: "
+            f"{', '.join(sorted(self.running))}. Interrupt again (Ctrl-C) to stop them now: a training run keeps "
+            "its last checkpoint and resumes from it, an evaluation starts over."
+        )
 
 
 def _prepare(cfg: AblationConfig, status: CellStatus) -> None:
@@ -406,11 +358,17 @@ def run_grid(
     address: str | None = None,
     only: str | None = None,
     summarize_after: bool = True,
+    force: bool = False,
     out: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Run every cell that is not done (training before its evaluations) and summarise.
+    """Run every cell that is not done (training before its evaluations) and summarise (``force``: see
+    :func:`agents.ablation.summarize`; a summary that may not replace the results is reported, not raised).
 
-    Returns ``{"ran": [...], "failed": {name: error}, "skipped": [...], "wall_s": ...}``.
+    Ctrl-C: the first lets the running cells finish and starts no other (the cells left are ``interrupted``,
+    no summary is written), the second stops the running cells now and raises ``KeyboardInterrupt``.
+
+    Returns ``{"ran": [...], "failed": {name: error}, "skipped": [...], "interrupted": [...], "wall_s": ...,
+    "summary": "written" | "kept" | None}``.
     """
     if backend not in BACKENDS:
         raise ConfigError(f"unknown backend {backend!r}; valid: {', '.join(BACKENDS)}")
@@ -423,52 +381,93 @@ def run_grid(
     for policy in {s.cell.policy.name: s.cell.policy for s in todo if s.cell.policy.learned}.values():
         if not Path(policy.config or "").is_file():
             raise FileNotFoundError(f"policies.{policy.name}.config: agent config {policy.config!r} not found")
-    for st in todo:
-        _prepare(cfg, st)
-    build_forecast_caches(cfg, [s.cell for s in todo], out=out)
-
     waiting = {s.cell.name: s.cell for s in todo}
+    runner = _runner(backend, workers, address, waiting.values(), out) if waiting else _Serial()
     done_names = {s.cell.name for s in statuses if s.state == "done"}
     ran: list[str] = []
     failed: dict[str, str] = {}
     skipped: list[str] = []
-    runner: _Backend
-    if backend == "ray":
-        widest = max((c.cpus for c in waiting.values()), default=1)
-        runner = _Ray(address, num_cpus=None if address else workers * widest)
-    elif workers <= 1:
-        runner = _Serial()
-    else:
-        runner = _Pool(workers)
     running: dict[Any, Cell] = {}
-    try:
-        while waiting or running:
-            ready = [c for c in waiting.values() if c.needs is None or c.needs in done_names]
-            for cell in ready:
-                del waiting[cell.name]
-                out(f"start {cell.name}")
-                running[runner.submit(_task(cfg, cell))] = cell
-            if not running:  # what waits depends on failed cells
-                skipped.extend(sorted(waiting))
-                break
-            handle, result = runner.wait_one(running)
-            cell = running.pop(handle)
-            if result.get("ok"):
-                done_names.add(cell.name)
-                ran.append(cell.name)
-                out(f"done  {cell.name} ({_hms(float(result.get('wall_s', 0.0)))})")
-            else:
-                failed[cell.name] = str(result.get("error"))
-                out(f"FAILED {cell.name}: {str(result.get('error')).splitlines()[0]}")
-                for name in [n for n, c in waiting.items() if c.needs == cell.name]:
-                    skipped.append(waiting.pop(name).name)
-    finally:
-        runner.close()
+    with _Interrupts(out) as interrupts:
+        try:
+            for st in todo:
+                _prepare(cfg, st)
+            build_forecast_caches(cfg, [s.cell for s in todo], out=out)
+            while waiting or running:
+                ready = [c for c in waiting.values() if c.needs is None or c.needs in done_names]
+                for cell in ready:
+                    if interrupts.count:  # after a Ctrl-C (with --workers 1, perhaps during the previous cell)
+                        break
+                    del waiting[cell.name]
+                    out(f"start {cell.name}")
+                    interrupts.running.append(cell.name)
+                    running[runner.submit(_task(cfg, cell))] = cell
+                if not running:  # what waits depends on failed cells, or was not started after a Ctrl-C
+                    if not interrupts.count:
+                        skipped.extend(sorted(waiting))
+                    break
+                handle, result = runner.wait_one(running)
+                cell = running.pop(handle)
+                interrupts.running.remove(cell.name)
+                if result.get("ok"):
+                    done_names.add(cell.name)
+                    ran.append(cell.name)
+                    out(f"done  {cell.name} ({_hms(float(result.get('wall_s', 0.0)))})")
+                else:
+                    failed[cell.name] = str(result.get("error"))
+                    out(f"FAILED {cell.name}: {str(result.get('error')).splitlines()[0]}")
+                    for name in [n for n, c in waiting.items() if c.needs == cell.name]:
+                        skipped.append(waiting.pop(name).name)
+        except KeyboardInterrupt:
+            stopping = sorted(interrupts.running)
+            if stopping:
+                out(f"stopping {len(stopping)} running cell(s) now: {', '.join(stopping)}")
+                runner.stop(running)
+            out(
+                f"grid {cfg.name} stopped; {len(ran)} cell(s) finished in this run. Run it again to go on: "
+                "finished cells are kept, a stopped training run resumes from its last checkpoint."
+            )
+            raise
+        finally:
+            runner.close()
     wall = time.perf_counter() - t_start
-    out(f"grid {cfg.name}: ran {len(ran)}, failed {len(failed)}, skipped {len(skipped)} in {_hms(wall)}")
-    if summarize_after:
-        summarize(cfg, out=out)
-    return {"ran": ran, "failed": failed, "skipped": skipped, "wall_s": wall}
+    not_started = sorted(waiting) if interrupts.count else []
+    out(
+        f"grid {cfg.name}: ran {len(ran)}, failed {len(failed)}, skipped {len(skipped)}"
+        + (f", not started after the interrupt {len(not_started)}" if not_started else "")
+        + f" in {_hms(wall)}"
+    )
+    summary = None
+    if summarize_after and not not_started:
+        try:
+            summarize(cfg, out=out, force=force)
+            summary = "written"
+        except ResultsKept as kept:
+            out(str(kept))
+            summary = "kept"
+    elif summarize_after:
+        out("summary not updated (interrupted); python -m agents.ablation CONFIG --summarize-only writes it")
+    return {
+        "ran": ran,
+        "failed": failed,
+        "skipped": skipped,
+        "interrupted": not_started,
+        "wall_s": wall,
+        "summary": summary,
+    }
+
+
+def _runner(
+    backend: str, workers: int, address: str | None, cells: Iterable[Cell], out: Callable[[str], None]
+) -> _Backend:
+    """The backend that runs the cells; on Ray, the cluster is reached (or the address refused) here, before
+    any cell folder is touched."""
+    if backend == "ray":
+        from agents.ablation.ray_backend import RayBackend
+
+        widest = max((c.cpus for c in cells), default=1)
+        return RayBackend(address, num_cpus=None if address else workers * widest, out=out)
+    return _Serial() if workers <= 1 else _Pool(workers)
 
 
 def replicate(

@@ -11,9 +11,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import Any, Final
 
 from agents.ablation.config import (
     CELL_JSON,
@@ -237,10 +235,23 @@ def select(cells: Sequence[Cell], patterns: str | None) -> list[Cell]:
     return [c for c in cells if c.name in chosen]
 
 
-def measured_rates(cfg: AblationConfig) -> dict[tuple[str, str, str], float]:
-    """Median measured throughput of finished cells: ``(kind, policy kind, arm source) -> rate``
-    (training: env steps/s, evaluation: episodes/s)."""
-    samples: dict[tuple[str, str, str], list[float]] = {}
+#: Where a dry run's throughput comes from, in the order tried: finished cells in the grid's run folders, the
+#: finished cells the committed results record (``cells.json``), the config's ``estimates``.
+RATE_SOURCES: Final[tuple[str, ...]] = ("runs", "results", "config")
+
+_RateKey = tuple[str, str, str]
+
+
+def _pooled(samples: Mapping[_RateKey, list[float]]) -> dict[_RateKey, float]:
+    """Cells of one key share their budget, so total work over total time is the harmonic mean of their rates."""
+    return {k: len(v) / sum(1.0 / r for r in v) for k, v in samples.items() if v}
+
+
+def measured_rates(cfg: AblationConfig) -> dict[_RateKey, float]:
+    """Throughput of the finished cells in the grid's run folders: ``(kind, policy kind, arm source) -> rate``
+    (training: env steps/s, evaluation: episodes/s; each cell's own ``cell.json``, wall time of the whole cell
+    -- warm start, validation, every attempt -- included), pooled as total work over total time."""
+    samples: dict[_RateKey, list[float]] = {}
     root = cfg.runs_path()
     if not root.is_dir():
         return {}
@@ -253,11 +264,42 @@ def measured_rates(cfg: AblationConfig) -> dict[tuple[str, str, str], float]:
         if isinstance(rate, int | float) and rate > 0:
             key = (str(spec.get("kind")), str(spec.get("policy_kind")), str(spec.get("predictor")))
             samples.setdefault(key, []).append(float(rate))
-    return {k: float(np.median(v)) for k, v in samples.items()}
+    return _pooled(samples)
 
 
-def estimate_seconds(cfg: AblationConfig, cell: Cell, rates: Mapping[tuple[str, str, str], float]) -> tuple[float, str]:
-    """Estimated run time of a cell and where the rate comes from (``measured`` or ``default``)."""
+def recorded_rates(cfg: AblationConfig) -> dict[_RateKey, float]:
+    """Throughput of the finished cells the committed results record (``cells.json`` in ``cfg.out_path()``),
+    keyed and pooled as :func:`measured_rates`; cells no longer in the grid are left out."""
+    records = _read_json_list(cfg.out_path() / "cells.json")
+    cells = {c.name: c for c in expand(cfg)}
+    samples: dict[_RateKey, list[float]] = {}
+    for rec in records:
+        cell = cells.get(str(rec.get("cell")))
+        rate = rec.get("steps_per_s" if cell is not None and cell.kind == "train" else "episodes_per_s")
+        if cell is None or rec.get("state") != "done" or not isinstance(rate, int | float) or rate <= 0:
+            continue
+        samples.setdefault((cell.kind, cell.policy.kind, cell.arm.predictor), []).append(float(rate))
+    return _pooled(samples)
+
+
+def _read_json_list(path: Path) -> list[dict[str, Any]]:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+    except (OSError, ValueError):
+        return []
+    return [r for r in data if isinstance(r, dict)] if isinstance(data, list) else []
+
+
+def estimate_seconds(
+    cfg: AblationConfig,
+    cell: Cell,
+    rates: Mapping[_RateKey, float],
+    recorded: Mapping[_RateKey, float] | None = None,
+) -> tuple[float, str]:
+    """Estimated run time of a cell, seconds, and where its rate comes from (one of :data:`RATE_SOURCES`):
+    ``rates`` (:func:`measured_rates`), else ``recorded`` (:func:`recorded_rates`), else the config's
+    ``estimates``."""
     key = (cell.kind, cell.policy.kind, cell.arm.predictor)
     if cell.kind == "train":
         work = float(cell.policy.timesteps or 0)
@@ -267,9 +309,10 @@ def estimate_seconds(cfg: AblationConfig, cell: Cell, rates: Mapping[tuple[str, 
         work = float(cfg.episodes)
         defaults = cfg.eval_episodes_per_s
         default = defaults.get(cell.policy.name, defaults.get(cell.policy.kind, defaults.get("default", 2.0)))
-    if key in rates:
-        return work / rates[key], "measured"
-    return work / default, "default"
+    for source, table in zip(RATE_SOURCES, (rates, recorded or {}), strict=False):
+        if key in table:
+            return work / table[key], source
+    return work / default, "config"
 
 
 def _hms(seconds: float) -> str:
@@ -289,7 +332,7 @@ def default_workers(cells: Iterable[Cell]) -> int:
 def dry_run(cfg: AblationConfig, cells: Sequence[Cell], workers: int, out: Callable[[str], None] = print) -> None:
     """Print every cell with its state and estimated time, and the totals."""
     statuses = plan(cfg, cells)
-    rates = measured_rates(cfg)
+    rates, recorded = measured_rates(cfg), recorded_rates(cfg)
 
     def describe(p: PolicySpec) -> str:
         arms = f"arms {'/'.join(p.arms)}" if p.arms else "all arms"
@@ -302,22 +345,35 @@ def dry_run(cfg: AblationConfig, cells: Sequence[Cell], workers: int, out: Calla
         f"seeds {', '.join(map(str, cfg.seeds))}; policies {pol}; {cfg.episodes} evaluation episodes per cell"
     )
     out(f"cells in {cfg.runs_path()}/, summaries in {cfg.out_path()}/")
-    out(f"{'state':<8} {'estimate':>9}  {'rate':<8} cell")
+    out(f"{'state':<8} {'estimate':>9}  {'from':<8} cell")
     total = 0.0
     counts = dict.fromkeys(CELL_STATES, 0)
+    used: dict[str, dict[str, int]] = {s: {"train": 0, "eval": 0} for s in RATE_SOURCES}
     for st in statuses:
         counts[st.state] += 1
-        secs, src = estimate_seconds(cfg, st.cell, rates)
+        secs, src = estimate_seconds(cfg, st.cell, rates, recorded)
         if st.state != "done":
             total += secs
+            used[src][st.cell.kind] += 1
         est = "-" if st.state == "done" else _hms(secs)
         reason = f"  ({st.reason})" if st.reason else ""
-        out(f"{st.state:<8} {est:>9}  {src:<8} {st.cell.name}{reason}")
+        out(f"{st.state:<8} {est:>9}  {src if st.state != 'done' else '':<8} {st.cell.name}{reason}")
     n_train = sum(c.kind == "train" for c in cells)
     out(
         f"{len(cells)} cells ({n_train} train, {len(cells) - n_train} eval): "
         + ", ".join(f"{k} {v}" for k, v in counts.items())
     )
+    where = {
+        "runs": f"the throughput of finished cells in {cfg.runs_path()}/",
+        "results": f"the finished cells recorded in {cfg.out_path() / 'cells.json'}",
+        "config": f"the config's estimates (no finished cell of that kind, policy and forecast source; {cfg.source or 'config'})",
+    }
+    parts = [
+        f"{n['train'] + n['eval']} cells ({n['train']} train, {n['eval']} eval) from {where[s]}"
+        for s, n in used.items()
+        if n["train"] + n["eval"]
+    ]
+    out("time estimates: " + ("; ".join(parts) if parts else "none (every cell is done)"))
     out(
         f"estimated compute left {_hms(total)}; with {workers} worker(s) at a time, wall time >= {_hms(total / workers)} "
         "(evaluations wait for their training runs)"

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import os
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -80,6 +82,16 @@ _EVAL_KEYS: Final[tuple[str, ...]] = ("episodes", "seed")
 
 
 _ESTIMATE_KEYS: Final[tuple[str, ...]] = ("train_steps_per_s", "eval_episodes_per_s")
+
+
+#: Training overrides the grid sets in every cell (and where a config sets them instead).
+_GRID_OVERRIDES: Final[dict[str, str]] = {
+    "predictor": "arms",
+    "split": "splits",
+    "seed": "seeds",
+    "n_timesteps": "policies.<name>.timesteps",
+    "n_envs": "policies.<name>.n_envs",
+}
 
 
 @dataclass(frozen=True)
@@ -290,6 +302,69 @@ def _policy_arms(policy: PolicySpec, raw: Mapping[str, Any], arms: Sequence[Arm]
     return dataclasses.replace(policy, arms=tuple(chosen))
 
 
+def training_overrides(
+    policy: PolicySpec, arm: Arm, split: str, seed: int | None, env: Mapping[str, Any]
+) -> dict[str, Any]:
+    """Overrides of ``agents.train.load_train_config`` for one training run of the grid: the run (predictor,
+    split, seed), the budget (``n_timesteps``, ``n_envs``), the grid's and the arm's environment settings
+    (``env.<key>``), then the policy's own ``overrides`` (which may not set the keys before them)."""
+    cell_env = {**dict(env), **arm.env_overrides()}
+    return {
+        "predictor": arm.predictor,
+        "split": split,
+        "seed": seed,
+        "n_timesteps": policy.timesteps,
+        "n_envs": policy.n_envs,
+        **{f"env.{k}": v for k, v in sorted(cell_env.items())},
+        **dict(policy.overrides),
+    }
+
+
+def _did_you_mean(message: str, overrides: Mapping[str, Any]) -> str:
+    """`` (did you mean 'pretrain.episodes'?)`` for an "unknown ... key 'x'; valid keys: ..." message about one of
+    the ``overrides`` (a small local helper, :func:`difflib.get_close_matches` over the listed keys)."""
+    found = re.search(r"key '([^']+)'; valid keys: (.+)$", message)
+    if not found or "did you mean" in message:
+        return ""
+    word, valid = found.group(1), [v.strip() for v in found.group(2).split(",")]
+    close = difflib.get_close_matches(word, valid, n=1)
+    if not close:
+        return ""
+    key = next((k for k in overrides if k == word or k.endswith(f".{word}")), word)
+    return f" (did you mean {key[: len(key) - len(word)] + close[0]!r}?)"
+
+
+def _check_training(policies: Sequence[PolicySpec], arms: Sequence[Arm], split: str, seed: int, env: Mapping) -> None:
+    """Load the training config of every learned policy with each forecast source it trains on, as a cell
+    would (``agents.train.load_train_config``), so a wrong override or agent config fails now, not when the
+    cell starts. Raises :class:`ConfigError` naming ``policies.<name>``."""
+    for policy in (p for p in policies if p.learned):
+        where = f"policies.{policy.name}"
+        for key in policy.overrides:
+            if key in _GRID_OVERRIDES:
+                raise _bad(
+                    f"{where}.overrides.{key}",
+                    policy.overrides[key],
+                    f"nothing: the grid sets {key!r} (from {_GRID_OVERRIDES[key].replace('<name>', policy.name)})",
+                )
+        if not Path(policy.config or "").is_file():
+            raise _bad(f"{where}.config", policy.config, "an existing agent YAML (relative to the working directory)")
+        from agents.train import load_train_config
+
+        seen: set[str] = set()
+        for arm in (a for a in arms if policy.uses(a)):
+            if arm.predictor in seen:
+                continue
+            seen.add(arm.predictor)
+            try:
+                load_train_config(policy.config, None, training_overrides(policy, arm, split, seed, env))
+            except ConfigError as exc:
+                raise ConfigError(
+                    f"ablation config key {where + '.overrides'!r} (with agent config {policy.config}, arm "
+                    f"{arm.label}): {exc}{_did_you_mean(str(exc), policy.overrides)}"
+                ) from None
+
+
 def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationConfig:
     """Validate a grid mapping (the YAML's content); every error is a :class:`ConfigError` naming the key."""
     check_keys(raw, _TOP_KEYS, "ablation config")
@@ -364,6 +439,7 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
     for key in ("out_dir", "runs_dir", "description"):
         if not isinstance(raw.get(key, ""), str):
             raise _bad(key, raw[key], "a string")
+    _check_training(policies, arms, splits[0], int(seeds[0]), env)
     return AblationConfig(
         name=name,
         splits=splits,

@@ -13,8 +13,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from agents.ablation.cells import CellStatus, cell_dir, plan
-from agents.ablation.config import AblationConfig
+from agents.ablation.cells import CellStatus
 
 
 def read_episodes(path: str | os.PathLike[str]) -> list[dict[str, str]]:
@@ -69,42 +68,37 @@ def aggregate(episodes: _Episodes) -> dict[str, Any]:
     return summarise(episodes.rows)
 
 
-def _collect(cfg: AblationConfig) -> tuple[dict[tuple[str, str], _Episodes], dict[str, Any]]:
-    """Episodes of every finished evaluation cell, keyed by (policy, arm); and which cells are missing."""
-    pooled: dict[tuple[str, str], _Episodes] = {}
+def cell_info(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """What the summary says of the cells, from their ``cells.json`` records (:func:`cell_record`): which are
+    missing (not done), the compute in done cells per kind, and the grid's span from the first attempt's start
+    to the last attempt's end (``None`` when the records have no start times)."""
     missing: list[str] = []
     walls: dict[str, float] = {"train": 0.0, "eval": 0.0}
     starts: list[str] = []
     ends: list[str] = []
-    statuses = plan(cfg)
-    for st in statuses:
-        if st.meta:
-            for att in st.meta.get("attempts", []):
-                starts.append(att.get("started", ""))
-                ends.append(att.get("finished", ""))
-        if st.state != "done":
-            missing.append(st.cell.name)
+    for rec in records:
+        for att in rec.get("attempts") or []:
+            starts.append(att.get("started") or "")
+            ends.append(att.get("finished") or "")
+        if rec.get("state") != "done":
+            missing.append(rec["cell"])
             continue
-        walls[st.cell.kind] += float((st.meta or {}).get("wall_s", 0.0))
-        if st.cell.kind != "eval":
-            continue
-        rows = read_episodes(cell_dir(cfg, st.cell) / "episodes.csv")
-        pooled.setdefault((st.cell.policy.name, st.cell.arm.label), _Episodes()).add(st.cell.split, st.cell.seed, rows)
+        walls[rec["cell"].split("/", 1)[0]] += float(rec.get("wall_s") or 0.0)
     first = min((w for w in map(_when, starts) if w), default=None)
     last = max((w for w in map(_when, ends) if w), default=None)
-    info = {
-        "cells": [_cell_record(st) for st in statuses],
+    return {
         "missing_cells": missing,
         "cell_wall_s": walls,
         "first_start": first.isoformat() if first else None,
         "last_finish": last.isoformat() if last else None,
         "span_s": (last - first).total_seconds() if first and last else None,
     }
-    return pooled, info
 
 
-def _cell_record(st: CellStatus) -> dict[str, Any]:
-    """One line of ``cells.json``: a cell's state, cost and provenance."""
+def cell_record(st: CellStatus) -> dict[str, Any]:
+    """One line of ``cells.json``: a cell's state, cost and provenance, with what :func:`cell_info` reads
+    (every attempt's start and end) and what the cell's result depends on (its spec), so that the committed
+    results alone can be summarised again (:mod:`agents.ablation.results`)."""
     meta = st.meta or {}
     rate = meta.get("steps_per_s") if st.cell.kind == "train" else meta.get("episodes_per_s")
     return {
@@ -116,6 +110,8 @@ def _cell_record(st: CellStatus) -> dict[str, Any]:
         "finished": (meta.get("attempts") or [{}])[-1].get("finished"),
         "weights_sha256": {k: v[:12] for k, v in (meta.get("weights") or {}).items()},
         "model_sha256": (meta.get("model_sha256") or "")[:12] or None,
+        "attempts": [{"started": a.get("started"), "finished": a.get("finished")} for a in meta.get("attempts", [])],
+        "spec": meta.get("spec"),
     }
 
 
@@ -124,10 +120,19 @@ def _cell_record(st: CellStatus) -> dict[str, Any]:
 ARCHIVE_KEYS: Final[tuple[str, ...]] = ("policy", "arm", "split", "seed", "episode", "outcome")
 
 
+def _exact(value: str | None) -> str:
+    """A metric as the archive stores it: the shortest text that reads back as the same float ("" if undefined)."""
+    x = _num(value)
+    if not math.isfinite(x):
+        return ""
+    text = repr(x)
+    return text[:-2] if text.endswith(".0") else text
+
+
 def episodes_archive(pooled: Mapping[tuple[str, str], _Episodes]) -> bytes:
-    """Every evaluated episode in one gzipped CSV (:data:`ARCHIVE_KEYS` and the metrics, 4 decimals;
-    byte-identical for identical inputs), small enough to commit beside the summary so the tests can be
-    redone without the runs."""
+    """Every evaluated episode in one gzipped CSV (:data:`ARCHIVE_KEYS` and the metrics, each value exactly as
+    the evaluation wrote it; byte-identical for identical inputs), committed beside the summary: the summary is
+    computed from this file (:func:`read_archive`), so the results alone reproduce it."""
     import gzip
 
     from agents.evaluate import METRICS
@@ -137,14 +142,42 @@ def episodes_archive(pooled: Mapping[tuple[str, str], _Episodes]) -> bytes:
     writer.writerow((*ARCHIVE_KEYS, *METRICS))
     for (policy, arm), eps in sorted(pooled.items()):
         for (split, seed, ep), row in sorted(
-            zip(eps.keys, eps.rows, strict=True), key=lambda kr: (kr[0][0], kr[0][1] or -1, kr[0][2])
+            zip(eps.keys, eps.rows, strict=True),
+            key=lambda kr: (kr[0][0], -1 if kr[0][1] is None else kr[0][1], kr[0][2]),
         ):
-            values = []
-            for col in METRICS:
-                x = _num(row.get(col))
-                values.append("" if not math.isfinite(x) else f"{x:.4f}".rstrip("0").rstrip("."))
+            values = [_exact(row.get(col)) for col in METRICS]
             writer.writerow([policy, arm, split, "" if seed is None else seed, ep, row.get("outcome", ""), *values])
     return gzip.compress(buf.getvalue().encode("utf-8"), mtime=0)
+
+
+def archive_rows(data: bytes) -> dict[str, list[dict[str, str]]]:
+    """The rows of an :func:`episodes_archive` per evaluation cell name (``eval/<split>/<policy>/<arm>[/seed<k>]``),
+    each with ``episode``, ``outcome`` and the metrics."""
+    import gzip
+
+    out: dict[str, list[dict[str, str]]] = {}
+    for row in csv.DictReader(io.StringIO(gzip.decompress(data).decode("utf-8"))):
+        name = f"eval/{row['split']}/{row['policy']}/{row['arm']}" + (f"/seed{row['seed']}" if row["seed"] else "")
+        out.setdefault(name, []).append({k: v for k, v in row.items() if k not in ("policy", "arm", "split", "seed")})
+    return out
+
+
+def read_archive(data: bytes, splits: Sequence[str]) -> dict[tuple[str, str], _Episodes]:
+    """An :func:`episodes_archive` as episodes pooled per (policy, arm), in the grid's order (``splits``'
+    order, then training seed, then episode) -- the order in which the cells' own files list them."""
+    pooled: dict[tuple[str, str], list[tuple[tuple[int, int, int], str, int | None, dict[str, str]]]] = {}
+    for name, rows in archive_rows(data).items():
+        _, split, policy, arm, *rest = name.split("/")
+        seed = int(rest[0].removeprefix("seed")) if rest else None
+        order = splits.index(split) if split in splits else len(splits)
+        for row in rows:
+            ep = int(row["episode"])
+            pooled.setdefault((policy, arm), []).append(((order, -1 if seed is None else seed, ep), split, seed, row))
+    out: dict[tuple[str, str], _Episodes] = {}
+    for key, items in pooled.items():
+        items.sort(key=lambda item: item[0])
+        out[key] = _Episodes([(sp, sd, o[2]) for o, sp, sd, _ in items], [row for *_, row in items])
+    return out
 
 
 def _when(stamp: str | None) -> datetime.datetime | None:

@@ -1,22 +1,48 @@
-""":func:`summarize`: finished evaluation cells into summary.json, summary.md, cells.json, the episode archive, plots."""
+""":func:`summarize`: finished evaluation cells into summary.json, summary.md, cells.json, the episode archive, plots.
+
+The cells come from the run folders, or from the committed results for cells without a folder; what may be
+replaced, and when files are left alone, is :mod:`agents.ablation.results`' rule.
+"""
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
+import tempfile
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from agents.ablation.cells import _now
 from agents.ablation.config import AblationConfig
-from agents.ablation.episodes import _collect, aggregate, episodes_archive
+from agents.ablation.episodes import _Episodes, aggregate, cell_info, episodes_archive, read_archive
 from agents.ablation.plots import write_plots
 from agents.ablation.report import summary_markdown
+from agents.ablation.results import ARCHIVE, CELLS, STAMPS, _load_json, _strip, check_replace, gather
 from agents.ablation.stats import _clean, by_density, density_edges, paired_tests
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
 
 
-def summarize(cfg: AblationConfig, out: Callable[[str], None] = print, plots: bool = True) -> dict[str, Any]:
-    """Write ``summary.json``, ``summary.md`` and the plots into ``cfg.out_path()``; returns the summary."""
-    pooled, info = _collect(cfg)
+def summarize(
+    cfg: AblationConfig, out: Callable[[str], None] = print, plots: bool = True, force: bool = False
+) -> dict[str, Any]:
+    """Write ``summary.json``, ``summary.md``, ``cells.json``, ``episodes.csv.gz`` and the plots into
+    ``cfg.out_path()``; returns the summary.
+
+    The statistics are computed from the episode archive as written (so the committed results alone render
+    the same summary again). Every file is rendered before any is replaced; when only the stamps (code
+    version, time) would change, nothing is written. Raises :class:`agents.ablation.results.ResultsKept`
+    (files untouched) when the new summary would hold less than the existing one, or -- drawn from the
+    committed archive alone -- differ from it; ``force`` replaces them anyway.
+    """
+    records, episodes, sources = gather(cfg)
+    raw: dict[tuple[str, str], _Episodes] = {}
+    for policy_name, arm_label, split, seed, rows in episodes:
+        raw.setdefault((policy_name, arm_label), _Episodes()).add(split, seed, rows)
+    archive = episodes_archive(raw)
+    pooled = read_archive(archive, cfg.splits)
+    info = cell_info(records)
     edges = density_edges(cfg, pooled)
     policies: dict[str, Any] = {}
     for policy in cfg.policies:
@@ -76,12 +102,51 @@ def summarize(cfg: AblationConfig, out: Callable[[str], None] = print, plots: bo
     }
     summary = _clean(summary)
     dest = cfg.out_path()
+    where = (
+        f"{sources['runs']} cell(s) from run folders, {sources['archive']} cell(s) from the archive {dest / ARCHIVE}"
+    )
+    cells_text = json.dumps(_clean(records), indent=2) + "\n"
     dest.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(dest / "summary.json", summary)
-    atomic_write_json(dest / "cells.json", _clean(info["cells"]))
-    archive = episodes_archive(pooled)
-    atomic_write(dest / "episodes.csv.gz", lambda fh: fh.write(archive))
-    figures = write_plots(summary, dest) if plots else []
-    atomic_write_text(dest / "summary.md", summary_markdown(summary, cfg, figures))
-    out(f"wrote {dest}/: summary.json, summary.md, cells.json, episodes.csv.gz and {len(figures)} plot(s)")
+    staging = Path(tempfile.mkdtemp(prefix=".summary-", dir=dest))
+    try:
+        figures = write_plots(summary, staging) if plots else []
+        markdown = summary_markdown(summary, cfg, figures)
+        old = _load_json(dest / "summary.json")
+        if isinstance(old, dict) and _unchanged(dest, old, summary, cells_text, archive, cfg, figures):
+            out(f"{dest}/ is up to date ({where}): no file changed")
+            return {**summary, **{k: old.get(k) for k in STAMPS}}
+        check_replace(cfg, summary, records, sources, force)
+        atomic_write_json(staging / "summary.json", summary)
+        atomic_write_text(staging / CELLS, cells_text)
+        atomic_write(staging / ARCHIVE, lambda fh: fh.write(archive))
+        atomic_write_text(staging / "summary.md", markdown)
+        for name in ["summary.json", CELLS, ARCHIVE, *(Path(f).name for f in figures), "summary.md"]:
+            os.replace(staging / name, dest / name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    out(f"wrote {dest}/: summary.json, summary.md, cells.json, episodes.csv.gz and {len(figures)} plot(s) ({where})")
     return summary
+
+
+def _unchanged(
+    dest: Path,
+    old: dict[str, Any],
+    summary: dict[str, Any],
+    cells_text: str,
+    archive: bytes,
+    cfg: AblationConfig,
+    figures: list[str],
+) -> bool:
+    """The files in ``dest`` hold this summary already (stamps aside): same data, same text, every plot there."""
+    if _strip(old) != json.loads(json.dumps(_strip(summary))):
+        return False
+    try:
+        same = (
+            (dest / CELLS).read_text(encoding="utf-8") == cells_text
+            and (dest / ARCHIVE).read_bytes() == archive
+            and (dest / "summary.md").read_text(encoding="utf-8")
+            == summary_markdown({**summary, **{k: old.get(k) for k in STAMPS}}, cfg, figures)
+        )
+    except OSError:
+        return False
+    return same and all((dest / Path(f).name).is_file() for f in figures)

@@ -23,11 +23,19 @@ from agents.stats import holm, wilson_interval
 from crowdnav_mesrnn.config import ConfigError
 
 EPISODE_COLUMNS = ("episode", "seed", "recording", "outcome", "navigation_time_s", "path_ratio", "crowd_density")
+#: A valid agent config for every arm of the tiny grids (the grid checks it, with its overrides, when loaded).
+TINY_AGENT = """\
+CrowdNav-MESRNN-v0: &ppo {policy: MultiInputPolicy, n_timesteps: 64, n_steps: 64}
+CrowdNav-NoPred-v0: *ppo
+CrowdNav-CV-v0: *ppo
+CrowdNav-Oracle-v0: *ppo
+crowdnav_mesrnn: {algo: ppo, pretrain: {episodes: 2}}
+"""
 
 
 def _raw(tmp_path: Path, **changes: Any) -> dict[str, Any]:
     agent_yaml = tmp_path / "ppo.yaml"
-    agent_yaml.write_text("CrowdNav-MESRNN-v0:\n  n_steps: 64\n", encoding="utf-8")
+    agent_yaml.write_text(TINY_AGENT, encoding="utf-8")
     raw: dict[str, Any] = {
         "name": "tiny",
         "runs_dir": str(tmp_path / "runs"),
@@ -138,6 +146,37 @@ def test_bad_policy_entries(tmp_path: Path) -> None:
     raw = _raw(tmp_path)
     raw["policies"]["ppo"]["arms"] = ["oracle"]
     with pytest.raises(ConfigError, match=r"'policies.ppo.arms'.*'oracle'.*none, mesrnn"):
+        ab.config_from_mapping(raw)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "words"),
+    [
+        ({"pretrain.episode": 3}, ["'policies.ppo.overrides'", "'episode'", "did you mean 'pretrain.episodes'?"]),
+        ({"learning_rat": 1e-3}, ["'policies.ppo.overrides'", "'learning_rat'", "did you mean 'learning_rate'?"]),
+        ({"eval.episode": 3}, ["eval key 'episode'", "did you mean 'eval.episodes'?"]),
+        ({"pretrain.episodes": -1}, ["'policies.ppo.overrides'", "episodes"]),
+        ({"n_timesteps": 5}, ["'policies.ppo.overrides.n_timesteps'", "policies.ppo.timesteps"]),
+        ({"seed": 5}, ["'policies.ppo.overrides.seed'", "seeds"]),
+    ],
+)
+def test_policy_overrides_are_checked_when_the_grid_is_loaded(
+    tmp_path: Path, overrides: dict[str, Any], words: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    raw = _raw(tmp_path)
+    raw["policies"]["ppo"]["overrides"] = overrides
+    with pytest.raises(ConfigError) as err:
+        ab.config_from_mapping(raw)
+    for word in words:
+        assert word in str(err.value)
+    # ... and so before a dry run lists the cells
+    (tmp_path / "g.yaml").write_text(json.dumps(raw), encoding="utf-8")
+    assert ab.main([str(tmp_path / "g.yaml"), "--dry-run"]) == 2
+    assert "policies.ppo.overrides" in capsys.readouterr().err
+    raw["policies"]["ppo"]["overrides"] = {"pretrain.episodes": 3, "learning_rate": 1e-3}
+    assert ab.config_from_mapping(raw).policy("ppo").overrides["pretrain.episodes"] == 3
+    raw["policies"]["ppo"]["config"] = str(tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match=r"'policies.ppo.config'.*missing.yaml.*working directory"):
         ab.config_from_mapping(raw)
 
 
@@ -298,6 +337,51 @@ def test_failed_cell_is_reported_and_its_evaluation_skipped(tmp_path: Path, fake
     assert fakes.train_calls == [("train/zara1/ppo/mesrnn/seed0", True)]  # the partial run resumes
 
 
+def test_a_first_ctrl_c_waits_for_the_running_cells_and_a_second_stops_them(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import os
+    import signal
+
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    original = fakes.train
+    presses = {"train/zara1/ppo/none/seed0": 1, "train/zara1/ppo/none/seed1": 2}
+
+    def train(task: ab.CellTask, folder: Path) -> dict[str, Any]:  # Ctrl-C pressed while the cell runs
+        (folder / ab.TRAIN_RUN).mkdir(parents=True, exist_ok=True)  # it has begun its run folder
+        for _ in range(presses.get(task.cell.name, 0)):
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(task, folder)
+
+    monkeypatch.setattr(ab.backends, "_run_train", train)
+    lines: list[str] = []
+    only = "train/zara1/ppo/none/seed0,eval/zara1/planner/*"
+    result = ab.run_grid(cfg, workers=1, only=only, out=lines.append)
+    text = "\n".join(lines)
+    assert "waiting for the 1 running cell(s) to finish: train/zara1/ppo/none/seed0" in text
+    assert "Interrupt again (Ctrl-C) to stop them now" in text
+    assert result["ran"] == ["train/zara1/ppo/none/seed0"]  # it finished; nothing else started
+    assert result["interrupted"] == ["eval/zara1/planner/mesrnn", "eval/zara1/planner/none"]
+    assert result["summary"] is None and "summary not updated (interrupted)" in text
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    (tmp_path / "g.yaml").write_text(json.dumps(_raw(tmp_path)), encoding="utf-8")
+    presses["train/zara1/ppo/mesrnn/seed0"] = 1
+    only = "train/zara1/ppo/mesrnn/seed0,eval/zara1/planner/none"
+    assert ab.main([str(tmp_path / "g.yaml"), "--workers", "1", "--only", only]) == 130  # a cell was not started
+
+    lines.clear()
+    with pytest.raises(KeyboardInterrupt):
+        ab.run_grid(cfg, workers=1, only="train/zara1/ppo/none/seed1", out=lines.append)
+    assert "stopping 1 running cell(s) now: train/zara1/ppo/none/seed1" in "\n".join(lines)
+    meta = json.loads((ab.cell_dir(cfg, "train/zara1/ppo/none/seed1") / ab.CELL_JSON).read_text())
+    assert meta["status"] == "interrupted" and meta["attempts"][-1]["ok"] is False
+    assert _states(cfg)["train/zara1/ppo/none/seed1"] == "partial"  # resumed by the next run
+    fakes.train_calls.clear()
+    presses.clear()
+    ab.run_grid(cfg, workers=1, only="train/zara1/ppo/none/seed1", summarize_after=False, out=lambda s: None)
+    assert fakes.train_calls == [("train/zara1/ppo/none/seed1", True)]
+
+
 def test_dry_run_lists_states_and_uses_measured_rates(tmp_path: Path, fakes: Fakes) -> None:
     cfg = ab.config_from_mapping(_raw(tmp_path))
     lines: list[str] = []
@@ -309,8 +393,54 @@ def test_dry_run_lists_states_and_uses_measured_rates(tmp_path: Path, fakes: Fak
     lines.clear()
     ab.dry_run(cfg, ab.expand(cfg), workers=1, out=lines.append)
     row = next(line for line in lines if "eval/zara1/ppo/none/seed1" in line)
-    assert row.startswith("partial") and "measured" in row
+    assert row.startswith("partial") and "runs" in row
     assert ab.measured_rates(cfg)[("train", "ppo", "mesrnn")] > 0
+
+
+def _set_wall(cfg: ab.AblationConfig, name: str, wall_s: float) -> None:
+    """Make a finished training cell look as if it took ``wall_s`` seconds."""
+    path = ab.cell_dir(cfg, name) / ab.CELL_JSON
+    meta = json.loads(path.read_text())
+    meta.update(wall_s=wall_s, steps_per_s=meta["steps"] / wall_s)
+    path.write_text(json.dumps(meta))
+
+
+def test_dry_run_calibrates_from_finished_cells_then_the_results_then_the_config(tmp_path: Path, fakes: Fakes) -> None:
+    import shutil
+
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    for name, wall in (("none/seed0", 400.0), ("none/seed1", 200.0), ("mesrnn/seed0", 500.0), ("mesrnn/seed1", 500.0)):
+        _set_wall(cfg, f"train/zara1/ppo/{name}", wall)  # none: 256 steps in 400 s and in 200 s, 300 s per run
+    ab.summarize(cfg, out=lambda s: None, plots=False)  # the committed record of the finished cells
+    shutil.rmtree(cfg.runs_path())  # a fresh clone
+
+    def rows() -> dict[str, str]:
+        lines: list[str] = []
+        ab.dry_run(cfg, ab.expand(cfg), workers=1, out=lines.append)
+        table = {line.split()[-1]: line for line in lines if line.startswith("todo")}
+        table["totals"] = "\n".join(lines[-2:])
+        return table
+
+    table = rows()
+    # the results' record: steps over seconds of that (kind, policy kind, forecast source), pooled over cells
+    assert "5 min" in table["train/zara1/ppo/none/seed1"] and "results" in table["train/zara1/ppo/none/seed1"]
+    assert "8 min" in table["train/zara1/ppo/mesrnn/seed1"] and "results" in table["train/zara1/ppo/mesrnn/seed1"]
+    assert "results" in table["eval/zara1/planner/none"]
+    assert "10 cells (4 train, 6 eval) from the finished cells recorded in" in table["totals"]
+    assert "cells.json" in table["totals"]
+    # a finished cell of this grid counts before the results' record
+    ab.run_grid(cfg, workers=1, only="train/zara1/ppo/none/seed0", summarize_after=False, out=lambda s: None)
+    _set_wall(cfg, "train/zara1/ppo/none/seed0", 60.0)
+    table = rows()
+    assert "60 s" in table["train/zara1/ppo/none/seed1"] and "runs" in table["train/zara1/ppo/none/seed1"]
+    assert "results" in table["train/zara1/ppo/mesrnn/seed1"]
+    # without either: the config's estimates, and the dry run says so
+    shutil.rmtree(cfg.runs_path())
+    (cfg.out_path() / "cells.json").unlink()
+    table = rows()
+    assert "config" in table["train/zara1/ppo/none/seed1"]
+    assert "10 cells (4 train, 6 eval) from the config's estimates" in table["totals"]
 
 
 # ----------------------------------------------------------------------------- the summary
@@ -551,7 +681,14 @@ def test_replicate_reruns_cells_in_a_scratch_folder_and_compares_episodes(
     with pytest.raises(ConfigError, match="selects no evaluation cell"):
         ab.replicate(cfg, "train/zara1/ppo/none/seed0", tmp_path / "replica5", workers=1)
     (tmp_path / "g.yaml").write_text(json.dumps(_raw(tmp_path)), encoding="utf-8")  # JSON is YAML
-    args = {"workers": None, "address": None, "backend": "local", "dry_run": False, "summarize_only": False}
+    args = {
+        "workers": None,
+        "address": None,
+        "backend": "local",
+        "dry_run": False,
+        "summarize_only": False,
+        "force": False,
+    }
     base = {"config": str(tmp_path / "g.yaml"), "replicate": str(tmp_path / "replica6"), "only": "eval/*"}
     for change, message in (
         ({"only": None}, "--replicate needs --only"),
@@ -560,3 +697,147 @@ def test_replicate_reruns_cells_in_a_scratch_folder_and_compares_episodes(
     ):
         with pytest.raises(ConfigError, match=message):
             ab.run_from_args(argparse.Namespace(**{**args, **base, **change}))
+
+
+# ----------------------------------------------------------------------------- the committed results
+
+
+def _planner_grid(tmp_path: Path, arms: tuple[str, ...] = ("none", "cv")) -> tuple[ab.AblationConfig, Path]:
+    """A planner-only grid written to a YAML file, its cells done with full-precision metrics and start times."""
+    raw = _raw(tmp_path, arms=list(arms), comparisons=[["cv", "none"]])
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    del raw["policy_comparisons"]
+    path = tmp_path / "grid.yaml"
+    path.write_text(json.dumps(raw), encoding="utf-8")  # JSON is YAML
+    cfg = ab.load_config(path)
+    for k, arm in enumerate(arms):
+        rows = _episode_rows("SCSS", [10.123456789012345 + k, 11.5, 9.25, 12.0], [1.0 / 3, 2.0, 3.0, 4.0])
+        name = f"eval/zara1/planner/{arm}"
+        _fake_done_cell(cfg, name, rows)
+        meta = json.loads((ab.cell_dir(cfg, name) / ab.CELL_JSON).read_text())
+        meta["attempts"] = [
+            {"started": f"2026-01-0{k + 1}T10:00:00+0000", "finished": f"2026-01-0{k + 1}T10:00:02+0000"}
+        ]
+        (ab.cell_dir(cfg, name) / ab.CELL_JSON).write_text(json.dumps(meta))
+    return cfg, path
+
+
+def _results(cfg: ab.AblationConfig) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(cfg.out_path().iterdir()) if p.is_file()}
+
+
+@pytest.fixture
+def pinned(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The summary's stamps (code version, time) fixed, so that two renders of the same data compare byte by byte."""
+    monkeypatch.setattr(ab.summary, "code_version", lambda: "0.0.0+gtest")
+    monkeypatch.setattr(ab.summary, "_now", lambda: "2026-01-09T00:00:00+0000")
+
+
+def test_summarize_only_in_a_fresh_clone_keeps_the_shipped_results(
+    tmp_path: Path, fakes: Fakes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg, path = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None)
+    shipped = _results(cfg)
+    assert {"summary.json", "summary.md", "cells.json", "episodes.csv.gz", "rates_by_arm.png"} <= set(shipped)
+    # summarising the same finished cells again changes no file (not even the time stamp)
+    stamps = {p.name: p.stat().st_mtime_ns for p in cfg.out_path().iterdir()}
+    ab.summarize(cfg, out=lambda s: None)
+    assert {p.name: p.stat().st_mtime_ns for p in cfg.out_path().iterdir()} == stamps
+    # a fresh clone: the results are committed, the run folders are not
+    import shutil
+
+    shutil.rmtree(cfg.runs_path())
+    assert ab.main([str(path), "--summarize-only"]) == 0
+    assert _results(cfg) == shipped
+    assert "up to date" in capsys.readouterr().out
+
+
+def test_the_archive_alone_rerenders_the_summary_identically(tmp_path: Path, fakes: Fakes, pinned: None) -> None:
+    import shutil
+
+    cfg, _ = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None)
+    shipped = _results(cfg)
+    assert {"rates_by_arm.png", "rates_by_density.png"} <= set(shipped)
+    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:  # every value as the evaluation wrote it
+        assert [r["navigation_time_s"] for r in csv.DictReader(fh)][:1] == [repr(10.123456789012345 + 1)]
+    cells = json.loads((cfg.out_path() / "cells.json").read_text())
+    assert cells[0]["attempts"] == [{"started": "2026-01-01T10:00:00+0000", "finished": "2026-01-01T10:00:02+0000"}]
+    shutil.rmtree(cfg.runs_path())
+    for name in ("summary.json", "summary.md", "rates_by_arm.png"):
+        (cfg.out_path() / name).unlink()
+    lines: list[str] = []
+    summary = ab.summarize(cfg, out=lines.append)
+    assert _results(cfg) == shipped
+    assert summary["complete"] and summary["wall_time"]["first_start"] == "2026-01-01T10:00:00+00:00"
+    assert "2 cell(s) from the archive" in "\n".join(lines)
+
+
+def test_an_incomplete_grid_never_replaces_a_complete_summary(
+    tmp_path: Path, fakes: Fakes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg, path = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    shipped = _results(cfg)
+    # an interrupted re-run of one cell: its folder has no DONE any more
+    (ab.cell_dir(cfg, "eval/zara1/planner/cv") / ab.DONE).unlink()
+    assert ab.main([str(path), "--summarize-only"]) == 1
+    err = capsys.readouterr().err
+    assert "eval/zara1/planner/cv" in err and "--force" in err
+    assert _results(cfg) == shipped
+    lines: list[str] = []  # a grid run ends with the same check (and says so, without failing the run)
+    ab.run_grid(cfg, workers=1, only="eval/zara1/planner/none", out=lines.append)
+    assert "missing 1 cell(s): eval/zara1/planner/cv" in "\n".join(lines)
+    assert _results(cfg) == shipped
+    # a grid that grew (a new arm) is incomplete too; the message names the cells it lacks
+    grown = ab.config_from_mapping({**json.loads(path.read_text()), "arms": ["none", "cv", "oracle"]})
+    (ab.cell_dir(cfg, "eval/zara1/planner/cv") / ab.DONE).write_text("now\n")
+    with pytest.raises(ab.ResultsKept, match="eval/zara1/planner/oracle"):
+        ab.summarize(grown, out=lambda s: None, plots=False)
+    assert _results(cfg) == shipped
+    # --force replaces them, and the new summary says it is incomplete
+    assert ab.main([str(path), "--summarize-only"]) == 0  # the cell is done again: nothing lost
+    summary = ab.summarize(grown, out=lambda s: None, plots=False, force=True)
+    assert summary["missing_cells"] == ["eval/zara1/planner/oracle"]
+    assert json.loads((cfg.out_path() / "summary.json").read_text())["complete"] is False
+
+
+def test_a_legacy_archive_is_kept_and_the_reason_given(
+    tmp_path: Path, fakes: Fakes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import shutil
+
+    cfg, path = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    # the records of an older version: no attempts (start times), no spec
+    cells = json.loads((cfg.out_path() / "cells.json").read_text())
+    for c in cells:
+        del c["attempts"], c["spec"]
+    (cfg.out_path() / "cells.json").write_text(json.dumps(cells, indent=2) + "\n")
+    shutil.rmtree(cfg.runs_path())
+    shipped = _results(cfg)
+    assert ab.main([str(path), "--summarize-only"]) == 1
+    err = capsys.readouterr().err
+    assert "start times" in err and "wall_time.first_start" in err and "--force" in err
+    assert _results(cfg) == shipped
+    assert ab.main([str(path), "--summarize-only", "--force"]) == 0
+    assert json.loads((cfg.out_path() / "summary.json").read_text())["wall_time"]["first_start"] is None
+
+
+def test_result_files_are_all_rendered_before_any_is_replaced(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg, _ = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    shipped = _results(cfg)
+    _fake_done_cell(cfg, "eval/zara1/planner/cv", _episode_rows("CCCC", [1, 1, 1, 1], [1.0, 2.0, 3.0, 4.0]))
+
+    def broken(*args: Any, **kwargs: Any) -> str:
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(ab.summary, "summary_markdown", broken)
+    with pytest.raises(RuntimeError, match="disk full"):
+        ab.summarize(cfg, out=lambda s: None, plots=False)
+    assert _results(cfg) == shipped  # all or nothing: the summary, cells and archive still agree
+    assert not [p for p in cfg.out_path().iterdir() if p.name.startswith(".")]  # no temporary file left

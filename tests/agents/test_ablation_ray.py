@@ -1,0 +1,131 @@
+"""agents.ablation on Ray, the connection: an address where nothing listens is refused before any cell starts,
+a failed ``ray.init`` is one clear message, and a token in ``~/.ray/auth_token`` turns token authentication on
+as ``ray start`` does (issue 16, items 4 and 5). The grid on a real head and a killed task: test_ablation_e2e.py."""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import agents.ablation as ab
+from crowdnav_mesrnn.config import ConfigError
+
+
+def _grid(tmp_path: Path) -> ab.AblationConfig:
+    return ab.config_from_mapping(
+        {
+            "name": "ray",
+            "runs_dir": str(tmp_path / "runs"),
+            "out_dir": str(tmp_path / "results"),
+            "splits": ["zara1"],
+            "arms": ["none"],
+            "seeds": [0],
+            "policies": {"planner": {"kind": "planner"}},
+            "evaluation": {"episodes": 2, "seed": 0},
+        }
+    )
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def listening() -> Iterator[int]:
+    """A loopback port where something accepts TCP connections (but is no Ray head)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        yield int(s.getsockname()[1])
+
+
+@pytest.fixture
+def no_ray_init(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
+    """``ray.init`` replaced: records its calls (with the RAY_AUTH_MODE it saw) and refuses like a head that
+    rejects the driver."""
+    ray = pytest.importorskip("ray")
+    calls: list[dict[str, Any]] = []
+
+    def init(**kwargs: Any) -> None:
+        import os
+
+        calls.append({**kwargs, "RAY_AUTH_MODE": os.environ.get("RAY_AUTH_MODE")})
+        raise ConnectionError(f"Failed to connect to Ray cluster at {kwargs.get('address')}")
+
+    monkeypatch.setattr(ray, "init", init)
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    return calls
+
+
+@pytest.mark.parametrize("scheme", ["", "ray://"])
+def test_an_address_where_nothing_listens_is_refused_before_any_cell_starts(
+    tmp_path: Path, scheme: str, no_ray_init: list[dict[str, Any]]
+) -> None:
+    cfg = _grid(tmp_path)
+    port = _free_port()
+    lines: list[str] = []
+    with pytest.raises(ConfigError) as err:
+        ab.run_grid(cfg, backend="ray", address=f"{scheme}127.0.0.1:{port}", out=lines.append)
+    assert f"nothing accepts connections at 127.0.0.1:{port} " in str(err.value)
+    assert f"TCP probe of {ab.CONNECT_TIMEOUT_S:g} s" in str(err.value) and "No cell was started" in str(err.value)
+    assert no_ray_init == []  # Ray (which waits minutes there) was never asked
+    assert not cfg.runs_path().exists() and not any(line.startswith("start") for line in lines)
+
+
+def test_a_probe_passes_where_something_listens_and_bad_addresses_are_named(listening: int) -> None:
+    ab.check_address(f"127.0.0.1:{listening}")
+    ab.check_address(f"ray://127.0.0.1:{listening}")
+    ab.check_address("auto")  # Ray finds the local cluster itself
+    for bad in ("127.0.0.1", "127.0.0.1:port", "http://127.0.0.1:6379", "127.0.0.1:70000"):
+        with pytest.raises(ConfigError, match=r"expected HOST:PORT"):
+            ab.check_address(bad)
+
+
+def test_a_failed_connection_is_one_message_saying_what_to_check(
+    tmp_path: Path, listening: int, no_ray_init: list[dict[str, Any]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    for var in ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))  # no token anywhere
+    cfg = _grid(tmp_path)
+    with pytest.raises(ConfigError) as err:
+        ab.run_grid(cfg, backend="ray", address=f"127.0.0.1:{listening}", out=lambda s: None)
+    message = str(err.value)
+    for words in (
+        f"--address 127.0.0.1:{listening}: Ray could not connect (ConnectionError: Failed to connect",
+        "same Ray and Python versions",
+        "RAY_AUTH_MODE here: unset",
+        "~/.ray/auth_token",
+        "python -m agents.ablation --help",
+    ):
+        assert words in message
+    assert "\n" not in message and no_ray_init[0]["RAY_AUTH_MODE"] is None
+    assert not cfg.runs_path().exists()
+
+
+def test_a_token_turns_token_authentication_on_as_ray_start_does(
+    tmp_path: Path, listening: int, no_ray_init: list[dict[str, Any]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    for var in ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH"):
+        monkeypatch.delenv(var, raising=False)
+    token = tmp_path / "home" / ".ray" / "auth_token"
+    token.parent.mkdir(parents=True)
+    token.write_text("0" * 32)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    lines: list[str] = []
+    with pytest.raises(ConfigError, match="RAY_AUTH_MODE here: token"):
+        ab.run_grid(_grid(tmp_path), backend="ray", address=f"127.0.0.1:{listening}", out=lines.append)
+    assert no_ray_init[0]["RAY_AUTH_MODE"] == "token"
+    assert any(f"token authentication on (token from {token}" in line for line in lines)
+    # an explicit RAY_AUTH_MODE is left as it is
+    no_ray_init.clear()
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    with pytest.raises(ConfigError, match="RAY_AUTH_MODE here: disabled"):
+        ab.run_grid(_grid(tmp_path), backend="ray", address=f"127.0.0.1:{listening}", out=lambda s: None)
+    assert no_ray_init[0]["RAY_AUTH_MODE"] == "disabled"
