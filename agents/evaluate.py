@@ -288,31 +288,32 @@ def check_spaces(policy: Any, env: Any) -> None:
 def prepare_forecasts(env_kwargs: Mapping[str, Any], progress: bool = False) -> dict[str, Any] | None:
     """Fill the shared on-disk forecast cache for the recordings environments of ``env_kwargs`` replay, so that no
     worker computes forecasts (:func:`envs.forecasts.build_forecast_cache`); None when there is nothing to build
-    (no learned predictor, no disk cache, a synthetic or empty crowd, or no data with ``crowd: auto``)."""
-    from crowdnav_mesrnn.data.paths import DataNotFoundError
+    (no learned predictor, no disk cache, or a crowd that is not replayed from ETH/UCY).
+
+    Raises:
+        DataNotFoundError: the environments would replay ETH/UCY scenes and the data is not found (as they would).
+    """
     from envs import forecasts
-    from envs.config import LEARNED_SOURCES
+    from envs.config import LEARNED_SOURCES, crowd_source, names_scene
 
     cfg = config_from(dict(env_kwargs), {})
     build = getattr(forecasts, "build_forecast_cache", None)
-    if build is None or cfg.predictor not in LEARNED_SOURCES or cfg.crowd not in ("auto", "replay"):
+    if build is None or cfg.predictor not in LEARNED_SOURCES:
         return None
     if not (getattr(cfg, "cache_forecasts", True) and getattr(cfg, "forecast_disk_cache", True)):
         return None
-    try:
-        return build(
-            cfg.predictor,
-            cfg.split,
-            cfg.part,
-            memory=cfg.forecast_memory,
-            data_dir=cfg.data_dir,
-            cache_dir=getattr(cfg, "forecast_cache_dir", None),
-            progress=progress,
-        )
-    except DataNotFoundError:
-        if cfg.crowd == "replay":
-            raise
-        return None  # the environments fall back to the synthetic crowd (and say so)
+    source = crowd_source(cfg, names_scene(None, env_kwargs))
+    if source.kind != "replay":
+        return None
+    return build(
+        cfg.predictor,
+        cfg.split,
+        cfg.part,
+        memory=cfg.forecast_memory,
+        data_dir=source.data_dir,
+        cache_dir=getattr(cfg, "forecast_cache_dir", None),
+        progress=progress,
+    )
 
 
 def episode_row(index: int, seed: int, reset_info: Mapping[str, Any], metrics: Mapping[str, Any], ret: float) -> dict:
@@ -500,7 +501,8 @@ def evaluate(
             ``lookahead_steps``).
 
     Returns:
-        the summary (see :func:`summarise`) plus ``policy``, ``predictor``, ``split``, ``seed``,
+        the summary (see :func:`summarise`) plus ``policy``, ``predictor``, ``split``, ``crowd`` (``{"kind",
+        "data_dir"}``: ``replay`` from that ETH/UCY folder, or ``synthetic``/``empty``), ``seed``,
         ``require_pedestrians``, ``env`` (the settings given to the environments), ``seconds`` and ``out_dir``.
     """
     from envs.crowd_nav import CrowdNavEnv
@@ -527,6 +529,7 @@ def evaluate(
         model=None if str(spec) in PLANNERS else str(model_path(spec, which)),
         predictor=predictor,
         split=split,
+        crowd=envs[0].crowd_source.as_dict(),
         seed=seed,
         require_pedestrians=kwargs["require_pedestrians"],
         env=kwargs,
@@ -573,8 +576,15 @@ def format_summary(summary: Mapping[str, Any]) -> str:
         for metric in METRICS
     ]
     width = max(len(label) for label, _, _ in rows) + 2
+    crowd = summary.get("crowd") or {}
+    if crowd.get("kind") == "replay":
+        where = f"{summary.get('split')} (held-out scene, ETH/UCY replay from {crowd.get('data_dir')})"
+    elif crowd:
+        where = f"the {crowd.get('kind')} crowd (not an ETH/UCY scene; split {summary.get('split')})"
+    else:  # a summary written before crowds were named
+        where = f"{summary.get('split')} (held-out scene)"
     lines = [
-        f"{summary.get('policy')} on {summary.get('split')} (held-out scene), forecasts {summary.get('predictor')}, "
+        f"{summary.get('policy')} on {where}, forecasts {summary.get('predictor')}, "
         f"{summary['episodes']} episodes in {summary.get('seconds', 0):.1f} s"
     ]
     for label, value, ci_key in rows:

@@ -27,8 +27,8 @@ scenes' last ``val_fraction`` (``episode_time="val"``) — never the held-out te
 
 ## A run folder
 ``config.yaml`` (the resolved config in the same layout, plus a ``run`` section: predictor, split, seed,
-environment id, the resolved environment settings, sha256 of the predictor weights involved, code
-version), ``command.txt``, ``version.txt``, ``progress.csv`` (SB3's logger), ``evaluations.csv``
+environment id, the resolved environment settings, the crowd replayed (``crowd``: ``kind`` and ETH/UCY
+``data_dir``), sha256 of the predictor weights involved, code version), ``command.txt``, ``version.txt``, ``progress.csv`` (SB3's logger), ``evaluations.csv``
 (validation history), ``best_model.zip`` (best validation success rate, ties broken by return),
 ``final_model.zip`` (``*_vecnormalize.pkl`` beside the models when observations are normalised),
 ``pretrain.json`` (warm start), ``checkpoints/`` (model, ``VecNormalize`` statistics, SAC's replay
@@ -72,7 +72,7 @@ from agents.pretrain import PretrainConfig
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
-from envs.config import FORECAST_SOURCES, LEARNED_SOURCES, config_from, episode_recordings
+from envs.config import FORECAST_SOURCES, LEARNED_SOURCES, config_from, crowd_source, episode_recordings
 
 #: Top-level key of the project's own settings in a config file (RL Zoo ignores it).
 PROJECT_KEY: Final[str] = "crowdnav_mesrnn"
@@ -751,12 +751,16 @@ def _config_differences(a: Mapping[str, Any], b: Mapping[str, Any], prefix: str 
 
 
 def resolved_yaml(cfg: TrainConfig, extra_run: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """What ``config.yaml`` holds: :meth:`TrainConfig.to_yaml` plus the ``run`` section."""
+    """What ``config.yaml`` holds: :meth:`TrainConfig.to_yaml` plus the ``run`` section (with ``crowd``, the crowd the
+    environments replay: ``{"kind": "replay", "data_dir": ...}`` or ``{"kind": "synthetic", ...}``).
+
+    Raises:
+        DataNotFoundError: the run replays ETH/UCY scenes (``env.crowd`` ``auto`` or ``replay``) and the data is not
+            found.
+    """
     doc = cfg.to_yaml()
-    env_resolved = {
-        k: list(v) if isinstance(v, tuple) else v
-        for k, v in dataclasses.asdict(config_from(cfg.env_kwargs("train"), {})).items()
-    }
+    env_cfg = config_from(cfg.env_kwargs("train"), {})
+    env_resolved = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(env_cfg).items()}
     doc[PROJECT_KEY]["run"] = {
         "predictor": cfg.predictor,
         "split": cfg.split,
@@ -764,6 +768,7 @@ def resolved_yaml(cfg: TrainConfig, extra_run: Mapping[str, Any] | None = None) 
         "env_id": cfg.env_id,
         "source": cfg.source,
         "env_resolved": env_resolved,
+        "crowd": crowd_source(env_cfg, scene_named=True).as_dict(),
         "predictor_weights_sha256": predictor_weights(cfg),
         "code_version": code_version(),
         **dict(extra_run or {}),
@@ -819,6 +824,7 @@ def train(
         raise ConfigError(f"{run_dir} exists and is not empty; pass --resume to continue it, or choose another --out")
     if ckpt is not None and (run_dir / "config.yaml").is_file():
         _check_resume_config(cfg, run_dir)
+    resolved = resolved_yaml(cfg)  # finds the data (or fails naming where it looked) before the folder is made
     run_dir.mkdir(parents=True, exist_ok=True)
 
     line = command if command is not None else shlex.join(sys.argv)
@@ -828,7 +834,7 @@ def train(
         previous = (run_dir / "command.txt").read_text() if (run_dir / "command.txt").is_file() else ""
         atomic_write_text(run_dir / "command.txt", previous + f"# resumed from {ckpt.name}\n{line}\n")
     atomic_write_text(run_dir / "version.txt", code_version() + "\n")
-    atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(resolved_yaml(cfg), sort_keys=False))
+    atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(resolved, sort_keys=False))
 
     started = time.perf_counter()
     prepare_forecasts(cfg.env_kwargs("train"), progress=progress)  # training and validation: the same recordings

@@ -25,6 +25,7 @@ from agents.evaluate import (
     summarise,
 )
 from agents.planners import SamplingPlanner
+from crowdnav_mesrnn.data import ENV_VAR
 from envs.crowd_nav import CrowdNavEnv
 
 SYNTHETIC = {"crowd": "synthetic"}
@@ -71,7 +72,7 @@ def test_summary_rates_have_wilson_intervals_and_counts() -> None:
 
 def test_the_table_separates_every_label_from_its_value() -> None:
     s = summarise(hand_made_rows())
-    s.update(policy="straight", split="zara1", predictor="none", crowd="synthetic")
+    s.update(policy="straight", split="zara1", predictor="none", crowd={"kind": "synthetic", "data_dir": None})
     lines = format_summary(s).splitlines()[1:]
     assert len(lines) == len(OUTCOMES) + len(METRICS)
     matches = [re.match(r"^  (\S.*?\S)(\s{2,})(-|-?\d+\.\d{3})", line) for line in lines]
@@ -178,3 +179,25 @@ def test_without_out_the_episodes_go_to_a_new_folder_under_runs_eval(
     named = {str(f.relative_to(tmp_path)) for f in folders}
     assert any(f"wrote {Path(n) / 'episodes.csv'}" in text for n in named)
     assert json.loads(json_line)["out_dir"] in named
+
+
+def test_evaluating_a_scene_without_data_fails_naming_the_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    empty = tmp_path / "eth_ucy"
+    empty.mkdir()
+    monkeypatch.setenv(ENV_VAR, str(empty))
+    monkeypatch.chdir(tmp_path)
+    assert main(["planner", "--split", "zara1", "--episodes", "2"]) == 2
+    err = capsys.readouterr().err
+    assert str(empty) in err and "no ETH/UCY data found" in err
+    assert not (tmp_path / "runs").exists(), "no result is written"
+
+
+def test_every_summary_names_its_crowd_source(data_dir: Path) -> None:
+    s = evaluate("straight", "none", "zara1", 1, env_overrides=SYNTHETIC, n_envs=1)
+    assert s["crowd"] == {"kind": "synthetic", "data_dir": None}
+    assert "synthetic crowd" in format_summary(s).splitlines()[0]
+    s = evaluate("straight", "none", "zara1", 1, n_envs=1)
+    assert s["crowd"] == {"kind": "replay", "data_dir": str(data_dir)}
+    assert f"ETH/UCY replay from {data_dir}" in format_summary(s).splitlines()[0]

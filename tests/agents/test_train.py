@@ -236,3 +236,22 @@ def test_discrete_goal_relative_actions_train_warm_start_and_evaluate(tmp_path: 
         load_train_config(PPO_YAML, None, {"action.kind": "polar"})
     with pytest.raises(ConfigError, match="headings"):
         load_train_config(PPO_YAML, None, {"action.kind": "discrete", "action.headings": [0]})
+
+
+def test_the_run_folder_names_its_crowd_source(tiny_ppo_run: Path) -> None:
+    run = yaml.safe_load((tiny_ppo_run / "config.yaml").read_text())["crowdnav_mesrnn"]["run"]
+    assert run["crowd"] == {"kind": "synthetic", "data_dir": None}
+
+
+def test_training_on_scenes_without_data_fails_before_the_run_starts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, tiny: Any
+) -> None:
+    from crowdnav_mesrnn.data import ENV_VAR, DataNotFoundError
+
+    empty = tmp_path / "eth_ucy"
+    empty.mkdir()
+    monkeypatch.setenv(ENV_VAR, str(empty))
+    cfg = load_train_config(PPO_YAML, None, tiny("ppo", "none", **{"env.crowd": "auto"}))
+    with pytest.raises(DataNotFoundError, match=str(empty)):
+        train(cfg, tmp_path / "run", progress=False, command="pytest")
+    assert not (tmp_path / "run").exists()
