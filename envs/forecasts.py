@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import bisect
 import math
+import os
+import sys
 from dataclasses import dataclass
 from typing import Any, Final, Protocol
 
@@ -573,6 +575,28 @@ class CarriedPredictorForecast(PredictorForecast):
             out[c] = FrameTable.from_frames([walk.at(k) for k in chunk_frames(recording, c)], walk.pred_len)
         self.calls += walk.calls
         return out
+
+
+# ----------------------------------------------------------------------------- fork safety
+
+
+def one_torch_thread_after_fork() -> None:
+    """In a forked child, run torch on one thread (registered with :func:`os.register_at_fork` on import).
+
+    A forked process inherits the parent's GNU OpenMP (``libgomp``) state but not its worker threads: once the
+    parent has run a parallel torch operation (loading or hashing a predictor, a user's own torch code), the child's
+    first parallel operation waits forever for threads that do not exist. Gymnasium's async vector env forks its
+    workers, which compute forecasts when the cache is cold (``PredictorForecast.compute_chunks``); with one thread
+    torch never enters an OpenMP region there. Worker processes of vectorised environments run one thread each anyway
+    (as :func:`agents.train.make_env` sets); a process started with ``spawn`` or ``forkserver`` keeps its threads.
+    """
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
+
+
+if hasattr(os, "register_at_fork"):  # POSIX
+    os.register_at_fork(after_in_child=one_torch_thread_after_fork)
 
 
 # ----------------------------------------------------------------------------- construction
