@@ -54,6 +54,7 @@ import shlex
 import shutil
 import sys
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -733,6 +734,31 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
 # ---------------------------------------------------------------------------- train
 
 
+def rollout_steps(cfg: TrainConfig) -> tuple[int, str] | None:
+    """Environment steps SB3 collects between two checks of the budget, and how they come about: PPO collects
+    whole rollouts of ``n_steps x n_envs``; SAC ``train_freq`` (in steps) x ``n_envs``. None when it is not a fixed
+    number (SAC's ``train_freq`` counted in episodes)."""
+    if cfg.algo == "ppo":
+        n_steps = int(cfg.hyperparams.get("n_steps", 2048))
+        return n_steps * cfg.n_envs, f"PPO collects whole rollouts of n_steps {n_steps} x n_envs {cfg.n_envs}"
+    freq = cfg.hyperparams.get("train_freq", 1)
+    if isinstance(freq, list | tuple):
+        if len(freq) == 2 and freq[1] == "episode":
+            return None
+        freq = freq[0]
+    return int(freq) * cfg.n_envs, f"SAC collects train_freq {int(freq)} x n_envs {cfg.n_envs}"
+
+
+def steps_trained(cfg: TrainConfig, start_step: int = 0) -> int | None:
+    """How many environment steps a run of ``cfg`` from ``start_step`` ends at: SB3 checks the budget
+    (``n_timesteps``) only between collections (:func:`rollout_steps`), so it rounds up to whole collections
+    (PPO's ``n_steps 256 x n_envs 8``: ``--timesteps 256`` trains 2,048 steps). None when it is not fixed."""
+    unit = rollout_steps(cfg)
+    if unit is None or cfg.n_timesteps <= start_step:
+        return None if unit is None else start_step
+    return start_step + -(-(cfg.n_timesteps - start_step) // unit[0]) * unit[0]
+
+
 def default_run_dir(cfg: TrainConfig) -> Path:
     """``runs/<algo>_<predictor>_<split>_s<seed>_<UTC time>``."""
     stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
@@ -876,6 +902,17 @@ def train(
             start_step = int(model.num_timesteps)
             model.set_logger(make_logger(run_dir, start_step))
             print(f"resuming {run_dir} at step {start_step} of {cfg.n_timesteps}")
+        planned = steps_trained(cfg, start_step)
+        if planned is not None and planned != max(cfg.n_timesteps, start_step):
+            unit = rollout_steps(cfg)
+            assert unit is not None
+            warnings.warn(
+                f"n_timesteps {cfg.n_timesteps} trains {planned} steps: {unit[1]} = {unit[0]} steps at a time"
+                + (f" (from step {start_step})" if start_step else "")
+                + "; set a multiple of it to train exactly the budget",
+                UserWarning,
+                stacklevel=2,
+            )
         checkpoint = Checkpoint(run_dir, cfg.checkpoint_freq_steps, cfg.keep_checkpoints, validation, start_step)
         callbacks = [validation, checkpoint] + ([Progress(cfg.n_timesteps, validation)] if progress else [])
         remaining = cfg.n_timesteps - start_step

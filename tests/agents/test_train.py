@@ -255,3 +255,30 @@ def test_training_on_scenes_without_data_fails_before_the_run_starts(
     with pytest.raises(DataNotFoundError, match=str(empty)):
         train(cfg, tmp_path / "run", progress=False, command="pytest")
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("algo", "extra", "asked", "trained"),
+    [
+        ("ppo", {"n_steps": 256, "n_envs": 8}, 256, 2048),
+        ("ppo", {"n_steps": 256, "n_envs": 8}, 100_000, 100_352),
+        ("ppo", {"n_steps": 64, "n_envs": 1}, 128, 128),
+        ("sac", {"n_envs": 2}, 101, 102),
+        ("sac", {"n_envs": 2, "train_freq": 4}, 100, 104),
+    ],
+)
+def test_steps_trained_round_up_to_whole_rollouts(algo: str, extra: dict, asked: int, trained: int, tiny: Any) -> None:
+    from agents.train import steps_trained
+
+    path = PPO_YAML if algo == "ppo" else SAC_YAML
+    cfg = load_train_config(path, None, tiny(algo, "none", steps=asked, **extra))
+    assert steps_trained(cfg) == trained
+    assert steps_trained(cfg, start_step=trained) == trained
+
+
+def test_a_budget_that_is_not_whole_rollouts_is_named_with_what_is_trained(tmp_path: Path, tiny: Any) -> None:
+    over = tiny("ppo", "none", steps=40, **{"pretrain": None, "eval.episodes": 0, "checkpoint_freq_steps": 0})
+    cfg = load_train_config(PPO_YAML, None, over)
+    with pytest.warns(UserWarning, match=r"n_timesteps 40 trains 64 steps.*n_steps 64 x n_envs 1 = 64"):
+        run = train(cfg, tmp_path / "run", progress=False, command="pytest")
+    assert json.loads((run / "DONE").read_text())["steps"] == 64
