@@ -337,6 +337,7 @@ def run_episodes(
     on_step: StepHook | None = None,
     progress: bool = False,
     deterministic: bool = True,
+    desc: str = "episodes",
 ) -> list[dict[str, Any]]:
     """Run one episode per seed, stepping ``envs`` in lockstep with one batched ``predict`` per step.
 
@@ -348,6 +349,7 @@ def run_episodes(
             episode ``k`` (``obs`` is the observation the action was taken on).
         progress: show a progress bar over episodes.
         deterministic: passed to ``predict``.
+        desc: the progress bar's label, saying whose episodes it counts.
 
     Returns:
         one row per episode, in seed order (see :func:`episode_row`).
@@ -360,7 +362,7 @@ def run_episodes(
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=n, unit="episode", dynamic_ncols=True)
+        bar = tqdm(total=n, desc=desc, unit="episode", dynamic_ncols=True)
 
     def start(i: int) -> None:
         nonlocal next_k
@@ -519,7 +521,9 @@ def evaluate(
     envs = [CrowdNavEnv(**kwargs) for _ in range(max(1, min(n_envs, episodes)))]
     check_spaces(policy, envs[0])
     try:
-        rows = run_episodes(policy, envs, evaluation_seeds(split, episodes, seed), progress=progress)
+        rows = run_episodes(
+            policy, envs, evaluation_seeds(split, episodes, seed), progress=progress, desc=f"evaluation on {split}"
+        )
     finally:
         for env in envs:
             env.close()

@@ -568,11 +568,25 @@ class ProgressCSV(KVWriter):
         pass
 
 
+#: The note that TensorBoard logs are not written was shown in this process (it is shown once).
+_TB_NOTICE_SHOWN = False
+
+
 def make_logger(run_dir: Path, keep_until_step: int | None) -> Any:
-    """SB3 logger: ``progress.csv`` and, when tensorboard is installed, TensorBoard under ``tb/``."""
+    """SB3 logger: ``progress.csv`` and, when tensorboard is installed, TensorBoard under ``tb/`` (without it, one
+    warning per process says the logs are not written and how to get them)."""
+    global _TB_NOTICE_SHOWN
     formats: list[Any] = [ProgressCSV(run_dir / "progress.csv", keep_until_step)]
     if importlib.util.find_spec("tensorboard") is not None:
         formats.append(TensorBoardOutputFormat(str(run_dir / "tb")))
+    elif not _TB_NOTICE_SHOWN:
+        _TB_NOTICE_SHOWN = True
+        warnings.warn(
+            "TensorBoard logs (tb/ in the run folder) are not written: tensorboard is not installed; "
+            "pip install 'crowdnav-mesrnn[tb]' to get them (progress.csv is written either way)",
+            UserWarning,
+            stacklevel=2,
+        )
     return Logger(str(run_dir), formats)
 
 
@@ -690,7 +704,13 @@ class Progress(BaseCallback):
     def _on_training_start(self) -> None:
         from tqdm.auto import tqdm
 
-        self.bar = tqdm(total=self.total, initial=self.model.num_timesteps, unit="step", dynamic_ncols=True)
+        self.bar = tqdm(
+            total=self.total,
+            initial=self.model.num_timesteps,
+            desc=f"{type(self.model).__name__} training",
+            unit="step",
+            dynamic_ncols=True,
+        )
 
     def _on_step(self) -> bool:
         assert self.bar is not None

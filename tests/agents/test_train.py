@@ -282,3 +282,23 @@ def test_a_budget_that_is_not_whole_rollouts_is_named_with_what_is_trained(tmp_p
     with pytest.warns(UserWarning, match=r"n_timesteps 40 trains 64 steps.*n_steps 64 x n_envs 1 = 64"):
         run = train(cfg, tmp_path / "run", progress=False, command="pytest")
     assert json.loads((run / "DONE").read_text())["steps"] == 64
+
+
+def test_without_tensorboard_the_run_says_once_that_it_writes_no_tb_logs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import importlib.util
+    import warnings
+
+    from agents import train as train_module
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "tensorboard" else real(name, *a))
+    monkeypatch.setattr(train_module, "_TB_NOTICE_SHOWN", False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for k in range(3):
+            train_module.make_logger(tmp_path / f"r{k}", None)
+    notes = [str(w.message) for w in caught if "TensorBoard" in str(w.message)]
+    assert len(notes) == 1 and "pip install 'crowdnav-mesrnn[tb]'" in notes[0]
+    assert not (tmp_path / "r0" / "tb").exists()
