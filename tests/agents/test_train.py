@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import inspect
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,7 @@ ARMS = ("none", "cv", "mesrnn", "oracle")
 REPO = Path(__file__).resolve().parents[2]
 PPO_YAML = REPO / "configs" / "agent" / "ppo.yaml"
 SAC_YAML = REPO / "configs" / "agent" / "sac.yaml"
+SMOKE_YAML = REPO / "configs" / "agent" / "ppo_smoke.yaml"
 RUN_FILES = (
     "config.yaml",
     "command.txt",
@@ -39,7 +41,7 @@ RUN_FILES = (
 )
 
 
-@pytest.mark.parametrize("path", [PPO_YAML, SAC_YAML])
+@pytest.mark.parametrize("path", [PPO_YAML, SAC_YAML, SMOKE_YAML])
 def test_config_files_are_rl_zoo_entries_per_env_id(path: Path) -> None:
     """What RL Zoo does with an entry: drop its own keys and pass the rest to the algorithm's constructor."""
     from stable_baselines3 import PPO, SAC
@@ -302,3 +304,23 @@ def test_without_tensorboard_the_run_says_once_that_it_writes_no_tb_logs(
     notes = [str(w.message) for w in caught if "TensorBoard" in str(w.message)]
     assert len(notes) == 1 and "pip install 'crowdnav-mesrnn[tb]'" in notes[0]
     assert not (tmp_path / "r0" / "tb").exists()
+
+
+def test_the_smoke_preset_is_the_recipe_shrunk_and_trains(tmp_path: Path) -> None:
+    smoke = load_train_config(SMOKE_YAML, None, {"predictor": "cv"})
+    recipe = load_train_config(PPO_YAML, None, {"predictor": "cv"})
+    assert smoke.action == recipe.action and smoke.policy == recipe.policy and smoke.env == recipe.env
+    assert smoke.pretrain is not None and smoke.pretrain.dagger_rounds >= 1
+    assert smoke.n_timesteps % rollout_size(smoke) == 0, "no warning: the budget is whole rollouts"
+    # a few of its steps, end to end (the synthetic crowd: no data needed; the preset's warm start and validation)
+    cfg = load_train_config(SMOKE_YAML, None, {"predictor": "cv", "n_timesteps": 256, "env.crowd": "synthetic"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        run = train(cfg, tmp_path / "smoke", progress=False, command="pytest")
+    done = json.loads((run / "DONE").read_text())
+    assert done["steps"] == 256 and done["best_validation"] is not None
+    assert (run / "pretrain.json").is_file() and (run / "best_model.zip").is_file()
+
+
+def rollout_size(cfg: Any) -> int:
+    return int(cfg.hyperparams["n_steps"]) * cfg.n_envs
