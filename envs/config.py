@@ -451,7 +451,8 @@ def crowd_source(cfg: CrowdNavConfig, scene_named: bool) -> CrowdSource:
             names = resolve_scenes(cfg.scenes, episode_recordings(cfg.split, cfg.part), cfg.split, cfg.part)
             raise DataNotFoundError(
                 f"split {cfg.split!r}, part {cfg.part!r} replays the ETH/UCY recording(s) {', '.join(names)}, but {exc}\n"
-                "Pass crowd='synthetic' (--set crowd=synthetic) to run on the project's synthetic crowd instead."
+                "Pass crowd='synthetic' to run on the project's synthetic crowd instead (agents.evaluate: --set "
+                "crowd=synthetic; agents.train: --set env.crowd=synthetic)."
             ) from None
         return CrowdSource("synthetic", embedded_default=True)
 
