@@ -371,6 +371,7 @@ class PredictorForecast(ForecastSource):
     def chunk(self, recording: Recording, chunk: int) -> FrameTable:
         """Chunk ``chunk`` of the recording's forecasts: from memory, else from the disk cache, else computed (and
         written to the disk cache; other processes wait for it rather than computing it too)."""
+        fork_safe_torch()
         key = self.table_key(recording)  # also resets what is held when the recording object changed
         hit = self._chunks.get((recording.name, chunk))
         if hit is not None:
@@ -407,6 +408,7 @@ class PredictorForecast(ForecastSource):
         """``(columns (n,), forecasts (n, P, 2) float32)`` at annotation frame ``i`` (from the chunk when caching)."""
         if self.use_cache:
             return self.chunk(recording, i // CHUNK_FRAMES).at(i % CHUNK_FRAMES)
+        fork_safe_torch()
         return self.compute_frame(recording, i)
 
     # ------------------------------------------------------------------ env times
@@ -580,23 +582,34 @@ class CarriedPredictorForecast(PredictorForecast):
 # ----------------------------------------------------------------------------- fork safety
 
 
-def one_torch_thread_after_fork() -> None:
-    """In a forked child, run torch on one thread (registered with :func:`os.register_at_fork` on import).
+#: The process that imported this module; a process with another id is a forked child (or a child's child).
+_IMPORT_PID: Final[int] = os.getpid()
+#: The forked process that has already been switched to one torch thread.
+_ONE_THREAD_PID: int | None = None
+
+
+def fork_safe_torch() -> None:
+    """In a forked child, run torch on one thread from here on; elsewhere nothing.
 
     A forked process inherits the parent's GNU OpenMP (``libgomp``) state but not its worker threads: once the
     parent has run a parallel torch operation (loading or hashing a predictor, a user's own torch code), the child's
     first parallel operation waits forever for threads that do not exist. Gymnasium's async vector env forks its
-    workers, which compute forecasts when the cache is cold (``PredictorForecast.compute_chunks``); with one thread
-    torch never enters an OpenMP region there. Worker processes of vectorised environments run one thread each anyway
-    (as :func:`agents.train.make_env` sets); a process started with ``spawn`` or ``forkserver`` keeps its threads.
+    workers, which build their environments and compute forecasts when the cache is cold; every path that runs a
+    predictor (:func:`make_forecast_source`, :meth:`PredictorForecast.chunk`, :meth:`PredictorForecast.frame_forecasts`)
+    calls this first, so torch never enters an OpenMP region there. A worker of vectorised environments needs one
+    thread anyway (as :func:`agents.train.make_env` sets); processes started with ``spawn`` or ``forkserver`` import
+    this module afresh and keep their threads. (A fork is recognised by the process id, not by an
+    ``os.register_at_fork`` hook: a hook would keep ``sys.modules`` alive into interpreter shutdown, where pymunk's
+    spaces must not be freed.)
     """
+    global _ONE_THREAD_PID
+    pid = os.getpid()
+    if pid == _IMPORT_PID or pid == _ONE_THREAD_PID:
+        return
     torch = sys.modules.get("torch")
-    if torch is not None:
+    if torch is not None:  # not imported: the parent had no torch state to inherit
         torch.set_num_threads(1)
-
-
-if hasattr(os, "register_at_fork"):  # POSIX
-    os.register_at_fork(after_in_child=one_torch_thread_after_fork)
+    _ONE_THREAD_PID = pid
 
 
 # ----------------------------------------------------------------------------- construction
@@ -663,6 +676,7 @@ def make_forecast_source(
     """
     if memory not in FORECAST_MEMORIES:
         raise ConfigError(f"unknown forecast_memory {memory!r}; valid: {', '.join(FORECAST_MEMORIES)}")
+    fork_safe_torch()
     learned_cls = CarriedPredictorForecast if memory == "carried" else PredictorForecast
     if not isinstance(predictor, str):
         if not callable(getattr(predictor, "forecast", None)):
