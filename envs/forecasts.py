@@ -21,9 +21,12 @@ it is identical to one computed online (``tests/envs/test_replay_and_forecasts.p
 from __future__ import annotations
 
 import bisect
+import contextlib
 import math
+import multiprocessing
 import os
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Final, Protocol
 
@@ -228,10 +231,18 @@ class PredictorForecast(ForecastSource):
         store: the shared disk cache (None: memory only). Predictors without weights to hash
             (:func:`~envs.forecast_cache.predictor_fingerprint`) are kept in memory only.
 
+    Computing runs torch on :attr:`threads` threads, one by default (:func:`torch_threads`; the caller's setting
+    is restored after): a frame's batched operations are small, and more threads contend for the cores (on the
+    shared 2-core machine here the first demo without data computed its forecasts in 91 s with torch's default two
+    threads, 13 s with one). When computing a chunk takes over a second, a progress bar over its frames says so (in the
+    main process only, not in vector-env workers; ``progress = False`` turns it off).
+
     Attributes:
         calls: frames forecast by the predictor in this process (each once when caching).
         chunks_loaded: chunks read from the disk cache.
         chunks_computed: chunks computed here.
+        progress: show a progress bar over a chunk's frames when computing it takes over a second.
+        threads: torch threads while computing (None: the caller's setting).
     """
 
     def __init__(
@@ -262,6 +273,8 @@ class PredictorForecast(ForecastSource):
         self.calls = 0
         self.chunks_loaded = 0
         self.chunks_computed = 0
+        self.progress = True
+        self.threads: int | None = 1
 
     def predictor_for(self, recording: str) -> ForecastModel:
         model = self.predictors.get(recording, self.default)
@@ -339,7 +352,8 @@ class PredictorForecast(ForecastSource):
         """
         model, obs_len, pred_len = self._model_sizes(recording)
         parts = []
-        for cols, history, mask, now in self._histories(recording, chunk_frames(recording, chunk), obs_len):
+        frames = chunk_frames(recording, chunk)
+        for cols, history, mask, now in self._progress(self._histories(recording, frames, obs_len), recording, frames):
             if not now.any():
                 parts.append((np.zeros(0, dtype=np.int64), np.zeros((0, pred_len, 2), np.float32)))
                 continue
@@ -347,6 +361,23 @@ class PredictorForecast(ForecastSource):
             pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(cols), pred_len)
             parts.append((cols[now], np.ascontiguousarray(pred[now], dtype=np.float32)))
         return {chunk: FrameTable.from_frames(parts, pred_len)}
+
+    def _progress(self, items: Any, recording: Recording, frames: range) -> Any:
+        """``items`` (one per frame of ``frames``), behind a labelled progress bar shown if they take over a second
+        (:attr:`progress`, main process only)."""
+        if not self.progress or multiprocessing.parent_process() is not None:
+            return items
+        from tqdm.auto import tqdm
+
+        label = f"{self.name} forecasts of {recording.name}, frames {frames.start}-{frames.stop - 1}"
+        return tqdm(items, total=len(frames), desc=f"{label} (computed once, then cached)", unit="frame", delay=1.0)
+
+    def _compute_chunks(self, recording: Recording, chunk: int) -> dict[int, FrameTable]:
+        """:meth:`compute_chunks` on one torch thread, counted in :attr:`chunks_computed`."""
+        with torch_threads(self.threads):
+            tables = self.compute_chunks(recording, chunk)
+        self.chunks_computed += len(tables)
+        return tables
 
     def table_key(self, recording: Recording) -> TableKey | None:
         """The disk-cache key of ``recording``'s forecasts (None without a store or weights to hash)."""
@@ -377,8 +408,7 @@ class PredictorForecast(ForecastSource):
         if hit is not None:
             return hit
         if key is None or self.store is None:
-            tables = self.compute_chunks(recording, chunk)
-            self.chunks_computed += len(tables)
+            tables = self._compute_chunks(recording, chunk)
         else:
             loaded = self.store.load(key, chunk, recording, quiet=True)  # files appear atomically: read unlocked
             if loaded is None:
@@ -387,8 +417,7 @@ class PredictorForecast(ForecastSource):
                 with self.store.locked(key, 0 if self.whole_recording else chunk):
                     loaded = self.store.load(key, chunk, recording)
                     if loaded is None:
-                        tables = self.compute_chunks(recording, chunk)
-                        self.chunks_computed += len(tables)
+                        tables = self._compute_chunks(recording, chunk)
                         for c, table in tables.items():
                             self.store.save(key, c, table)
             if loaded is not None:
@@ -409,7 +438,8 @@ class PredictorForecast(ForecastSource):
         if self.use_cache:
             return self.chunk(recording, i // CHUNK_FRAMES).at(i % CHUNK_FRAMES)
         fork_safe_torch()
-        return self.compute_frame(recording, i)
+        with torch_threads(self.threads):
+            return self.compute_frame(recording, i)
 
     # ------------------------------------------------------------------ env times
 
@@ -572,9 +602,12 @@ class CarriedPredictorForecast(PredictorForecast):
         """Every chunk of the recording, in one pass of an online forecaster from its first frame (hidden states
         cannot start in the middle)."""
         walk = _CarriedWalk(self.predictor_for(recording.name), recording)
-        out = {}
-        for c in range(num_chunks(recording)):
-            out[c] = FrameTable.from_frames([walk.at(k) for k in chunk_frames(recording, c)], walk.pred_len)
+        frames = range(len(recording.frames))
+        forecasts = [walk.at(k) for k in self._progress(frames, recording, frames)]
+        out = {
+            c: FrameTable.from_frames([forecasts[k] for k in chunk_frames(recording, c)], walk.pred_len)
+            for c in range(num_chunks(recording))
+        }
         self.calls += walk.calls
         return out
 
@@ -610,6 +643,22 @@ def fork_safe_torch() -> None:
     if torch is not None:  # not imported: the parent had no torch state to inherit
         torch.set_num_threads(1)
     _ONE_THREAD_PID = pid
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """Run torch on ``n`` threads inside the block and restore the caller's count after (nothing without torch, or
+    with ``n`` None)."""
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None and n is not None else n
+    if before == n:
+        yield
+        return
+    torch.set_num_threads(n)  # type: ignore[union-attr]
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)  # type: ignore[union-attr]
 
 
 # ----------------------------------------------------------------------------- construction
@@ -780,6 +829,8 @@ def build_forecast_cache(
     default_split = split if split is not None else "zara1"
     source = make_forecast_source(predictor, list(names), default_split, 0.4, 12, True, 0.0, memory, store)
     assert isinstance(source, PredictorForecast)
+    source.progress = False  # this function's own bar counts the chunks
+    source.threads = None  # the caller's torch threads (``forecasts build --threads``)
     total = sum(num_chunks(r) for r in recordings)
     bar: Any = None
     if progress:
