@@ -27,7 +27,7 @@ import gymnasium as gym
 import numpy as np
 
 from agents.planners import DEFAULT_HEADINGS_DEG, DEFAULT_SPEED_FRACTIONS, velocities_to_actions
-from crowdnav_mesrnn.config import ConfigError
+from crowdnav_mesrnn.config import ConfigError, check_keys
 from envs.config import CrowdNavConfig
 
 #: Action parameterisations accepted by the training configuration (``action.kind``).
@@ -104,10 +104,7 @@ class GoalRelativeActions:
 
 def make_actions(env_config: CrowdNavConfig, options: Mapping[str, Any]) -> GoalRelativeActions:
     """The action set of a training configuration's ``action`` section (without its ``kind``)."""
-    allowed = ("headings_deg", "speed_fractions")
-    unknown = sorted(set(options) - set(allowed))
-    if unknown:
-        raise ConfigError(f"unknown action key(s) {', '.join(map(repr, unknown))}; valid: kind, {', '.join(allowed)}")
+    check_keys(options, ("kind", "headings_deg", "speed_fractions"), "action")
     return GoalRelativeActions(env_config, **dict(options))
 
 

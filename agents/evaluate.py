@@ -4,9 +4,10 @@
 (also ``crowdnav-mesrnn agent evaluate ...``) replays the split's held-out scene (``part="test"``) over
 :func:`evaluation_seeds` — the same list for every arm and policy, so comparisons are paired — with
 deterministic actions, and by default only episodes in which a pedestrian comes within sensor range
-of the straight path (``require_pedestrians``). Per-episode metrics go to ``episodes.csv``; the summary
-(``summary.json``) gives outcome rates with 95 % Wilson intervals and metric means with bootstrap
-intervals (:mod:`agents.stats`).
+of the straight path (``require_pedestrians``). Per-episode metrics go to ``episodes.csv`` and the summary
+to ``summary.json``, in ``--out`` or else a new ``runs/eval/<policy>_<predictor>_<split>_s<seed>_<UTC time>/``
+(:func:`default_eval_dir`); the summary gives outcome rates with 95 % Wilson intervals and metric means with
+bootstrap intervals (:mod:`agents.stats`).
 
 Speed: several environments are stepped in lockstep in this process and the policy is called once
 per step on their stacked observations (SB3's batched ``predict``; the planners score candidates for
@@ -26,6 +27,7 @@ import sys
 import time
 import zlib
 from collections.abc import Callable, Mapping, Sequence
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Final
 
@@ -287,32 +289,33 @@ def check_spaces(policy: Any, env: Any) -> None:
 def prepare_forecasts(env_kwargs: Mapping[str, Any], progress: bool = False) -> dict[str, Any] | None:
     """Fill the shared on-disk forecast cache for the recordings environments of ``env_kwargs`` replay, so that no
     worker computes forecasts (:func:`envs.forecasts.build_forecast_cache`); None when there is nothing to build
-    (no learned predictor, no disk cache, a synthetic or empty crowd, or no data with ``crowd: auto``)."""
-    from crowdnav_mesrnn.data.paths import DataNotFoundError
+    (no learned predictor, no disk cache, or a crowd that is not replayed from ETH/UCY).
+
+    Raises:
+        DataNotFoundError: the environments would replay ETH/UCY scenes and the data is not found (as they would).
+    """
     from envs import forecasts
-    from envs.config import LEARNED_SOURCES, is_plugin_source
+    from envs.config import LEARNED_SOURCES, crowd_source, is_plugin_source, names_scene
 
     cfg = config_from(dict(env_kwargs), {})
     build = getattr(forecasts, "build_forecast_cache", None)
     learned = cfg.predictor in LEARNED_SOURCES or is_plugin_source(cfg.predictor)
-    if build is None or not learned or cfg.crowd not in ("auto", "replay"):
+    if build is None or not learned:
         return None
     if not (getattr(cfg, "cache_forecasts", True) and getattr(cfg, "forecast_disk_cache", True)):
         return None
-    try:
-        return build(
-            cfg.predictor,
-            cfg.split,
-            cfg.part,
-            memory=cfg.forecast_memory,
-            data_dir=cfg.data_dir,
-            cache_dir=getattr(cfg, "forecast_cache_dir", None),
-            progress=progress,
-        )
-    except DataNotFoundError:
-        if cfg.crowd == "replay":
-            raise
-        return None  # the environments fall back to the synthetic crowd (and say so)
+    source = crowd_source(cfg, names_scene(None, env_kwargs))
+    if source.kind != "replay":
+        return None
+    return build(
+        cfg.predictor,
+        cfg.split,
+        cfg.part,
+        memory=cfg.forecast_memory,
+        data_dir=source.data_dir,
+        cache_dir=getattr(cfg, "forecast_cache_dir", None),
+        progress=progress,
+    )
 
 
 def episode_row(index: int, seed: int, reset_info: Mapping[str, Any], metrics: Mapping[str, Any], ret: float) -> dict:
@@ -336,6 +339,7 @@ def run_episodes(
     on_step: StepHook | None = None,
     progress: bool = False,
     deterministic: bool = True,
+    desc: str = "episodes",
 ) -> list[dict[str, Any]]:
     """Run one episode per seed, stepping ``envs`` in lockstep with one batched ``predict`` per step.
 
@@ -347,6 +351,7 @@ def run_episodes(
             episode ``k`` (``obs`` is the observation the action was taken on).
         progress: show a progress bar over episodes.
         deterministic: passed to ``predict``.
+        desc: the progress bar's label, saying whose episodes it counts.
 
     Returns:
         one row per episode, in seed order (see :func:`episode_row`).
@@ -359,7 +364,7 @@ def run_episodes(
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=n, unit="episode", dynamic_ncols=True)
+        bar = tqdm(total=n, desc=desc, unit="episode", dynamic_ncols=True)
 
     def start(i: int) -> None:
         nonlocal next_k
@@ -415,7 +420,8 @@ def summarise(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95, seed:
 
     Returns:
         ``episodes``; for each outcome ``<outcome>_rate``, ``<outcome>_ci`` ([lo, hi], Wilson) and
-        ``<outcome>s`` (the count); for each of :data:`METRICS` ``<metric>_mean``, ``<metric>_ci``
+        ``<outcome>_count`` (summaries written before this name held ``successs``, ``collisions`` and
+        ``timeouts``; nothing in the project reads the counts back); for each of :data:`METRICS` ``<metric>_mean``, ``<metric>_ci``
         (bootstrap, seeded) and ``<metric>_n`` (episodes it is defined for: all, or the successful ones
         for :data:`SUCCESS_ONLY_METRICS`; ``None`` values such as the ``none`` arm's forecast ADE are
         left out). Undefined means and intervals are ``None``.
@@ -427,7 +433,7 @@ def summarise(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95, seed:
         count = sum(o == name for o in outcomes)
         out[f"{name}_rate"] = count / n if n else None
         out[f"{name}_ci"] = list(wilson_interval(count, n, confidence)) if n else None
-        out[f"{name}s"] = count
+        out[f"{name}_count"] = count
     for metric in METRICS:
         use = [r for r in rows if metric not in SUCCESS_ONLY_METRICS or r.get("outcome") == "success"]
         values = np.array([_number(r.get(metric)) for r in use], dtype=np.float64)
@@ -499,8 +505,9 @@ def evaluate(
             ``lookahead_steps``).
 
     Returns:
-        the summary (see :func:`summarise`) plus ``policy``, ``predictor``, ``split``, ``seed``,
-        ``require_pedestrians``, ``env`` (the settings given to the environments) and ``seconds``.
+        the summary (see :func:`summarise`) plus ``policy``, ``predictor``, ``split``, ``crowd`` (``{"kind",
+        "data_dir"}``: ``replay`` from that ETH/UCY folder, or ``synthetic``/``empty``), ``seed``,
+        ``require_pedestrians``, ``env`` (the settings given to the environments), ``seconds`` and ``out_dir``.
     """
     from envs.crowd_nav import CrowdNavEnv
 
@@ -515,7 +522,9 @@ def evaluate(
     envs = [CrowdNavEnv(**kwargs) for _ in range(max(1, min(n_envs, episodes)))]
     check_spaces(policy, envs[0])
     try:
-        rows = run_episodes(policy, envs, evaluation_seeds(split, episodes, seed), progress=progress)
+        rows = run_episodes(
+            policy, envs, evaluation_seeds(split, episodes, seed), progress=progress, desc=f"evaluation on {split}"
+        )
     finally:
         for env in envs:
             env.close()
@@ -525,17 +534,34 @@ def evaluate(
         model=None if str(spec) in PLANNERS else str(model_path(spec, which)),
         predictor=predictor,
         split=split,
+        crowd=envs[0].crowd_source.as_dict(),
         seed=seed,
         require_pedestrians=kwargs["require_pedestrians"],
         env=kwargs,
         planner=dict(planner_kwargs or {}) if str(spec) in PLANNERS else None,
         seconds=round(time.perf_counter() - started, 3),
+        out_dir=None if out_dir is None else str(out_dir),
     )
     if out_dir is not None:
         out = Path(out_dir)
         atomic_write_text(out / "episodes.csv", episodes_csv(rows))
         atomic_write_json(out / "summary.json", summary)
     return summary
+
+
+def default_eval_dir(spec: str | Path, predictor: str, split: str, seed: int, root: str | Path = "runs/eval") -> Path:
+    """A new folder for an evaluation's files when none is given: ``runs/eval/<policy>_<predictor>_<split>_s<seed>_<UTC
+    time>`` (``<policy>``: the planner's name, a run folder's name or a model file's stem; ``-2``, ``-3``, ... appended
+    when the folder exists, so an evaluation never overwrites another)."""
+    p = Path(spec)
+    name = str(spec) if str(spec) in PLANNERS else (p.stem if p.suffix == ".zip" else p.name) or "policy"
+    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
+    base = Path(root) / f"{name}_{predictor}_{split}_s{seed}_{stamp}"
+    out, k = base, 1
+    while out.exists():
+        k += 1
+        out = base.with_name(f"{base.name}-{k}")
+    return out
 
 
 def format_summary(summary: Mapping[str, Any]) -> str:
@@ -545,17 +571,29 @@ def format_summary(summary: Mapping[str, Any]) -> str:
         value = summary.get(key)
         return "" if not value or value[0] is None else f"  [{value[0]:.3f}, {value[1]:.3f}]"
 
+    rows = [(f"{name} rate", summary.get(f"{name}_rate"), f"{name}_ci") for name in OUTCOMES]
+    rows += [
+        (
+            metric + (" (successes)" if metric in SUCCESS_ONLY_METRICS else ""),
+            summary.get(f"{metric}_mean"),
+            f"{metric}_ci",
+        )
+        for metric in METRICS
+    ]
+    width = max(len(label) for label, _, _ in rows) + 2
+    crowd = summary.get("crowd") or {}
+    if crowd.get("kind") == "replay":
+        where = f"{summary.get('split')} (held-out scene, ETH/UCY replay from {crowd.get('data_dir')})"
+    elif crowd:
+        where = f"the {crowd.get('kind')} crowd (not an ETH/UCY scene; split {summary.get('split')})"
+    else:  # a summary written before crowds were named
+        where = f"{summary.get('split')} (held-out scene)"
     lines = [
-        f"{summary.get('policy')} on {summary.get('split')} (held-out scene), forecasts {summary.get('predictor')}, "
+        f"{summary.get('policy')} on {where}, forecasts {summary.get('predictor')}, "
         f"{summary['episodes']} episodes in {summary.get('seconds', 0):.1f} s"
     ]
-    for name in OUTCOMES:
-        rate = summary.get(f"{name}_rate")
-        lines.append(f"  {name + ' rate':<28}{'-' if rate is None else f'{rate:.3f}'}{ci(f'{name}_ci')}")
-    for metric in METRICS:
-        mean = summary.get(f"{metric}_mean")
-        note = " (successes)" if metric in SUCCESS_ONLY_METRICS else ""
-        lines.append(f"  {metric + note:<28}{'-' if mean is None else f'{mean:.3f}'}{ci(f'{metric}_ci')}")
+    for label, value, ci_key in rows:
+        lines.append(f"  {label:<{width}}{'-' if value is None else f'{value:.3f}'}{ci(ci_key)}")
     return "\n".join(lines)
 
 
@@ -588,7 +626,11 @@ def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data-dir", dest="data_dir_env", metavar="DIR", default=None, help=DATA_DIR_ENV_HELP)
     p.add_argument("--episodes", type=int, default=500, help="number of episodes (default: 500)")
     p.add_argument("--seed", type=int, default=0, help="which seeded list of episodes (default: 0)")
-    p.add_argument("--out", default=None, help="folder for episodes.csv and summary.json")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="folder for episodes.csv and summary.json (default: a new runs/eval/<policy>_<predictor>_<split>_s<seed>_<time>)",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument(
         "--all-episodes",
@@ -612,13 +654,14 @@ def run_from_args(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(1)
+    out = Path(args.out) if args.out else default_eval_dir(args.policy, args.predictor, args.split, args.seed)
     summary = evaluate(
         args.policy,
         args.predictor,
         args.split,
         args.episodes,
         seed=args.seed,
-        out_dir=args.out,
+        out_dir=out,
         env_overrides=parse_set(args.env_set),
         require_pedestrians=not args.all_episodes,
         n_envs=args.n_envs,
@@ -630,8 +673,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         print(json.dumps(summary))
     else:
         print(format_summary(summary))
-        if args.out:
-            print(f"wrote {Path(args.out) / 'episodes.csv'} and {Path(args.out) / 'summary.json'}")
+        print(f"wrote {out / 'episodes.csv'} and {out / 'summary.json'}")
     return 0
 
 

@@ -165,6 +165,9 @@ def collect_teacher(
             teacher_seeds(seed, episodes, round_),
             on_step=record,
             progress=progress,
+            desc=f"warm start: {cfg.teacher} teacher's episodes"
+            if driver is None
+            else f"DAgger round {round_}/{cfg.dagger_rounds}: student's episodes, labelled by {cfg.teacher}",
         )
     finally:
         for env in envs:

@@ -27,8 +27,8 @@ scenes' last ``val_fraction`` (``episode_time="val"``) — never the held-out te
 
 ## A run folder
 ``config.yaml`` (the resolved config in the same layout, plus a ``run`` section: predictor, split, seed,
-environment id, the resolved environment settings, sha256 of the predictor weights involved, code
-version), ``command.txt``, ``version.txt``, ``progress.csv`` (SB3's logger), ``evaluations.csv``
+environment id, the resolved environment settings, the crowd replayed (``crowd``: ``kind`` and ETH/UCY
+``data_dir``), sha256 of the predictor weights involved, code version), ``command.txt``, ``version.txt``, ``progress.csv`` (SB3's logger), ``evaluations.csv``
 (validation history), ``best_model.zip`` (best validation success rate, ties broken by return),
 ``final_model.zip`` (``*_vecnormalize.pkl`` beside the models when observations are normalised),
 ``pretrain.json`` (warm start), ``checkpoints/`` (model, ``VecNormalize`` statistics, SAC's replay
@@ -54,6 +54,7 @@ import shlex
 import shutil
 import sys
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -73,7 +74,14 @@ from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_c
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
-from envs.config import FORECAST_SOURCES, LEARNED_SOURCES, check_predictor_name, config_from, episode_recordings
+from envs.config import (
+    FORECAST_SOURCES,
+    LEARNED_SOURCES,
+    check_predictor_name,
+    config_from,
+    crowd_source,
+    episode_recordings,
+)
 
 #: Top-level key of the project's own settings in a config file (RL Zoo ignores it).
 PROJECT_KEY: Final[str] = "crowdnav_mesrnn"
@@ -568,11 +576,25 @@ class ProgressCSV(KVWriter):
         pass
 
 
+#: The note that TensorBoard logs are not written was shown in this process (it is shown once).
+_TB_NOTICE_SHOWN = False
+
+
 def make_logger(run_dir: Path, keep_until_step: int | None) -> Any:
-    """SB3 logger: ``progress.csv`` and, when tensorboard is installed, TensorBoard under ``tb/``."""
+    """SB3 logger: ``progress.csv`` and, when tensorboard is installed, TensorBoard under ``tb/`` (without it, one
+    warning per process says the logs are not written and how to get them)."""
+    global _TB_NOTICE_SHOWN
     formats: list[Any] = [ProgressCSV(run_dir / "progress.csv", keep_until_step)]
     if importlib.util.find_spec("tensorboard") is not None:
         formats.append(TensorBoardOutputFormat(str(run_dir / "tb")))
+    elif not _TB_NOTICE_SHOWN:
+        _TB_NOTICE_SHOWN = True
+        warnings.warn(
+            "TensorBoard logs (tb/ in the run folder) are not written: tensorboard is not installed; "
+            "pip install 'crowdnav-mesrnn[tb]' to get them (progress.csv is written either way)",
+            UserWarning,
+            stacklevel=2,
+        )
     return Logger(str(run_dir), formats)
 
 
@@ -715,7 +737,13 @@ class Progress(BaseCallback):
     def _on_training_start(self) -> None:
         from tqdm.auto import tqdm
 
-        self.bar = tqdm(total=self.total, initial=self.model.num_timesteps, unit="step", dynamic_ncols=True)
+        self.bar = tqdm(
+            total=self.total,
+            initial=self.model.num_timesteps,
+            desc=f"{type(self.model).__name__} training",
+            unit="step",
+            dynamic_ncols=True,
+        )
 
     def _on_step(self) -> bool:
         assert self.bar is not None
@@ -759,6 +787,31 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
 # ---------------------------------------------------------------------------- train
 
 
+def rollout_steps(cfg: TrainConfig) -> tuple[int, str] | None:
+    """Environment steps SB3 collects between two checks of the budget, and how they come about: PPO collects
+    whole rollouts of ``n_steps x n_envs``; SAC ``train_freq`` (in steps) x ``n_envs``. None when it is not a fixed
+    number (SAC's ``train_freq`` counted in episodes)."""
+    if cfg.algo == "ppo":
+        n_steps = int(cfg.hyperparams.get("n_steps", 2048))
+        return n_steps * cfg.n_envs, f"PPO collects whole rollouts of n_steps {n_steps} x n_envs {cfg.n_envs}"
+    freq = cfg.hyperparams.get("train_freq", 1)
+    if isinstance(freq, list | tuple):
+        if len(freq) == 2 and freq[1] == "episode":
+            return None
+        freq = freq[0]
+    return int(freq) * cfg.n_envs, f"SAC collects train_freq {int(freq)} x n_envs {cfg.n_envs}"
+
+
+def steps_trained(cfg: TrainConfig, start_step: int = 0) -> int | None:
+    """How many environment steps a run of ``cfg`` from ``start_step`` ends at: SB3 checks the budget
+    (``n_timesteps``) only between collections (:func:`rollout_steps`), so it rounds up to whole collections
+    (PPO's ``n_steps 256 x n_envs 8``: ``--timesteps 256`` trains 2,048 steps). None when it is not fixed."""
+    unit = rollout_steps(cfg)
+    if unit is None or cfg.n_timesteps <= start_step:
+        return None if unit is None else start_step
+    return start_step + -(-(cfg.n_timesteps - start_step) // unit[0]) * unit[0]
+
+
 def default_run_dir(cfg: TrainConfig) -> Path:
     """``runs/<algo>_<predictor>_<split>_s<seed>_<UTC time>``."""
     stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
@@ -777,12 +830,16 @@ def _config_differences(a: Mapping[str, Any], b: Mapping[str, Any], prefix: str 
 
 
 def resolved_yaml(cfg: TrainConfig, extra_run: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """What ``config.yaml`` holds: :meth:`TrainConfig.to_yaml` plus the ``run`` section."""
+    """What ``config.yaml`` holds: :meth:`TrainConfig.to_yaml` plus the ``run`` section (with ``crowd``, the crowd the
+    environments replay: ``{"kind": "replay", "data_dir": ...}`` or ``{"kind": "synthetic", ...}``).
+
+    Raises:
+        DataNotFoundError: the run replays ETH/UCY scenes (``env.crowd`` ``auto`` or ``replay``) and the data is not
+            found.
+    """
     doc = cfg.to_yaml()
-    env_resolved = {
-        k: list(v) if isinstance(v, tuple) else v
-        for k, v in dataclasses.asdict(config_from(cfg.env_kwargs("train"), {})).items()
-    }
+    env_cfg = config_from(cfg.env_kwargs("train"), {})
+    env_resolved = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(env_cfg).items()}
     doc[PROJECT_KEY]["run"] = {
         "predictor": cfg.predictor,
         "split": cfg.split,
@@ -790,6 +847,7 @@ def resolved_yaml(cfg: TrainConfig, extra_run: Mapping[str, Any] | None = None) 
         "env_id": cfg.env_id,
         "source": cfg.source,
         "env_resolved": env_resolved,
+        "crowd": crowd_source(env_cfg, scene_named=True).as_dict(),
         "predictor_weights_sha256": predictor_weights(cfg),
         "code_version": code_version(),
         **dict(extra_run or {}),
@@ -845,6 +903,7 @@ def train(
         raise ConfigError(f"{run_dir} exists and is not empty; pass --resume to continue it, or choose another --out")
     if ckpt is not None and (run_dir / "config.yaml").is_file():
         _check_resume_config(cfg, run_dir)
+    resolved = resolved_yaml(cfg)  # finds the data (or fails naming where it looked) before the folder is made
     run_dir.mkdir(parents=True, exist_ok=True)
 
     line = command if command is not None else shlex.join(sys.argv)
@@ -854,7 +913,7 @@ def train(
         previous = (run_dir / "command.txt").read_text() if (run_dir / "command.txt").is_file() else ""
         atomic_write_text(run_dir / "command.txt", previous + f"# resumed from {ckpt.name}\n{line}\n")
     atomic_write_text(run_dir / "version.txt", code_version() + "\n")
-    atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(resolved_yaml(cfg), sort_keys=False))
+    atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(resolved, sort_keys=False))
 
     started = time.perf_counter()
     prepare_forecasts(cfg.env_kwargs("train"), progress=progress)  # training and validation: the same recordings
@@ -896,6 +955,17 @@ def train(
             start_step = int(model.num_timesteps)
             model.set_logger(make_logger(run_dir, start_step))
             print(f"resuming {run_dir} at step {start_step} of {cfg.n_timesteps}")
+        planned = steps_trained(cfg, start_step)
+        if planned is not None and planned != max(cfg.n_timesteps, start_step):
+            unit = rollout_steps(cfg)
+            assert unit is not None
+            warnings.warn(
+                f"n_timesteps {cfg.n_timesteps} trains {planned} steps: {unit[1]} = {unit[0]} steps at a time"
+                + (f" (from step {start_step})" if start_step else "")
+                + "; set a multiple of it to train exactly the budget",
+                UserWarning,
+                stacklevel=2,
+            )
         checkpoint = Checkpoint(run_dir, cfg.checkpoint_freq_steps, cfg.keep_checkpoints, validation, start_step)
         callbacks = [validation, checkpoint] + ([Progress(cfg.n_timesteps, validation)] if progress else [])
         remaining = cfg.n_timesteps - start_step

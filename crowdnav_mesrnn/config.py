@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -17,14 +18,31 @@ class ConfigError(ValueError):
     """A configuration key or value is invalid; the message names it and lists what is valid."""
 
 
+def close_matches(word: str, valid: Iterable[str], n: int = 1) -> list[str]:
+    """The ``n`` entries of ``valid`` closest to ``word`` (:func:`difflib.get_close_matches`, cutoff 0.6); empty when
+    none is close."""
+    return difflib.get_close_matches(str(word), [str(v) for v in valid], n=n)
+
+
+def did_you_mean(word: str, valid: Iterable[str]) -> str:
+    """``"did you mean 'x'?"`` naming the entry of ``valid`` closest to ``word``, or ``""`` when none is close."""
+    match = close_matches(word, valid)
+    return f"did you mean {match[0]!r}?" if match else ""
+
+
 def check_keys(given: Mapping[str, Any], valid: list[str] | tuple[str, ...], where: str) -> None:
-    """Raise :class:`ConfigError` for any key of ``given`` not in ``valid``, listing the valid keys."""
+    """Raise :class:`ConfigError` for any key of ``given`` not in ``valid``: the message leads with the closest
+    valid key of each unknown one (``unknown env config key 'num_pedestrian'; did you mean 'num_pedestrians'?``)
+    and ends with every valid key."""
     unknown = sorted(set(given) - set(valid))
-    if unknown:
-        raise ConfigError(
-            f"unknown {where} key{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}; "
-            f"valid keys: {', '.join(sorted(valid))}"
-        )
+    if not unknown:
+        return
+    valid_list = f"(valid keys: {', '.join(sorted(valid))})"
+    if len(unknown) == 1:
+        hint = did_you_mean(unknown[0], valid)
+        raise ConfigError(f"unknown {where} key {unknown[0]!r}{'; ' + hint if hint else ''} {valid_list}")
+    named = ", ".join(f"{key!r}" + (f" ({hint})" if (hint := did_you_mean(key, valid)) else "") for key in unknown)
+    raise ConfigError(f"unknown {where} keys {named} {valid_list}")
 
 
 def replace_checked(cfg: T, overrides: Mapping[str, Any] | None, where: str = "config") -> T:

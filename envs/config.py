@@ -20,6 +20,7 @@ import numpy as np
 
 from crowdnav_mesrnn.config import ConfigError, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import RECORDINGS, SPLIT_TEST_RECORDINGS, SPLITS
+from crowdnav_mesrnn.data.paths import DataNotFoundError, find_data_dir
 
 #: Forecast sources accepted by ``predictor=``.
 FORECAST_SOURCES: Final[tuple[str, ...]] = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
@@ -57,6 +58,8 @@ def check_predictor_name(name: Any) -> str:
 
 #: Crowd sources accepted by ``crowd=`` (or a :class:`~crowdnav_mesrnn.data.Recording` object).
 CROWDS: Final[tuple[str, ...]] = ("auto", "replay", "synthetic", "empty")
+#: Keys that name ETH/UCY scenes: given (in a config or as keywords), ``crowd="auto"`` needs the data.
+SCENE_KEYS: Final[tuple[str, ...]] = ("split", "part", "scenes")
 #: Which recordings an episode may replay: ``test`` = the split's held-out scene, ``train`` = the other four.
 EPISODE_PARTS: Final[tuple[str, ...]] = ("train", "test")
 KINEMATICS: Final[tuple[str, ...]] = ("holonomic", "unicycle")
@@ -79,7 +82,9 @@ class CrowdNavConfig:
     scenes: tuple[str, ...] = ()
     """Restrict episodes to these recordings (``crowds_zara01``) or scene labels (``zara1``, ``univ``); empty = all of the part."""
     crowd: str = "auto"
-    """``replay`` (ETH/UCY), ``synthetic`` (social-force crowd), ``empty``, or ``auto`` (replay if data is found, else synthetic with a warning)."""
+    """``replay`` (ETH/UCY), ``synthetic`` (social-force crowd), ``empty``, or ``auto``: replay when the data is
+    found; without it, an error when a scene is named (``split``, ``part`` or ``scenes`` given, or ``data_dir``),
+    else the embedded default, the synthetic crowd, with a warning (see :func:`crowd_source`)."""
     data_dir: str | None = None
     """ETH/UCY folder; default: ``$CROWDNAV_MESRNN_DATA``, ``./data/eth_ucy``, ``~/.cache/crowdnav-mesrnn/eth_ucy``."""
     predictor: str = "mesrnn"
@@ -406,18 +411,22 @@ def resolve_scenes(scenes: tuple[str, ...], allowed: tuple[str, ...], split: str
     return tuple(out)
 
 
+def config_mapping(config: Mapping[str, Any] | str | os.PathLike[str] | None) -> dict[str, Any]:
+    """The keys ``config`` (a mapping, a YAML file or None) sets, as a dict (nothing merged, nothing checked)."""
+    if config is None:
+        return {}
+    if isinstance(config, Mapping):
+        return dict(config)
+    if isinstance(config, str | os.PathLike):
+        return load_yaml(config)
+    raise ConfigError(f"config must be a mapping or a YAML path, got {type(config).__name__}")
+
+
 def config_from(
     config: Mapping[str, Any] | str | os.PathLike[str] | None, overrides: Mapping[str, Any]
 ) -> CrowdNavConfig:
     """Defaults, then ``config`` (a mapping or a YAML file), then keyword ``overrides``; validated."""
-    if config is None:
-        base: dict[str, Any] = {}
-    elif isinstance(config, Mapping):
-        base = dict(config)
-    elif isinstance(config, str | os.PathLike):
-        base = load_yaml(config)
-    else:
-        raise ConfigError(f"config must be a mapping or a YAML path, got {type(config).__name__}")
+    base = config_mapping(config)
     # a value of ``config`` a keyword overrides (the id's predictor, say) is still checked: nonsense is refused,
     # never silently dropped
     for key in set(base) & set(overrides):
@@ -426,6 +435,63 @@ def config_from(
     merged = {**base, **overrides}
     cfg = replace_checked(CrowdNavConfig(), merged, where="env config")
     return cfg.validate()
+
+
+@dataclass(frozen=True)
+class CrowdSource:
+    """Where an environment's crowd comes from (named in every result: evaluation summaries, run folders)."""
+
+    kind: str
+    """``replay`` (ETH/UCY recordings), ``synthetic`` (the project's social-force crowd), ``empty`` or ``custom`` (a
+    :class:`~crowdnav_mesrnn.data.Recording` object passed as ``crowd=``)."""
+    data_dir: str | None = None
+    """The ETH/UCY folder replayed (``replay`` only)."""
+    embedded_default: bool = False
+    """The synthetic crowd replaces the ETH/UCY data of a bare ``gymnasium.make(id)`` (``crowd="auto"``, no scene named,
+    no data found)."""
+
+    def describe(self) -> str:
+        """One line for messages and tables: ``ETH/UCY replay from /data/eth_ucy``, ``synthetic crowd``, ..."""
+        if self.kind == "replay":
+            return f"ETH/UCY replay from {self.data_dir}"
+        if self.kind == "synthetic" and self.embedded_default:
+            return "synthetic crowd (the embedded default: no scene named, no ETH/UCY data found)"
+        return {"synthetic": "synthetic crowd", "empty": "empty scene"}.get(self.kind, f"{self.kind} crowd")
+
+    def as_dict(self) -> dict[str, Any]:
+        """``{"kind", "data_dir"}`` for JSON and YAML files."""
+        return {"kind": self.kind, "data_dir": self.data_dir}
+
+
+def crowd_source(cfg: CrowdNavConfig, scene_named: bool) -> CrowdSource:
+    """The crowd a configuration replays, looking for the ETH/UCY data where ``crowd`` asks for it.
+
+    Args:
+        cfg: the configuration (``crowd``, ``data_dir``, ``split``, ``part``, ``scenes``).
+        scene_named: the user named ETH/UCY scenes (gave any of :data:`SCENE_KEYS`); :func:`names_scene` tells.
+
+    Raises:
+        DataNotFoundError: ``crowd`` is ``replay``, or ``auto`` with a scene named or ``data_dir`` given, and no data
+            is found; the message names every place looked at and how to ask for the synthetic crowd instead.
+    """
+    if cfg.crowd in ("empty", "synthetic"):
+        return CrowdSource(cfg.crowd)
+    try:
+        return CrowdSource("replay", str(find_data_dir(cfg.data_dir)))
+    except DataNotFoundError as exc:
+        if cfg.crowd == "replay" or scene_named or cfg.data_dir is not None:
+            names = resolve_scenes(cfg.scenes, episode_recordings(cfg.split, cfg.part), cfg.split, cfg.part)
+            raise DataNotFoundError(
+                f"split {cfg.split!r}, part {cfg.part!r} replays the ETH/UCY recording(s) {', '.join(names)}, but {exc}\n"
+                "Pass crowd='synthetic' to run on the project's synthetic crowd instead (agents.evaluate: --set "
+                "crowd=synthetic; agents.train: --set env.crowd=synthetic)."
+            ) from None
+        return CrowdSource("synthetic", embedded_default=True)
+
+
+def names_scene(config: Mapping[str, Any] | str | os.PathLike[str] | None, overrides: Mapping[str, Any]) -> bool:
+    """True when ``config`` or ``overrides`` sets any of :data:`SCENE_KEYS` (then ``crowd="auto"`` needs the data)."""
+    return bool(set(SCENE_KEYS) & (set(config_mapping(config)) | set(overrides)))
 
 
 def default_config() -> dict[str, Any]:

@@ -21,7 +21,12 @@ it is identical to one computed online (``tests/envs/test_replay_and_forecasts.p
 from __future__ import annotations
 
 import bisect
+import contextlib
 import math
+import multiprocessing
+import os
+import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Final, Protocol
 
@@ -226,10 +231,18 @@ class PredictorForecast(ForecastSource):
         store: the shared disk cache (None: memory only). Predictors without weights to hash
             (:func:`~envs.forecast_cache.predictor_fingerprint`) are kept in memory only.
 
+    Computing runs torch on :attr:`threads` threads, one by default (:func:`torch_threads`; the caller's setting
+    is restored after): a frame's batched operations are small, and more threads contend for the cores (on the
+    shared 2-core machine here the first demo without data computed its forecasts in 91 s with torch's default two
+    threads, 13 s with one). When computing a chunk takes over a second, a progress bar over its frames says so (in the
+    main process only, not in vector-env workers; ``progress = False`` turns it off).
+
     Attributes:
         calls: frames forecast by the predictor in this process (each once when caching).
         chunks_loaded: chunks read from the disk cache.
         chunks_computed: chunks computed here.
+        progress: show a progress bar over a chunk's frames when computing it takes over a second.
+        threads: torch threads while computing (None: the caller's setting).
     """
 
     def __init__(
@@ -260,6 +273,8 @@ class PredictorForecast(ForecastSource):
         self.calls = 0
         self.chunks_loaded = 0
         self.chunks_computed = 0
+        self.progress = True
+        self.threads: int | None = 1
 
     def predictor_for(self, recording: str) -> ForecastModel:
         model = self.predictors.get(recording, self.default)
@@ -337,7 +352,8 @@ class PredictorForecast(ForecastSource):
         """
         model, obs_len, pred_len = self._model_sizes(recording)
         parts = []
-        for cols, history, mask, now in self._histories(recording, chunk_frames(recording, chunk), obs_len):
+        frames = chunk_frames(recording, chunk)
+        for cols, history, mask, now in self._progress(self._histories(recording, frames, obs_len), recording, frames):
             if not now.any():
                 parts.append((np.zeros(0, dtype=np.int64), np.zeros((0, pred_len, 2), np.float32)))
                 continue
@@ -345,6 +361,23 @@ class PredictorForecast(ForecastSource):
             pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(cols), pred_len)
             parts.append((cols[now], np.ascontiguousarray(pred[now], dtype=np.float32)))
         return {chunk: FrameTable.from_frames(parts, pred_len)}
+
+    def _progress(self, items: Any, recording: Recording, frames: range) -> Any:
+        """``items`` (one per frame of ``frames``), behind a labelled progress bar shown if they take over a second
+        (:attr:`progress`, main process only)."""
+        if not self.progress or multiprocessing.parent_process() is not None:
+            return items
+        from tqdm.auto import tqdm
+
+        label = f"{self.name} forecasts of {recording.name}, frames {frames.start}-{frames.stop - 1}"
+        return tqdm(items, total=len(frames), desc=f"{label} (computed once, then cached)", unit="frame", delay=1.0)
+
+    def _compute_chunks(self, recording: Recording, chunk: int) -> dict[int, FrameTable]:
+        """:meth:`compute_chunks` on one torch thread, counted in :attr:`chunks_computed`."""
+        with torch_threads(self.threads):
+            tables = self.compute_chunks(recording, chunk)
+        self.chunks_computed += len(tables)
+        return tables
 
     def table_key(self, recording: Recording) -> TableKey | None:
         """The disk-cache key of ``recording``'s forecasts (None without a store or weights to hash)."""
@@ -369,13 +402,13 @@ class PredictorForecast(ForecastSource):
     def chunk(self, recording: Recording, chunk: int) -> FrameTable:
         """Chunk ``chunk`` of the recording's forecasts: from memory, else from the disk cache, else computed (and
         written to the disk cache; other processes wait for it rather than computing it too)."""
+        fork_safe_torch()
         key = self.table_key(recording)  # also resets what is held when the recording object changed
         hit = self._chunks.get((recording.name, chunk))
         if hit is not None:
             return hit
         if key is None or self.store is None:
-            tables = self.compute_chunks(recording, chunk)
-            self.chunks_computed += len(tables)
+            tables = self._compute_chunks(recording, chunk)
         else:
             loaded = self.store.load(key, chunk, recording, quiet=True)  # files appear atomically: read unlocked
             if loaded is None:
@@ -384,8 +417,7 @@ class PredictorForecast(ForecastSource):
                 with self.store.locked(key, 0 if self.whole_recording else chunk):
                     loaded = self.store.load(key, chunk, recording)
                     if loaded is None:
-                        tables = self.compute_chunks(recording, chunk)
-                        self.chunks_computed += len(tables)
+                        tables = self._compute_chunks(recording, chunk)
                         for c, table in tables.items():
                             self.store.save(key, c, table)
             if loaded is not None:
@@ -405,7 +437,9 @@ class PredictorForecast(ForecastSource):
         """``(columns (n,), forecasts (n, P, 2) float32)`` at annotation frame ``i`` (from the chunk when caching)."""
         if self.use_cache:
             return self.chunk(recording, i // CHUNK_FRAMES).at(i % CHUNK_FRAMES)
-        return self.compute_frame(recording, i)
+        fork_safe_torch()
+        with torch_threads(self.threads):
+            return self.compute_frame(recording, i)
 
     # ------------------------------------------------------------------ env times
 
@@ -568,11 +602,63 @@ class CarriedPredictorForecast(PredictorForecast):
         """Every chunk of the recording, in one pass of an online forecaster from its first frame (hidden states
         cannot start in the middle)."""
         walk = _CarriedWalk(self.predictor_for(recording.name), recording)
-        out = {}
-        for c in range(num_chunks(recording)):
-            out[c] = FrameTable.from_frames([walk.at(k) for k in chunk_frames(recording, c)], walk.pred_len)
+        frames = range(len(recording.frames))
+        forecasts = [walk.at(k) for k in self._progress(frames, recording, frames)]
+        out = {
+            c: FrameTable.from_frames([forecasts[k] for k in chunk_frames(recording, c)], walk.pred_len)
+            for c in range(num_chunks(recording))
+        }
         self.calls += walk.calls
         return out
+
+
+# ----------------------------------------------------------------------------- fork safety
+
+
+#: The process that imported this module; a process with another id is a forked child (or a child's child).
+_IMPORT_PID: Final[int] = os.getpid()
+#: The forked process that has already been switched to one torch thread.
+_ONE_THREAD_PID: int | None = None
+
+
+def fork_safe_torch() -> None:
+    """In a forked child, run torch on one thread from here on; elsewhere nothing.
+
+    A forked process inherits the parent's GNU OpenMP (``libgomp``) state but not its worker threads: once the
+    parent has run a parallel torch operation (loading or hashing a predictor, a user's own torch code), the child's
+    first parallel operation waits forever for threads that do not exist. Gymnasium's async vector env forks its
+    workers, which build their environments and compute forecasts when the cache is cold; every path that runs a
+    predictor (:func:`make_forecast_source`, :meth:`PredictorForecast.chunk`, :meth:`PredictorForecast.frame_forecasts`)
+    calls this first, so torch never enters an OpenMP region there. A worker of vectorised environments needs one
+    thread anyway (as :func:`agents.train.make_env` sets); processes started with ``spawn`` or ``forkserver`` import
+    this module afresh and keep their threads. (A fork is recognised by the process id, not by an
+    ``os.register_at_fork`` hook: a hook would keep ``sys.modules`` alive into interpreter shutdown, where pymunk's
+    spaces must not be freed.)
+    """
+    global _ONE_THREAD_PID
+    pid = os.getpid()
+    if pid == _IMPORT_PID or pid == _ONE_THREAD_PID:
+        return
+    torch = sys.modules.get("torch")
+    if torch is not None:  # not imported: the parent had no torch state to inherit
+        torch.set_num_threads(1)
+    _ONE_THREAD_PID = pid
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """Run torch on ``n`` threads inside the block and restore the caller's count after (nothing without torch, or
+    with ``n`` None)."""
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None and n is not None else n
+    if before == n:
+        yield
+        return
+    torch.set_num_threads(n)  # type: ignore[union-attr]
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)  # type: ignore[union-attr]
 
 
 # ----------------------------------------------------------------------------- construction
@@ -641,6 +727,7 @@ def make_forecast_source(
     """
     if memory not in FORECAST_MEMORIES:
         raise ConfigError(f"unknown forecast_memory {memory!r}; valid: {', '.join(FORECAST_MEMORIES)}")
+    fork_safe_torch()
     learned_cls = CarriedPredictorForecast if memory == "carried" else PredictorForecast
     if not isinstance(predictor, str):
         if not callable(getattr(predictor, "forecast", None)):
@@ -744,6 +831,8 @@ def build_forecast_cache(
     default_split = split if split is not None else "zara1"
     source = make_forecast_source(predictor, list(names), default_split, 0.4, 12, True, 0.0, memory, store)
     assert isinstance(source, PredictorForecast)
+    source.progress = False  # this function's own bar counts the chunks
+    source.threads = None  # the caller's torch threads (``forecasts build --threads``)
     total = sum(num_chunks(r) for r in recordings)
     bar: Any = None
     if progress:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -21,11 +22,29 @@ torch.set_num_threads(1)
 
 from crowdnav_mesrnn.data.paths import ENV_VAR, HOW_TO_GET_DATA, find_data_dir  # noqa: E402
 
+#: Why a test needing ETH/UCY data skips (the only reason it may).
+NO_DATA = f"${ENV_VAR} is not set. {HOW_TO_GET_DATA}"
+
 
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     """The ETH/UCY folder from ``$CROWDNAV_MESRNN_DATA``; skips when the variable is unset."""
     if not os.environ.get(ENV_VAR):
-        pytest.skip(f"${ENV_VAR} is not set. {HOW_TO_GET_DATA}")
+        pytest.skip(NO_DATA)
     # Set but wrong is an error, not a skip: CI must not silently skip the data tests.
     return find_data_dir()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Any:
+    """Every skip for missing data is reported at this fixture, so pytest's summary (``-ra``) folds them into one
+    ``SKIPPED [n]`` line instead of one line per test."""
+    report = yield
+    longrepr = report.longrepr
+    if report.skipped and isinstance(longrepr, tuple) and len(longrepr) == 3 and longrepr[2].endswith(NO_DATA):
+        report.longrepr = (__file__, _DATA_DIR_LINE, longrepr[2])
+    return report
+
+
+#: The line of the ``data_dir`` fixture, where the folded skips are reported.
+_DATA_DIR_LINE = data_dir.__wrapped__.__code__.co_firstlineno if hasattr(data_dir, "__wrapped__") else 0

@@ -32,7 +32,8 @@ def sha256_file(path: Path) -> str:
 
 
 def check_data_dir(root: str | os.PathLike[str]) -> CheckReport:
-    """Verify every listed checksum (when ``SHA256SUMS`` exists) and parse every ``.txt`` file."""
+    """Verify every listed checksum (when ``SHA256SUMS`` exists) and parse every ``.txt`` file; a folder without any
+    data file (``.txt``) is a problem (a check must not pass on an empty or wrong folder)."""
     root = Path(root)
     report = CheckReport()
     if not root.is_dir():
@@ -60,4 +61,9 @@ def check_data_dir(root: str | os.PathLike[str]) -> CheckReport:
             parse_file(path)
         except DataFormatError as exc:
             report.problems.append(str(exc))
+    if report.checked == 0:
+        report.problems.append(
+            f"{root}: no data files (*.txt) found: not an ETH/UCY folder (expected all_data/, train/, val/ of the "
+            "SGAN copy)"
+        )
     return report

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -12,15 +13,19 @@ import pytest
 
 from agents.evaluate import (
     EPISODE_COLUMNS,
+    METRICS,
+    OUTCOMES,
     episodes_csv,
     evaluate,
     evaluation_seeds,
+    format_summary,
     load_policy,
     main,
     run_episodes,
     summarise,
 )
 from agents.planners import SamplingPlanner
+from crowdnav_mesrnn.data import ENV_VAR
 from envs.crowd_nav import CrowdNavEnv
 
 SYNTHETIC = {"crowd": "synthetic"}
@@ -59,9 +64,21 @@ def test_summary_rates_have_wilson_intervals_and_counts() -> None:
     assert s["episodes"] == 10
     for name, k in (("success", 7), ("collision", 2), ("timeout", 1)):
         assert s[f"{name}_rate"] == pytest.approx(k / 10)
-        assert s[f"{name}s"] == k
+        assert s[f"{name}_count"] == k
         np.testing.assert_allclose(s[f"{name}_ci"], wilson(k, 10), rtol=1e-9)
+    assert "successs" not in s and "timeouts" not in s
     json.dumps(s)  # JSON-ready
+
+
+def test_the_table_separates_every_label_from_its_value() -> None:
+    s = summarise(hand_made_rows())
+    s.update(policy="straight", split="zara1", predictor="none", crowd={"kind": "synthetic", "data_dir": None})
+    lines = format_summary(s).splitlines()[1:]
+    assert len(lines) == len(OUTCOMES) + len(METRICS)
+    matches = [re.match(r"^  (\S.*?\S)(\s{2,})(-|-?\d+\.\d{3})", line) for line in lines]
+    assert all(matches), lines
+    assert {m.start(3) for m in matches if m} == {matches[0].start(3)}, "values start in one column"
+    assert ("navigation_time_s (successes)", "13.000") in {(m.group(1), m.group(3)) for m in matches if m}
 
 
 def test_summary_means_use_the_episodes_each_metric_applies_to() -> None:
@@ -139,5 +156,48 @@ def test_command_line_prints_one_json_object(capsys: pytest.CaptureFixture[str],
     assert main([*args, "--out", str(tmp_path)]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["episodes"] == 4 and "success_ci" in out and "navigation_time_s_mean" in out
-    assert (tmp_path / "episodes.csv").is_file()
+    assert (tmp_path / "episodes.csv").is_file() and out["out_dir"] == str(tmp_path)
     assert main(["ppo", "--episodes", "1"]) == 2
+
+
+def test_without_out_the_episodes_go_to_a_new_folder_under_runs_eval(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    args = ["straight", "--predictor", "none", "--episodes", "2", "--set", "crowd=synthetic"]
+    assert main(args) == 0
+    assert main([*args, "--json"]) == 0
+    folders = sorted((tmp_path / "runs" / "eval").iterdir())
+    assert len(folders) == 2, "a second evaluation never overwrites the first"
+    for folder in folders:
+        assert folder.name.startswith("straight_none_zara1_s0_")
+        with open(folder / "episodes.csv", newline="") as fh:
+            assert len(list(csv.DictReader(fh))) == 2
+        assert json.loads((folder / "summary.json").read_text())["episodes"] == 2
+    out = capsys.readouterr().out
+    text, json_line = out.strip().rsplit("\n", 1)
+    named = {str(f.relative_to(tmp_path)) for f in folders}
+    assert any(f"wrote {Path(n) / 'episodes.csv'}" in text for n in named)
+    assert json.loads(json_line)["out_dir"] in named
+
+
+def test_evaluating_a_scene_without_data_fails_naming_the_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    empty = tmp_path / "eth_ucy"
+    empty.mkdir()
+    monkeypatch.setenv(ENV_VAR, str(empty))
+    monkeypatch.chdir(tmp_path)
+    assert main(["planner", "--split", "zara1", "--episodes", "2"]) == 2
+    err = capsys.readouterr().err
+    assert str(empty) in err and "no ETH/UCY data found" in err
+    assert not (tmp_path / "runs").exists(), "no result is written"
+
+
+def test_every_summary_names_its_crowd_source(data_dir: Path) -> None:
+    s = evaluate("straight", "none", "zara1", 1, env_overrides=SYNTHETIC, n_envs=1)
+    assert s["crowd"] == {"kind": "synthetic", "data_dir": None}
+    assert "synthetic crowd" in format_summary(s).splitlines()[0]
+    s = evaluate("straight", "none", "zara1", 1, n_envs=1)
+    assert s["crowd"] == {"kind": "replay", "data_dir": str(data_dir)}
+    assert f"ETH/UCY replay from {data_dir}" in format_summary(s).splitlines()[0]

@@ -102,3 +102,15 @@ def test_a_discrete_policy_without_its_action_set_is_refused(config_of: Any, tin
     pre = PretrainConfig(episodes=2, epochs=1)
     with pytest.raises(ValueError, match="discrete action set"):
         fit_policy(model, collect_teacher(pre, ENV, seed=0, gamma=0.99), pre, seed=0)
+
+
+def test_the_warm_start_progress_bars_say_what_they_count(capsys: pytest.CaptureFixture[str]) -> None:
+    from agents.planners import SamplingPlanner
+    from envs.config import config_from
+
+    cfg = PretrainConfig(episodes=2, dagger_rounds=3, dagger_episodes=2, n_envs=2)
+    collect_teacher(cfg, ENV, seed=0, gamma=0.99, progress=True)
+    assert "warm start: planner teacher's episodes: 100%" in capsys.readouterr().err
+    student = SamplingPlanner(config_from(ENV, {}))  # any driver
+    collect_teacher(cfg, ENV, seed=0, gamma=0.99, progress=True, driver=student, round_=2)
+    assert "DAgger round 2/3: student's episodes, labelled by planner: 100%" in capsys.readouterr().err

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import inspect
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,7 @@ ARMS = ("none", "cv", "mesrnn", "oracle")
 REPO = Path(__file__).resolve().parents[2]
 PPO_YAML = REPO / "configs" / "agent" / "ppo.yaml"
 SAC_YAML = REPO / "configs" / "agent" / "sac.yaml"
+SMOKE_YAML = REPO / "configs" / "agent" / "ppo_smoke.yaml"
 RUN_FILES = (
     "config.yaml",
     "command.txt",
@@ -39,7 +41,7 @@ RUN_FILES = (
 )
 
 
-@pytest.mark.parametrize("path", [PPO_YAML, SAC_YAML])
+@pytest.mark.parametrize("path", [PPO_YAML, SAC_YAML, SMOKE_YAML])
 def test_config_files_are_rl_zoo_entries_per_env_id(path: Path) -> None:
     """What RL Zoo does with an entry: drop its own keys and pass the rest to the algorithm's constructor."""
     from stable_baselines3 import PPO, SAC
@@ -236,3 +238,89 @@ def test_discrete_goal_relative_actions_train_warm_start_and_evaluate(tmp_path: 
         load_train_config(PPO_YAML, None, {"action.kind": "polar"})
     with pytest.raises(ConfigError, match="headings"):
         load_train_config(PPO_YAML, None, {"action.kind": "discrete", "action.headings": [0]})
+
+
+def test_the_run_folder_names_its_crowd_source(tiny_ppo_run: Path) -> None:
+    run = yaml.safe_load((tiny_ppo_run / "config.yaml").read_text())["crowdnav_mesrnn"]["run"]
+    assert run["crowd"] == {"kind": "synthetic", "data_dir": None}
+
+
+def test_training_on_scenes_without_data_fails_before_the_run_starts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, tiny: Any
+) -> None:
+    from crowdnav_mesrnn.data import ENV_VAR, DataNotFoundError
+
+    empty = tmp_path / "eth_ucy"
+    empty.mkdir()
+    monkeypatch.setenv(ENV_VAR, str(empty))
+    cfg = load_train_config(PPO_YAML, None, tiny("ppo", "none", **{"env.crowd": "auto"}))
+    with pytest.raises(DataNotFoundError, match=str(empty)):
+        train(cfg, tmp_path / "run", progress=False, command="pytest")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("algo", "extra", "asked", "trained"),
+    [
+        ("ppo", {"n_steps": 256, "n_envs": 8}, 256, 2048),
+        ("ppo", {"n_steps": 256, "n_envs": 8}, 100_000, 100_352),
+        ("ppo", {"n_steps": 64, "n_envs": 1}, 128, 128),
+        ("sac", {"n_envs": 2}, 101, 102),
+        ("sac", {"n_envs": 2, "train_freq": 4}, 100, 104),
+    ],
+)
+def test_steps_trained_round_up_to_whole_rollouts(algo: str, extra: dict, asked: int, trained: int, tiny: Any) -> None:
+    from agents.train import steps_trained
+
+    path = PPO_YAML if algo == "ppo" else SAC_YAML
+    cfg = load_train_config(path, None, tiny(algo, "none", steps=asked, **extra))
+    assert steps_trained(cfg) == trained
+    assert steps_trained(cfg, start_step=trained) == trained
+
+
+def test_a_budget_that_is_not_whole_rollouts_is_named_with_what_is_trained(tmp_path: Path, tiny: Any) -> None:
+    over = tiny("ppo", "none", steps=40, **{"pretrain": None, "eval.episodes": 0, "checkpoint_freq_steps": 0})
+    cfg = load_train_config(PPO_YAML, None, over)
+    with pytest.warns(UserWarning, match=r"n_timesteps 40 trains 64 steps.*n_steps 64 x n_envs 1 = 64"):
+        run = train(cfg, tmp_path / "run", progress=False, command="pytest")
+    assert json.loads((run / "DONE").read_text())["steps"] == 64
+
+
+def test_without_tensorboard_the_run_says_once_that_it_writes_no_tb_logs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import importlib.util
+    import warnings
+
+    from agents import train as train_module
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "tensorboard" else real(name, *a))
+    monkeypatch.setattr(train_module, "_TB_NOTICE_SHOWN", False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for k in range(3):
+            train_module.make_logger(tmp_path / f"r{k}", None)
+    notes = [str(w.message) for w in caught if "TensorBoard" in str(w.message)]
+    assert len(notes) == 1 and "pip install 'crowdnav-mesrnn[tb]'" in notes[0]
+    assert not (tmp_path / "r0" / "tb").exists()
+
+
+def test_the_smoke_preset_is_the_recipe_shrunk_and_trains(tmp_path: Path) -> None:
+    smoke = load_train_config(SMOKE_YAML, None, {"predictor": "cv"})
+    recipe = load_train_config(PPO_YAML, None, {"predictor": "cv"})
+    assert smoke.action == recipe.action and smoke.policy == recipe.policy and smoke.env == recipe.env
+    assert smoke.pretrain is not None and smoke.pretrain.dagger_rounds >= 1
+    assert smoke.n_timesteps % rollout_size(smoke) == 0, "no warning: the budget is whole rollouts"
+    # a few of its steps, end to end (the synthetic crowd: no data needed; the preset's warm start and validation)
+    cfg = load_train_config(SMOKE_YAML, None, {"predictor": "cv", "n_timesteps": 256, "env.crowd": "synthetic"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        run = train(cfg, tmp_path / "smoke", progress=False, command="pytest")
+    done = json.loads((run / "DONE").read_text())
+    assert done["steps"] == 256 and done["best_validation"] is not None
+    assert (run / "pretrain.json").is_file() and (run / "best_model.zip").is_file()
+
+
+def rollout_size(cfg: Any) -> int:
+    return int(cfg.hyperparams["n_steps"]) * cfg.n_envs

@@ -66,3 +66,15 @@ def test_summary_json_reproduces_window_counts(data_dir: Path, capsys: pytest.Ca
 def test_cli_reports_missing_data(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["data", "summary", "--data-dir", str(tmp_path / "nowhere")]) == 2
     assert "no ETH/UCY data found" in capsys.readouterr().err
+
+
+def test_check_of_a_folder_without_data_files_fails(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    empty = tmp_path / "eth_ucy"
+    empty.mkdir()
+    report = check_data_dir(empty)
+    assert not report.ok and report.checked == 0
+    assert main(["data", "check", str(empty)]) == 1
+    captured = capsys.readouterr()
+    assert f"{empty}: no data files" in captured.err and "OK" not in captured.out
+    (empty / "notes.md").write_text("not data\n")
+    assert main(["data", "check", str(empty)]) == 1

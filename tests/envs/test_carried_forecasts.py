@@ -169,6 +169,8 @@ def test_forecast_memory_options(
 
     monkeypatch.setattr(models, "get_predictor", lambda name, split=None: tiny_learned_predictor(name))
     monkeypatch.setattr(forecasts, "_LOADED", {})
+    # scripted recordings under the scenes' names stand in for the files (no data folder needed: any path will do)
+    monkeypatch.setattr("envs.config.find_data_dir", lambda data_dir=None: Path("<scripted>"))
     monkeypatch.setattr(
         "envs.crowd_nav.load_recording", lambda name, part, data_dir: scripted_recording([], num_steps=50, name=name)
     )

@@ -196,7 +196,7 @@ def test_step_before_reset_and_after_the_end_raise() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "pattern"),
     [
-        ({"bogus_key": 1}, r"unknown env config key 'bogus_key'; valid keys: .*dt_s.*split"),
+        ({"bogus_key": 1}, r"unknown env config key 'bogus_key' \(valid keys: .*dt_s.*split"),
         ({"split": "paris"}, r"unknown split 'paris'; valid: eth, hotel, univ, zara1, zara2"),
         ({"part": "val"}, r"unknown part 'val'; valid: train, test"),
         (

@@ -252,6 +252,8 @@ def test_learned_forecasts_are_out_of_sample(monkeypatch: pytest.MonkeyPatch, fa
 
     monkeypatch.setattr(models, "get_predictor", lambda name, split=None: fake_predictor(f"{name}-{split}"))
     monkeypatch.setattr(forecasts, "_LOADED", {})
+    # scripted recordings under the scenes' names stand in for the files (no data folder needed: any path will do)
+    monkeypatch.setattr("envs.config.find_data_dir", lambda data_dir=None: Path("<scripted>"))
     monkeypatch.setattr(
         "envs.crowd_nav.load_recording", lambda name, part, data_dir: scripted_recording([], num_steps=50, name=name)
     )

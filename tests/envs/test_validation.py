@@ -118,7 +118,11 @@ CROWD = scripted_recording([np.tile([3.0, 3.0], (100, 1))], name="one")  # 39.6 
     ("options", "error", "pattern"),
     [
         ("t0", ValueError, r"reset options must be a mapping with keys among recording, t0_s, .*got 't0'"),
-        ({"t0": 1.0}, ConfigError, r"unknown reset option key 't0'; valid keys: goal, recording, start, t0_s"),
+        (
+            {"t0": 1.0},
+            ConfigError,
+            r"unknown reset option key 't0'; did you mean 't0_s'\? \(valid keys: goal, .*time_limit_s\)",
+        ),
         ({"t0_s": -100.0}, ValueError, r"'t0_s' must be a finite number of seconds >= 0, got -100.0"),
         ({"t0_s": math.nan}, ValueError, r"'t0_s' must be a finite number of seconds >= 0, got nan"),
         ({"t0_s": "1"}, ValueError, r"'t0_s' must be a finite number of seconds >= 0, got '1'"),
