@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -321,17 +320,15 @@ def training_overrides(
 
 
 def _did_you_mean(message: str, overrides: Mapping[str, Any]) -> str:
-    """`` (did you mean 'pretrain.episodes'?)`` for an "unknown ... key 'x'; valid keys: ..." message about one of
-    the ``overrides`` (a small local helper, :func:`difflib.get_close_matches` over the listed keys)."""
-    found = re.search(r"key '([^']+)'; valid keys: (.+)$", message)
-    if not found or "did you mean" in message:
+    """`` (did you mean 'pretrain.episodes'?)``: the dotted override key of the training config's suggestion in
+    ``message`` (an "unknown ... key 'x'; did you mean 'y'? (valid keys: ...)" of
+    :func:`crowdnav_mesrnn.config.check_keys`), so the user reads the key as written in the grid's YAML."""
+    found = re.search(r"key '([^']+)'; did you mean '([^']+)'\?", message)
+    if not found:
         return ""
-    word, valid = found.group(1), [v.strip() for v in found.group(2).split(",")]
-    close = difflib.get_close_matches(word, valid, n=1)
-    if not close:
-        return ""
+    word, close = found.groups()
     key = next((k for k in overrides if k == word or k.endswith(f".{word}")), word)
-    return f" (did you mean {key[: len(key) - len(word)] + close[0]!r}?)"
+    return f" (did you mean {key[: len(key) - len(word)] + close!r}?)"
 
 
 def _check_training(policies: Sequence[PolicySpec], arms: Sequence[Arm], split: str, seed: int, env: Mapping) -> None:
