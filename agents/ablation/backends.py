@@ -104,6 +104,7 @@ def _run_eval(task: CellTask, folder: Path) -> dict[str, Any]:
         seed=task.eval_seed,
         out_dir=folder,
         env_overrides={**task.env, **cell.arm.env_overrides()} or None,
+        **({"planner_kwargs": dict(cell.policy.options)} if cell.policy.options else {}),
     )
     rows = read_episodes(folder / "episodes.csv")
     steps = sum(int(float(r.get("steps", 0) or 0)) for r in rows) if rows and "steps" in rows[0] else None

@@ -94,6 +94,7 @@ def cell_spec(cfg: AblationConfig, cell: Cell) -> dict[str, Any]:
         "noisy_oracle_ade_m": cell.arm.noisy_oracle_ade_m,
         "seed": cell.seed,
         "env": dict(sorted(cfg.env.items())),
+        "env_revision": _env_revision(),
     }
     if cell.kind == "train":
         spec.update(
@@ -107,7 +108,17 @@ def cell_spec(cfg: AblationConfig, cell: Cell) -> dict[str, Any]:
         spec.update(episodes=cfg.episodes, eval_seed=cfg.eval_seed)
         if cell.policy.learned:
             spec["model"] = cell.policy.model
+        elif cell.policy.options:
+            spec["options"] = dict(sorted(cell.policy.options.items()))
     return json.loads(json.dumps(spec, default=str))
+
+
+def _env_revision() -> int:
+    """The environment's rules (:data:`envs.crowd_nav.ENV_REVISION`): a cell finished under other rules (e.g.
+    before the pop-in rule) is stale, so one table never mixes environment versions."""
+    from envs.crowd_nav import ENV_REVISION
+
+    return int(ENV_REVISION)
 
 
 _WEIGHTS_CACHE: dict[tuple[str, str, float, int], str] = {}

@@ -22,7 +22,11 @@ LEARNED_SOURCES: Final[tuple[str, ...]] = ("mesrnn", "srnn", "vlstm")
 
 
 #: Policy kinds: learned ones are trained per arm and seed, the others only evaluated.
-POLICY_KINDS: Final[tuple[str, ...]] = ("ppo", "sac", "planner", "straight")
+POLICY_KINDS: Final[tuple[str, ...]] = ("ppo", "sac", "planner", "search", "privileged", "straight")
+
+#: The privileged ceiling (reads the replay's true future, :mod:`agents.privileged`): a measuring stick whose
+#: success every other policy is also reported as a fraction of, never a competitor.
+PRIVILEGED_KIND: Final[str] = "privileged"
 
 
 LEARNED_KINDS: Final[tuple[str, ...]] = ("ppo", "sac")
@@ -74,7 +78,17 @@ _TOP_KEYS: Final[tuple[str, ...]] = (
 )
 
 
-_POLICY_KEYS: Final[tuple[str, ...]] = ("kind", "arms", "config", "timesteps", "n_envs", "cpus", "model", "overrides")
+_POLICY_KEYS: Final[tuple[str, ...]] = (
+    "kind",
+    "arms",
+    "config",
+    "timesteps",
+    "n_envs",
+    "cpus",
+    "model",
+    "overrides",
+    "options",
+)
 
 
 _EVAL_KEYS: Final[tuple[str, ...]] = ("episodes", "seed")
@@ -116,7 +130,8 @@ class PolicySpec:
     name: str
     """Its key in the config (``ppo``, ``planner``), used in cell paths and the summary."""
     kind: str
-    """``ppo`` or ``sac`` (trained per arm and seed), ``planner`` or ``straight`` (evaluated only)."""
+    """``ppo`` or ``sac`` (trained per arm and seed); ``planner`` (sampling), ``search``, ``privileged`` (the
+    ceiling: reads the true future) or ``straight`` (evaluated only)."""
     config: str | None = None
     """Learned kinds: the agent YAML (``configs/agent/ppo.yaml``), relative to the working directory."""
     timesteps: int | None = None
@@ -130,6 +145,9 @@ class PolicySpec:
     """Learned kinds: ``best`` (selected on validation episodes of the training scenes) or ``final`` model."""
     overrides: Mapping[str, Any] = field(default_factory=dict)
     """Learned kinds: further overrides passed to ``agents.train.load_train_config``."""
+    options: Mapping[str, Any] = field(default_factory=dict)
+    """Planner kinds: the planner's options (``agents.evaluate.evaluate``'s ``planner_kwargs``, e.g. the sampling
+    planner's ``candidates: dense``); part of the cell's spec."""
     arms: tuple[str, ...] = ()
     """Arm labels this policy runs (empty = every arm of the grid); e.g. the cheap planner runs the
     noisy-oracle sweep while PPO trains only the main arms."""
@@ -252,7 +270,7 @@ def _noisy_label(ade: float) -> str:
 
 def _policies(value: Any) -> tuple[PolicySpec, ...]:
     if not isinstance(value, dict) or not value:
-        raise _bad("policies", value, "a mapping of policy names to {kind: ppo|sac|planner|straight, ...}")
+        raise _bad("policies", value, "a mapping of policy names to {kind: " + "|".join(POLICY_KINDS) + ", ...}")
     out = []
     for name, spec in value.items():
         where = f"policies.{name}"
@@ -275,12 +293,17 @@ def _policies(value: Any) -> tuple[PolicySpec, ...]:
             timesteps = _positive_int(spec.get("timesteps"), f"{where}.timesteps")
             n_envs = _positive_int(spec.get("n_envs", 1), f"{where}.n_envs")
             cpus = _positive_int(spec.get("cpus", 1), f"{where}.cpus")
+            if "options" in spec:
+                raise _bad(f"{where}.options", spec["options"], "nothing: a learned policy takes overrides")
             out.append(PolicySpec(str(name), kind, config, timesteps, n_envs, cpus, model, overrides))
         else:
             extra = sorted(set(spec) & {"config", "timesteps", "n_envs", "cpus", "overrides"})
             if extra:
                 raise _bad(f"{where}.{extra[0]}", spec[extra[0]], f"nothing: a {kind!r} policy is not trained")
-            out.append(PolicySpec(str(name), kind))
+            options = spec.get("options") or {}
+            if not isinstance(options, dict) or not all(isinstance(k, str) for k in options):
+                raise _bad(f"{where}.options", options, "a mapping of the planner's option names to values")
+            out.append(PolicySpec(str(name), kind, options=dict(options)))
     return tuple(out)
 
 

@@ -49,6 +49,30 @@ def _p(v: Any) -> str:
     return f"{v:.2g}" if v < 0.001 else f"{v:.3f}"
 
 
+def _ceiling_lines(summary: Mapping[str, Any]) -> list[str]:
+    """The section of success as a fraction of the privileged ceiling (nothing when the grid has none)."""
+    ceiling = summary.get("ceiling")
+    if not ceiling:
+        return []
+    splits = [sp for sp in summary["splits"] if sp in ceiling["by_split"]]
+    rates = ", ".join(f"{sp} {100 * ceiling['by_split'][sp]:.1f} %" for sp in splits)
+    lines = [
+        "## Fraction of the privileged ceiling",
+        "",
+        f"`{ceiling['policy']}` is PRIVILEGED: it reads the replay's true future of every pedestrian, which no "
+        f"policy's observation carries -- a measuring stick, not a competitor. Its success: {rates}. Each cell "
+        "below is a policy's success divided by the ceiling's on the same episodes (pooled over seeds).",
+        "",
+        "| policy | arm | " + " | ".join(splits) + " |",
+        "|---|---" + "|---" * len(splits) + "|",
+    ]
+    for name, arms in ceiling["fractions"].items():
+        for arm, by_split in arms.items():
+            cells = [f"{by_split[sp]:.3f}" if by_split.get(sp) is not None else "-" for sp in splits]
+            lines.append(f"| {name} | {arm} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
 def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: Sequence[str] = ()) -> str:
     """The human-readable report of :func:`summarize`."""
     lines = [f"# Ablation `{summary['name']}`", ""]
@@ -100,6 +124,7 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
             per = {a: e["by_split"][split] for a, e in pol["arms"].items() if split in e.get("by_split", {})}
             if per:
                 lines += [f"{name} on `{split}`:", "", *_rate_table(per, False), ""]
+    lines += _ceiling_lines(summary)
     edges = summary["density_bins"]
     if edges:
         lines += [

@@ -24,6 +24,35 @@ from agents.ablation.stats import _clean, by_density, density_edges, paired_test
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
 
 
+def ceiling_fractions(cfg: AblationConfig, policies: dict[str, Any]) -> dict[str, Any] | None:
+    """Every policy's success per arm and split as a fraction of the privileged ceiling's on the same episodes
+    (``None`` when the grid has no ``privileged`` policy). The ceiling is a measuring stick: it reads the replay's
+    true future, which no other policy's observation carries; it runs one arm (its forecast input is unused).
+
+    Returns ``{"policy": NAME, "by_split": {split: rate}, "fractions": {policy: {arm: {split: fraction}}}}``.
+    """
+    from agents.ablation.config import PRIVILEGED_KIND
+
+    names = [p.name for p in cfg.policies if p.kind == PRIVILEGED_KIND]
+    if not names or not policies.get(names[0], {}).get("arms"):
+        return None
+    ceiling_arm = next(iter(policies[names[0]]["arms"].values()))
+    rates = {sp: e["success_rate"] for sp, e in ceiling_arm["by_split"].items()}
+    fractions: dict[str, Any] = {}
+    for name, pol in policies.items():
+        if name == names[0]:
+            continue
+        fractions[name] = {
+            arm: {
+                sp: (e["success_rate"] / rates[sp] if rates.get(sp) else None)
+                for sp, e in entry["by_split"].items()
+                if sp in rates
+            }
+            for arm, entry in pol["arms"].items()
+        }
+    return {"policy": names[0], "by_split": rates, "fractions": fractions}
+
+
 def summarize(
     cfg: AblationConfig, out: Callable[[str], None] = print, plots: bool = True, force: bool = False
 ) -> dict[str, Any]:
@@ -71,6 +100,7 @@ def summarize(
             "agent_config": policy.config,
             "arms": arms,
         }
+    ceiling = ceiling_fractions(cfg, policies)
     tests, families = paired_tests(cfg, pooled)
     summary = {
         "name": cfg.name,
@@ -86,6 +116,7 @@ def summarize(
         "missing_cells": info["missing_cells"],
         "density_bins": edges,
         "policies": policies,
+        "ceiling": ceiling,
         "tests": tests,
         "multiple_comparisons": {
             "method": "Holm-Bonferroni within each endpoint",
