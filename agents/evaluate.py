@@ -35,7 +35,7 @@ from agents.planners import PLANNERS, make_planner
 from agents.stats import bootstrap_mean_ci, wilson_interval
 from crowdnav_mesrnn.config import ConfigError, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
-from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text
+from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
 from envs.config import FORECAST_SOURCES, CrowdNavConfig, config_from
 
 #: Outcomes of an episode, each reported as a rate with a Wilson interval.
@@ -61,7 +61,7 @@ SUCCESS_ONLY_METRICS: Final[tuple[str, ...]] = ("navigation_time_s", "path_lengt
 EPISODE_COLUMNS: Final[tuple[str, ...]] = (
     *("episode", "seed", "recording", "t0_s", "outcome"),
     *METRICS[:-2],
-    *("pedestrians_near_path", "collisions", "collision_fault", "steps", "return"),
+    *("pedestrians_near_path", "collisions", "collision_fault", "popin_events", "steps", "return"),
 )
 #: Names of the models a run folder holds, for ``which=``.
 RUN_MODELS: Final[tuple[str, ...]] = ("best", "final")
@@ -413,7 +413,8 @@ def summarise(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95, seed:
 
     Returns:
         ``episodes``; for each outcome ``<outcome>_rate``, ``<outcome>_ci`` ([lo, hi], Wilson) and
-        ``<outcome>s`` (the count); for each of :data:`METRICS` ``<metric>_mean``, ``<metric>_ci``
+        ``<outcome>s`` (the count); ``popin_episodes`` (episodes with at least one pop-in event, see
+        :mod:`envs.popin`) and ``popin_events`` (their total); for each of :data:`METRICS` ``<metric>_mean``, ``<metric>_ci``
         (bootstrap, seeded) and ``<metric>_n`` (episodes it is defined for: all, or the successful ones
         for :data:`SUCCESS_ONLY_METRICS`; ``None`` values such as the ``none`` arm's forecast ADE are
         left out). Undefined means and intervals are ``None``.
@@ -426,6 +427,9 @@ def summarise(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95, seed:
         out[f"{name}_rate"] = count / n if n else None
         out[f"{name}_ci"] = list(wilson_interval(count, n, confidence)) if n else None
         out[f"{name}s"] = count
+    popins = np.array([_number(r.get("popin_events")) for r in rows], dtype=np.float64)
+    out["popin_episodes"] = int(np.sum(popins > 0))  # episodes in which a track began on the robot (envs.popin)
+    out["popin_events"] = int(np.nansum(popins)) if n else 0
     for metric in METRICS:
         use = [r for r in rows if metric not in SUCCESS_ONLY_METRICS or r.get("outcome") == "success"]
         values = np.array([_number(r.get(metric)) for r in use], dtype=np.float64)
@@ -498,9 +502,10 @@ def evaluate(
 
     Returns:
         the summary (see :func:`summarise`) plus ``policy``, ``predictor``, ``split``, ``seed``,
-        ``require_pedestrians``, ``env`` (the settings given to the environments) and ``seconds``.
+        ``require_pedestrians``, ``env`` (the settings given to the environments), ``env_revision`` (the
+        environment's rules, :data:`envs.crowd_nav.ENV_REVISION`), ``code_version`` and ``seconds``.
     """
-    from envs.crowd_nav import CrowdNavEnv
+    from envs.crowd_nav import ENV_REVISION, CrowdNavEnv
 
     if predictor not in FORECAST_SOURCES:
         raise ValueError(f"unknown predictor {predictor!r}; valid: {', '.join(FORECAST_SOURCES)}")
@@ -528,6 +533,8 @@ def evaluate(
         require_pedestrians=kwargs["require_pedestrians"],
         env=kwargs,
         planner=dict(planner_kwargs or {}) if str(spec) in PLANNERS else None,
+        env_revision=ENV_REVISION,
+        code_version=code_version(),
         seconds=round(time.perf_counter() - started, 3),
     )
     if out_dir is not None:

@@ -141,3 +141,12 @@ def test_command_line_prints_one_json_object(capsys: pytest.CaptureFixture[str],
     assert out["episodes"] == 4 and "success_ci" in out and "navigation_time_s_mean" in out
     assert (tmp_path / "episodes.csv").is_file()
     assert main(["ppo", "--episodes", "1"]) == 2
+
+
+def test_summary_counts_popin_episodes_and_events() -> None:
+    rows = hand_made_rows()
+    for row, events in zip(rows, [0, 2, 0, 1, 0, 0, 0, 0, 0, 0], strict=True):
+        row["popin_events"] = events
+    s = summarise(rows)
+    assert s["popin_episodes"] == 2 and s["popin_events"] == 3
+    assert "popin_events" in EPISODE_COLUMNS
