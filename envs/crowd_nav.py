@@ -410,6 +410,16 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         return self.world.robot_position
 
     @property
+    def steps_taken(self) -> int:
+        """Control steps taken in the current episode (0 after ``reset``)."""
+        return self._n
+
+    def substep_times(self, n: int) -> np.ndarray:
+        """``(S + 1,)`` times (seconds since the recording's first frame) of the physics substep ends of control
+        step ``n`` of the episode, its start first: where the world places the pedestrians and checks contacts."""
+        return np.append(self._time(n) + self._sub_offsets, self._time(n + 1))
+
+    @property
     def observed_rows(self) -> np.ndarray:
         """Replay rows of the pedestrians in the last observation, in observation order."""
         return self._last["rows"].copy()
@@ -558,8 +568,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """Move the robot through the replayed crowd for one control step (pymunk substeps), with contacts and the
         smallest gap during the step; the replay at the substep boundaries and over the horizon after it."""
         s = self._substeps
-        t_now, t_next = self._time(self._n), self._time(self._n + 1)
-        pos_times = np.concatenate([t_now + self._sub_offsets, t_next + self._obs_offsets])
+        bounds = self.substep_times(self._n)
+        pos_times = np.concatenate([bounds[:-1], bounds[-1] + self._obs_offsets])
         pos, present = self._world_positions(pos_times)
         robot0 = self.world.robot_position
         sub_pos = pos[: s + 1]
