@@ -433,7 +433,9 @@ class SearchPlanner(_Planner):
         seg = q1 - q0  # (B, K, 2)
         w = x[:, :, None, :] - q0[:, None, :, :]  # (B, M, K, 2)
         seg2 = seg[..., 0] * seg[..., 0] + seg[..., 1] * seg[..., 1]
-        u = (w[..., 0] * seg[:, None, :, 0] + w[..., 1] * seg[:, None, :, 1]) / np.where(seg2 > 1e-12, seg2, 1.0)[:, None]
+        u = (w[..., 0] * seg[:, None, :, 0] + w[..., 1] * seg[:, None, :, 1]) / np.where(seg2 > 1e-12, seg2, 1.0)[
+            :, None
+        ]
         u = np.clip(u, 0.0, 1.0)
         near = np.hypot(w[..., 0] - u * seg[:, None, :, 0], w[..., 1] - u * seg[:, None, :, 1])  # state to path
         reach = self.far_m + np.hypot(move[..., 0], move[..., 1]).max(axis=2)  # (B, M)

@@ -23,7 +23,7 @@ from agents.planners import (
     SEARCH_HEADINGS_DEG,
     SEARCH_SPEED_FRACTIONS,
     _fractions_and_headings,
-    as_env_config,
+    _Planner,
     lattice_select,
     motion_candidates,
 )
@@ -69,7 +69,7 @@ class PlannerStats:
     failures: list[tuple[str, float]] = field(default_factory=list)
 
 
-class PrivilegedPlanner:
+class PrivilegedPlanner(_Planner):
     """PRIVILEGED: searches the rest of the episode for the fastest contact-free route, knowing every pedestrian's
     true future.
 
@@ -109,7 +109,7 @@ class PrivilegedPlanner:
         headings_deg: Sequence[float] = SEARCH_HEADINGS_DEG,
         speed_fractions: Sequence[float] = SEARCH_SPEED_FRACTIONS,
     ) -> None:
-        self.cfg = as_env_config(env_config if env_config is not None or env is None else env.unwrapped.config)
+        super().__init__(env_config if env_config is not None or env is None else env.unwrapped.config)
         if self.cfg.kinematics != "holonomic":
             raise ValueError(
                 f"the privileged planner plans holonomic motions; kinematics {self.cfg.kinematics!r} is not supported"
@@ -139,29 +139,16 @@ class PrivilegedPlanner:
             if e.config.kinematics != "holonomic":
                 raise ValueError("the privileged planner plans holonomic motions; the environment is unicycle")
 
-    def predict(
-        self,
-        obs: Mapping[str, np.ndarray],
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, None]:
-        """Actions ``(2,)`` or ``(B, 2)`` float32 for the bound environments' current states (the observation only
-        gives the batch size: the planner never reads it)."""
-        if "mask" not in obs:
-            raise ValueError(f"observation must hold a 'mask' key, got {sorted(obs)}")
-        single = np.ndim(obs["mask"]) == 1
-        b = 1 if single else len(obs["mask"])
+    def act(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Actions ``(B, 2)`` float32 for the bound environments' current states (the batched observation only gives
+        ``B``: the planner never reads it)."""
+        b = len(obs["mask"])
         if len(self._envs) != b:
             raise ValueError(
                 f"the privileged planner is bound to {len(self._envs)} environment(s) but got {b} observation(s): "
                 "call bind_envs(envs) with one environment per row first"
             )
-        actions = np.stack([self._action(env) for env in self._envs])
-        return (actions[0] if single else actions), None
-
-    def __call__(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
-        return self.predict(obs)[0]
+        return np.stack([self._action(env) for env in self._envs])
 
     def _action(self, env: Any) -> np.ndarray:
         plan = self._plans.get(id(env))
@@ -238,7 +225,9 @@ class PrivilegedPlanner:
         for j in range(len(peds)):
             parent, action, child, arrived = self._expand(x, goal, base, peds[j], present[j], v, dt, h, tol)
             if arrived >= 0:
-                layers.append((parent[arrived : arrived + 1], action[arrived : arrived + 1], child[arrived : arrived + 1]))
+                layers.append(
+                    (parent[arrived : arrived + 1], action[arrived : arrived + 1], child[arrived : arrived + 1])
+                )
                 return (*self._backtrack(robot, layers, 0), True)
             if len(child) == 0:
                 break
@@ -291,7 +280,7 @@ class PrivilegedPlanner:
         self, x: np.ndarray, path: np.ndarray, peds: np.ndarray, present: np.ndarray, reach_m: float
     ) -> np.ndarray:
         """``(M, A)`` bool: the motion comes within ``contact_m`` of a present pedestrian at a substep end."""
-        s, m, a, _ = path.shape
+        _, m, a, _ = path.shape
         hit = np.zeros((m, a), dtype=bool)
         if not present.any():
             return hit
