@@ -108,5 +108,5 @@ def test_command_line_reports_the_fraction_of_the_ceiling(tmp_path: Path, capsys
     assert len(read_episodes(tmp_path / "ceiling")) == 2
     assert main(["straight", *base, "--ceiling", str(tmp_path / "ceiling"), "--no-progress"]) == 0
     assert "success / ceiling" in capsys.readouterr().out
-    with pytest.raises(FileNotFoundError, match="episodes.csv"):
+    with pytest.raises(FileNotFoundError, match=r"episodes\.csv"):
         read_episodes(tmp_path / "nowhere")
