@@ -290,21 +290,26 @@ def lattice_select(
     group: np.ndarray, points: np.ndarray, prefer: np.ndarray, rank: np.ndarray, cell_m: float, keep: int | None
 ) -> np.ndarray:
     """The entries a layered search keeps: one per (group, cell of a ``cell_m`` lattice), the one with the smallest
-    ``prefer`` (ties: the first), then per group the ``keep`` entries with the smallest ``rank`` (all if None).
+    ``prefer`` level (ties: the first), then per group the ``keep`` entries with the smallest ``rank`` (all if None).
 
     Args:
-        group: ``(E,)`` int (the environment of each entry; groups never influence each other).
-        points: ``(E, 2)`` metres; prefer, rank: ``(E,)``.
+        group: ``(E,)`` int >= 0 (the environment of each entry; groups never influence each other).
+        points: ``(E, 2)`` metres.
+        prefer: ``(E,)`` int levels in ``[0, 4096)``.
+        rank: ``(E,)`` float.
 
     Returns:
         indices into the entries, sorted by group, then rank.
     """
-    cells = np.floor(points / cell_m).astype(np.int64)
-    order = np.lexsort((prefer, cells[:, 1], cells[:, 0], group))
-    g, cx, cy = group[order], cells[order, 0], cells[order, 1]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = (g[1:] != g[:-1]) | (cx[1:] != cx[:-1]) | (cy[1:] != cy[:-1])
-    idx = order[first]
+    cells = np.floor(points / cell_m)
+    if len(cells) and np.abs(cells).max() >= _CELL_OFFSET:
+        raise ValueError(f"points up to {np.abs(points).max():.3g} m lie too far out for a {cell_m} m lattice")
+    cells = cells.astype(np.int64) + _CELL_OFFSET
+    level = np.clip(prefer, 0, _LEVELS - 1).astype(np.int64)
+    key = ((group.astype(np.int64) * _CELL_SPAN + cells[:, 0]) * _CELL_SPAN + cells[:, 1]) * _LEVELS + level
+    order = np.argsort(key, kind="stable")
+    cell = key[order] // _LEVELS
+    idx = order[np.r_[True, cell[1:] != cell[:-1]]]
     idx = idx[np.lexsort((rank[idx], group[idx]))]
     if keep is None or len(idx) == 0:
         return idx
@@ -312,6 +317,13 @@ def lattice_select(
     starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
     within = np.arange(len(idx)) - np.repeat(starts, np.diff(np.r_[starts, len(idx)]))
     return idx[within < keep]
+
+
+#: Lattice cells are packed with the group and the preference level into one int64 (groups below 2**9): cell
+#: indices must lie within ±_CELL_OFFSET, levels in [0, _LEVELS).
+_CELL_OFFSET: Final[int] = 2**20
+_CELL_SPAN: Final[int] = 2**21
+_LEVELS: Final[int] = 2**12
 
 
 #: Headings of the search planners, degrees from the goal direction: 16 around the full circle (backing away too).
@@ -472,62 +484,69 @@ class SearchPlanner(_Planner):
         b = len(goal)
         dt, v, tol = cfg.dt_s, cfg.robot_pref_speed_mps, cfg.goal_tolerance_m - 1e-6
         base = np.arctan2(goal[:, 1], goal[:, 0])
-        x = np.zeros((b, 1, 2))
+        x = np.zeros((b, 1, 2))  # states of the layer (padded), relative to the robot
         valid = np.ones((b, 1), dtype=bool)
-        first = np.zeros((b, 1, 2))
-        clear = np.full((b, 1), np.inf)
-        result = np.zeros((b, 2))  # set at the first layer
+        first = np.zeros((b, 1, 2))  # the first velocity of each state's plan
+        clear = np.full((b, 1), np.inf)  # its smallest gap so far
         settled = np.zeros(b, dtype=bool)
         rows = np.arange(b)
+        result = np.zeros((b, 2))
         for h in range(self.lookahead):
             vel = motion_candidates(x, goal[:, None], base[:, None], v, dt, self.headings, self.fractions)
-            gap = self._gaps(x, valid, vel * dt, fut[:, :, h], fut[:, :, h + 1], mask)  # (B, M, A)
-            child = x[:, :, None] + vel * dt
+            move = vel * dt
+            gap = self._gaps(x, valid, move, fut[:, :, h], fut[:, :, h + 1], mask)  # (B, M, A)
             if h == 0:  # the first velocity of every plan; the escape (largest gap) when none is clear
-                first = vel.copy()
+                first = vel[:, 0][:, None].copy()  # (B, 1, A, 2) -> per child below
                 result = vel[rows, 0, np.argmax(gap[:, 0], axis=1)]
-            else:
-                first = np.broadcast_to(first[:, :, None], vel.shape)
             # clearance so far, counted up to clearance_pref_m (beyond it, plans are equally clear)
             path_clear = np.minimum(np.minimum(clear[..., None], gap), self.clearance_pref_m)
             ok = valid[..., None] & (gap >= self.margins[h]) & ~settled[:, None, None]
-            to_goal = np.hypot(goal[:, None, None, 0] - child[..., 0], goal[:, None, None, 1] - child[..., 1])
-            arrived = ok & (to_goal <= tol)
-            won = arrived.reshape(b, -1).any(axis=1)
-            if won.any():
-                pick = np.argmax(np.where(arrived, path_clear, -np.inf).reshape(b, -1), axis=1)
-                result[won] = first.reshape(b, -1, 2)[rows, pick][won]
-                settled |= won
-                ok &= ~won[:, None, None]
-            if not ok.any():
+            gb, gm, ga = np.nonzero(ok)  # the surviving children, environment-major
+            if len(gb) == 0:
                 break
-            # the best plan so far of every environment still searching: its deepest layer wins
-            score = to_goal + self.clearance_weight * np.maximum(self.clearance_pref_m - path_clear, 0.0)
-            alive = ok.reshape(b, -1).any(axis=1)
-            best = np.argmin(np.where(ok, score, np.inf).reshape(b, -1), axis=1)
-            result[alive] = first.reshape(b, -1, 2)[rows, best][alive]
-            group, flat = np.nonzero(ok.reshape(b, -1))
-            keep = lattice_select(
-                group,
-                child.reshape(b, -1, 2)[group, flat],
-                -path_clear.reshape(b, -1)[group, flat],
-                to_goal.reshape(b, -1)[group, flat],
-                self.cell_m,
-                self.max_states,
-            )
-            group, flat = group[keep], flat[keep]
-            counts = np.bincount(group, minlength=b)
-            slot = np.arange(len(group)) - np.repeat(np.cumsum(counts) - counts, counts)
+            child = x[gb, gm] + move[gb, gm, ga]  # (C, 2)
+            first_c = first[gb, gm, ga] if h == 0 else first[gb, gm]
+            clear_c = path_clear[gb, gm, ga]
+            to_goal = np.hypot(goal[gb, 0] - child[:, 0], goal[gb, 1] - child[:, 1])
+            starts = np.flatnonzero(np.r_[True, gb[1:] != gb[:-1]])
+            envs = gb[starts]
+            arrived = to_goal <= tol
+            if arrived.any():  # the fastest arrival wins, the clearest among them
+                best = np.maximum.reduceat(np.where(arrived, clear_c, -np.inf), starts)
+                won = envs[best > -np.inf]
+                pick = np.flatnonzero(arrived & (clear_c == best[np.searchsorted(envs, gb)]))
+                pick = pick[np.r_[True, gb[pick][1:] != gb[pick][:-1]]]  # the first of each environment
+                result[gb[pick]] = first_c[pick]
+                settled[won] = True
+                alive = ~settled[gb]
+                gb, child, first_c, clear_c, to_goal = (
+                    gb[alive],
+                    child[alive],
+                    first_c[alive],
+                    clear_c[alive],
+                    to_goal[alive],
+                )
+                if len(gb) == 0:
+                    break
+                starts = np.flatnonzero(np.r_[True, gb[1:] != gb[:-1]])
+                envs = gb[starts]
+            # the best plan so far of every environment still searching (its deepest layer wins)
+            score = to_goal + self.clearance_weight * (self.clearance_pref_m - clear_c)
+            low = np.minimum.reduceat(score, starts)
+            pick = np.flatnonzero(score == low[np.searchsorted(envs, gb)])
+            pick = pick[np.r_[True, gb[pick][1:] != gb[pick][:-1]]]
+            result[gb[pick]] = first_c[pick]
+            # one child per cell: the clearest (to the centimetre), then the nearest the goal
+            level = np.rint((self.clearance_pref_m - clear_c) * 100.0)
+            keep = lattice_select(gb, child, level, to_goal, self.cell_m, self.max_states)
+            gb = gb[keep]
+            counts = np.bincount(gb, minlength=b)
+            slot = np.arange(len(gb)) - np.repeat(np.cumsum(counts) - counts, counts)
             m = int(counts.max())
-            x = np.zeros((b, m, 2))
-            valid = np.zeros((b, m), dtype=bool)
-            new_first = np.zeros((b, m, 2))
-            clear = np.full((b, m), np.inf)
-            x[group, slot] = child.reshape(b, -1, 2)[group, flat]
-            valid[group, slot] = True
-            new_first[group, slot] = first.reshape(b, -1, 2)[group, flat]
-            clear[group, slot] = path_clear.reshape(b, -1)[group, flat]
-            first = new_first
+            x, first = np.zeros((b, m, 2)), np.zeros((b, m, 2))
+            valid, clear = np.zeros((b, m), dtype=bool), np.full((b, m), np.inf)
+            x[gb, slot], first[gb, slot], clear[gb, slot] = child[keep], first_c[keep], clear_c[keep]
+            valid[gb, slot] = True
         return result
 
 

@@ -232,7 +232,9 @@ class PrivilegedPlanner(_Planner):
             if len(child) == 0:
                 break
             to_goal = np.hypot(goal[0] - child[:, 0], goal[1] - child[:, 1])
-            kept = lattice_select(np.zeros(len(child), dtype=np.int64), child, to_goal, to_goal, self.cell_m, keep)
+            # one child per cell (the nearest the goal, to the centimetre), then the nearest the goal
+            level = np.rint(to_goal * 100.0)
+            kept = lattice_select(np.zeros(len(child), dtype=np.int64), child, level, to_goal, self.cell_m, keep)
             layers.append((parent[kept], action[kept], child[kept]))
             x = child[kept]
         if not layers:

@@ -151,7 +151,7 @@ def test_lattice_select_keeps_one_per_cell_then_the_nearest_per_group() -> None:
     rng = np.random.default_rng(0)
     group = rng.integers(0, 3, 400)
     points = rng.uniform(-1, 1, (400, 2))
-    prefer, rank = rng.random(400), rng.random(400)
+    prefer, rank = rng.integers(0, 50, 400), rng.random(400)
     kept = lattice_select(group, points, prefer, rank, 0.25, keep=5)
     # the same with loops and dicts
     best: dict[tuple[int, int, int], int] = {}
