@@ -4,11 +4,20 @@
 - :class:`SamplingPlanner`: scores candidate velocities (headings around the goal direction times
   speeds, plus standing still) against the future positions of the observed pedestrians — the
   forecasts the observation carries, or constant-velocity extrapolations of their observed
-  velocities when it has none (the ``none`` arm) — and takes the fastest progress that stays clear.
+  velocities when it has none (the ``none`` arm) — and takes the fastest progress that stays clear
+  over a few steps of that one velocity. ``candidates="dense"`` (16 headings around the full circle,
+  backing away included, x 6 speeds) widens its choice.
+- :class:`SearchPlanner`: a layered search over *sequences* of velocities several seconds ahead against
+  the same futures, with candidates that back away, replanned every step (the fastest arrival, or the
+  closest approach to the goal that stays clear).
+- :class:`agents.privileged.PrivilegedPlanner` (``make_planner("privileged")``): PRIVILEGED, reads the
+  replay's true future of every pedestrian; the ceiling of what is attainable, never a policy.
 
-Both accept a single observation dict or a batched one (a leading dimension on every key) and
-return ``(actions, None)`` like an SB3 model, so evaluation treats planners and learned policies
-alike. The candidate scoring is vectorised over the batch.
+All but the privileged one read only the observation. Each accepts a single observation dict or a
+batched one (a leading dimension on every key) and returns ``(actions, None)`` like an SB3 model, so
+evaluation (and DAgger, which uses a planner as its teacher) treats planners and learned policies
+alike; the scoring and the search are vectorised over the batch, and a batched ``predict`` equals one
+``predict`` per observation.
 """
 
 from __future__ import annotations
@@ -369,6 +378,8 @@ class SearchPlanner(_Planner):
         lookahead_steps: layers searched, control steps (at most H; default 10 = 4 s at 0.4 s).
         margin_m: required gap beyond touching at the first step, metres.
         margin_growth_mps: added to the margin per second of look-ahead, metres per second.
+        margin_per_m: added to the margin of a pedestrian per metre its future has moved it from where it is now
+            (forecast errors grow with the distance forecast), metres per metre.
         headings_deg: headings relative to the goal direction, degrees.
         speed_fractions: speeds as fractions of the preferred speed, in (0, 1].
         cell_m: lattice of the de-duplication, metres.
@@ -383,6 +394,7 @@ class SearchPlanner(_Planner):
         lookahead_steps: int = 10,
         margin_m: float = 0.1,
         margin_growth_mps: float = 0.05,
+        margin_per_m: float = 0.0,
         headings_deg: Sequence[float] = SEARCH_HEADINGS_DEG,
         speed_fractions: Sequence[float] = SEARCH_SPEED_FRACTIONS,
         cell_m: float = 0.15,
@@ -394,7 +406,11 @@ class SearchPlanner(_Planner):
         cfg = self.cfg
         if lookahead_steps < 1:
             raise ValueError(f"lookahead_steps must be >= 1, got {lookahead_steps!r}")
-        for name, value in (("margin_m", margin_m), ("margin_growth_mps", margin_growth_mps)):
+        for name, value in (
+            ("margin_m", margin_m),
+            ("margin_growth_mps", margin_growth_mps),
+            ("margin_per_m", margin_per_m),
+        ):
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         if not (math.isfinite(cell_m) and cell_m > 0):
@@ -405,6 +421,7 @@ class SearchPlanner(_Planner):
         self.lookahead = min(int(lookahead_steps), cfg.horizon_steps)
         self.r_sum = cfg.robot_radius_m + cfg.pedestrian_radius_m
         self.margins = float(margin_m) + float(margin_growth_mps) * cfg.dt_s * np.arange(self.lookahead)  # (L,)
+        self.margin_per_m = float(margin_per_m)
         self.cell_m = float(cell_m)
         self.max_states = int(max_states)
         self.clearance_pref_m = float(clearance_pref_m)
@@ -436,12 +453,21 @@ class SearchPlanner(_Planner):
         return now[:, :, None, :] + ped_vel[:, :, None, :] * self._steps[None, None, :, None], mask
 
     def _gaps(
-        self, x: np.ndarray, valid: np.ndarray, move: np.ndarray, q0: np.ndarray, q1: np.ndarray, mask: np.ndarray
+        self,
+        x: np.ndarray,
+        valid: np.ndarray,
+        move: np.ndarray,
+        q0: np.ndarray,
+        q1: np.ndarray,
+        mask: np.ndarray,
+        inflate: np.ndarray | None = None,
     ) -> np.ndarray:
         """Smallest surface gap ``(B, M, A)`` during a step, metres: robots from ``x`` ``(B, M, 2)`` (rows in ``valid``)
         moving by ``move`` ``(B, M, A, 2)``, pedestrians from ``q0`` to ``q1`` ``(B, K, 2)`` (rows in ``mask``), both
-        straight and uniform (the exact closest approach). Pairs of a state and a pedestrian farther apart than
-        :attr:`far_m` plus the robot's step are not computed: their gap is ``inf`` (it is at least ``far_m``)."""
+        straight and uniform (the exact closest approach), each pedestrian's disk grown by ``inflate`` ``(B, K)``
+        metres (default 0). Pairs of a state and a pedestrian farther apart than :attr:`far_m` plus the growth and
+        the robot's step are not computed: their gap is ``inf`` (it is at least ``far_m`` minus the sum of radii)."""
+        grow = np.zeros(mask.shape) if inflate is None else inflate
         seg = q1 - q0  # (B, K, 2)
         w = x[:, :, None, :] - q0[:, None, :, :]  # (B, M, K, 2)
         seg2 = seg[..., 0] * seg[..., 0] + seg[..., 1] * seg[..., 1]
@@ -451,7 +477,7 @@ class SearchPlanner(_Planner):
         u = np.clip(u, 0.0, 1.0)
         near = np.hypot(w[..., 0] - u * seg[:, None, :, 0], w[..., 1] - u * seg[:, None, :, 1])  # state to path
         reach = self.far_m + np.hypot(move[..., 0], move[..., 1]).max(axis=2)  # (B, M)
-        bi, mi, ki = np.nonzero((near < reach[..., None]) & valid[..., None] & mask[:, None, :])
+        bi, mi, ki = np.nonzero((near < reach[..., None] + grow[:, None, :]) & valid[..., None] & mask[:, None, :])
         gap = np.full(move.shape[:3], np.inf)
         if len(bi) == 0:
             return gap
@@ -461,6 +487,7 @@ class SearchPlanner(_Planner):
         den = dd[..., 0] * dd[..., 0] + dd[..., 1] * dd[..., 1]
         t = np.clip(-num / np.where(den > 1e-12, den, 1.0), 0.0, 1.0)
         dist = np.hypot(d0[:, None, 0] + t * dd[..., 0], d0[:, None, 1] + t * dd[..., 1])  # (n, A)
+        dist -= grow[bi, ki][:, None]
         starts = np.flatnonzero(np.r_[True, (bi[1:] != bi[:-1]) | (mi[1:] != mi[:-1])])
         gap[bi[starts], mi[starts]] = np.minimum.reduceat(dist, starts, axis=0) - self.r_sum
         return gap
@@ -494,7 +521,8 @@ class SearchPlanner(_Planner):
         for h in range(self.lookahead):
             vel = motion_candidates(x, goal[:, None], base[:, None], v, dt, self.headings, self.fractions)
             move = vel * dt
-            gap = self._gaps(x, valid, move, fut[:, :, h], fut[:, :, h + 1], mask)  # (B, M, A)
+            travelled = np.hypot(*(fut[:, :, h + 1] - fut[:, :, 0]).transpose(2, 0, 1))  # (B, K) metres
+            gap = self._gaps(x, valid, move, fut[:, :, h], fut[:, :, h + 1], mask, self.margin_per_m * travelled)
             if h == 0:  # the first velocity of every plan; the escape (largest gap) when none is clear
                 first = vel[:, 0][:, None].copy()  # (B, 1, A, 2) -> per child below
                 result = vel[rows, 0, np.argmax(gap[:, 0], axis=1)]

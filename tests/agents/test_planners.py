@@ -174,12 +174,17 @@ def test_search_gaps_are_the_closest_approach_of_the_two_motions() -> None:
     move = rng.uniform(-0.4, 0.4, (b, m, a, 2))
     q0, q1 = rng.uniform(-1.5, 1.5, (b, k, 2)), rng.uniform(-1.5, 1.5, (b, k, 2))
     mask = rng.random((b, k)) < 0.8
-    gaps = planner._gaps(x, np.ones((b, m), dtype=bool), move, q0, q1, mask)
+    grow = rng.uniform(0.0, 0.3, (b, k))
+    gaps = planner._gaps(x, np.ones((b, m), dtype=bool), move, q0, q1, mask, grow)
     t = np.linspace(0.0, 1.0, 20001)[:, None]
     for i, j, c in np.ndindex(b, m, a):
         robot = x[i, j] + t * move[i, j, c]
         dense = min(
-            (np.hypot(*(robot - (q0[i, n] + t * (q1[i, n] - q0[i, n]))).T).min() for n in range(k) if mask[i, n]),
+            (
+                np.hypot(*(robot - (q0[i, n] + t * (q1[i, n] - q0[i, n]))).T).min() - grow[i, n]
+                for n in range(k)
+                if mask[i, n]
+            ),
             default=np.inf,
         )
         if dense - planner.r_sum < planner.far_m - planner.r_sum:  # pairs farther apart may be left uncomputed
