@@ -335,6 +335,8 @@ _CELL_SPAN: Final[int] = 2**21
 _LEVELS: Final[int] = 2**12
 
 
+#: Observations searched at once by :class:`SearchPlanner` (memory grows with it; results do not depend on it).
+_SEARCH_CHUNK: Final[int] = 16
 #: Headings of the search planners, degrees from the goal direction: 16 around the full circle (backing away too).
 SEARCH_HEADINGS_DEG: Final[tuple[float, ...]] = tuple(22.5 * k for k in range(16))
 #: Speeds of the search planners, fractions of the preferred speed (and of the goal-directed cap).
@@ -501,8 +503,9 @@ class SearchPlanner(_Planner):
         scale = np.divide(cap, dist, out=np.zeros_like(dist), where=dist >= 1e-9)
         chosen = goal * scale[:, None]  # no pedestrian observed: straight at the goal
         todo = np.flatnonzero(mask.any(axis=1) & (dist >= 1e-9))
-        if len(todo):
-            chosen[todo] = self._search(goal[todo], fut[todo], mask[todo])
+        for lo in range(0, len(todo), _SEARCH_CHUNK):  # bounded memory for large batches (DAgger labels thousands)
+            rows = todo[lo : lo + _SEARCH_CHUNK]
+            chosen[rows] = self._search(goal[rows], fut[rows], mask[rows])
         return velocities_to_actions(chosen, robot.reshape(b_all, -1), cfg)
 
     def _search(self, goal: np.ndarray, fut: np.ndarray, mask: np.ndarray) -> np.ndarray:

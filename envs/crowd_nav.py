@@ -208,9 +208,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     of the straight start-goal segment. All randomness comes from ``reset(seed=...)``;
     ``reset(options=...)`` may fix ``recording``, ``t0_s``, ``start``, ``goal`` and ``time_limit_s``.
     The reset ``info`` holds ``recording``, ``crowd``, ``predictor``, ``t0_s``, ``start``, ``goal``,
-    ``time_limit_s``, ``env_revision`` (:data:`ENV_REVISION`), ``crowd_density`` (mean number of pedestrians within ``sensor_range_m`` of the
-    start-goal segment at the annotation times of the episode, frames the file skips counting as empty) and
-    ``pedestrians_near_path``.
+    ``time_limit_s``, ``env_revision`` (:data:`ENV_REVISION`, the revision of the rules), ``crowd_density``
+    (mean number of pedestrians within ``sensor_range_m`` of the start-goal segment at the annotation times of
+    the episode, frames the file skips counting as empty) and ``pedestrians_near_path``.
 
     ## Episode End
 
