@@ -568,16 +568,18 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """Move the robot through the replayed crowd for one control step (pymunk substeps), with contacts and the
         smallest gap during the step; the replay at the substep boundaries and over the horizon after it."""
         s = self._substeps
-        bounds = self.substep_times(self._n)
-        pos_times = np.concatenate([bounds[:-1], bounds[-1] + self._obs_offsets])
+        # the substep ends of the step (as substep_times), then its end + h * dt_s
+        pos_times = np.concatenate(
+            [self._time(self._n) + self._sub_offsets, self._time(self._n + 1) + self._obs_offsets]
+        )
         pos, present = self._world_positions(pos_times)
         robot0 = self.world.robot_position
         sub_pos = pos[: s + 1]
         # the pop-in rule: ghosts at the substep ends take no part in the step (no body, no contact, no gap)
         ghost = self._popin.step(
-            self._replay, pos_times[: s + 1], sub_pos, present[: s + 1], self._robot_path(robot0, velocities)
+            self._replay, pos_times[: s + 1], sub_pos, present[: s + 1], lambda: self._robot_path(robot0, velocities)
         )
-        sub_present = present[: s + 1] & ~ghost
+        sub_present = present[: s + 1] if ghost is None else present[: s + 1] & ~ghost
         d_sub = np.hypot(sub_pos[..., 0] - robot0[0], sub_pos[..., 1] - robot0[1])
         d_sub = np.where(sub_present, d_sub, np.inf)
         near = np.flatnonzero(d_sub.min(axis=0) < self._near_m) if d_sub.size else np.zeros(0, dtype=np.int64)
@@ -593,8 +595,10 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._touch_fault = {r: f for r, f in self._touch_fault.items() if r in ws.touching}
         fault = ws.contacts[0].fault if ws.contacts else next(iter(self._touch_fault.values()), None)
         collided = bool(ws.contacts) or bool(ws.touching)
-        present_after = present[s:].copy()
-        present_after[0] = sub_present[s]
+        present_after = present[s:]
+        if ghost is not None:
+            present_after = present_after.copy()
+            present_after[0] = sub_present[s]
         return _Moved(
             robot0, ws.robot_positions[-1], pos[s:], present_after, gap, collided, fault if collided else None,
             len(ws.contacts),

@@ -29,6 +29,7 @@ Both are causal (nothing after ``t``); only the set of pedestrians the robot is 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Final
 
 import numpy as np
@@ -54,9 +55,10 @@ class PopInRule:
     def __init__(self, clear_m: float) -> None:
         self.clear_m = float(clear_m)
         self.ghost = np.zeros(0, dtype=bool)
+        self._any_ghost = False
         self.events = 0
         self._present = np.zeros(0, dtype=bool)
-        self._annotation: tuple[int, np.ndarray] | None = None
+        self._annotation: tuple[int, np.ndarray, np.ndarray] | None = None  # (index, columns, their ghost flags)
 
     def reset(self, replay: Replay, t0_s: float, robot: np.ndarray) -> None:
         """Start an episode at ``t0_s`` with the robot at ``robot`` ``(2,)`` metres: everyone present and close is a
@@ -65,14 +67,20 @@ class PopInRule:
         self._present = present[0]
         self.ghost = present[0] & (self._distance(pos[0], robot) < self.clear_m)
         self.events = int(self.ghost.sum())
+        self._any_ghost = self.events > 0
         self._annotation = None
         i = int(np.searchsorted(replay.times, t0_s + TIME_TOL_S, "right")) - 1
         if i >= 0 and abs(replay.times[i] - t0_s) <= TIME_TOL_S:
-            self._annotation = (i, self.ghost.copy())
+            self._annotation = (i, np.arange(len(self.ghost)), self.ghost.copy())
 
     def step(
-        self, replay: Replay, times_s: np.ndarray, positions: np.ndarray, present: np.ndarray, robot: np.ndarray
-    ) -> np.ndarray:
+        self,
+        replay: Replay,
+        times_s: np.ndarray,
+        positions: np.ndarray,
+        present: np.ndarray,
+        robot: np.ndarray | Callable[[], np.ndarray],
+    ) -> np.ndarray | None:
         """Advance over one control step.
 
         Args:
@@ -80,63 +88,79 @@ class PopInRule:
             times_s: ``(S + 1,)`` substep boundaries, seconds; the first is the last checkpoint already processed.
             positions: ``(S + 1, N, 2)`` replay positions at ``times_s``, metres.
             present: ``(S + 1, N)`` replay presence at ``times_s``.
-            robot: ``(S + 1, 2)`` robot centre at ``times_s`` (moving linearly in between), metres.
+            robot: ``(S + 1, 2)`` robot centre at ``times_s`` (moving linearly in between), metres, or a function
+                returning it (called only when a pedestrian appears during the step).
 
         Returns:
-            ``(S + 1, N)`` bool: ghosts at each boundary (row 0: the state before the step).
+            ``(S + 1, N)`` bool: ghosts at each boundary (row 0: the state before the step); None when there is
+            no ghost during the step (the common case).
         """
         times = np.asarray(times_s, dtype=np.float64)
         num = len(times)
-        lo = int(np.searchsorted(replay.times, times[0] + TIME_TOL_S, "right"))
-        hi = int(np.searchsorted(replay.times, times[-1] + TIME_TOL_S, "right"))
+        lo, hi = np.searchsorted(replay.times, (times[0] + TIME_TOL_S, times[-1] + TIME_TOL_S), "right")
+        inside = hi > lo and not (hi - lo == 1 and abs(replay.times[lo] - times[-1]) <= TIME_TOL_S)
+        if not inside and not self._any_ghost:  # fast path: annotations at most at the step's end, no ghost now
+            near = np.flatnonzero((present[1:] & ~present[:-1]).any(axis=0))
+            if len(near):
+                robot = robot() if callable(robot) else robot
+                near = near[(self._distance(positions[1:, near], robot[1:, None, :]) < self.clear_m).any(axis=0)]
+            if len(near) == 0:
+                self._present = present[-1].copy()
+                if hi > lo:
+                    self._annotation = (int(lo), near, np.zeros(0, dtype=bool))
+                return None
+        robot = robot() if callable(robot) else robot
         annotation = np.full(num, -1, dtype=np.int64)
-        extra_t, extra_i = [], []
-        for i in range(lo, hi):
-            ta = float(replay.times[i])
-            k = int(np.argmin(np.abs(times - ta)))
-            if abs(times[k] - ta) <= TIME_TOL_S:
-                annotation[k] = i
-            else:
-                extra_t.append(ta)
-                extra_i.append(i)
-        if extra_t:  # annotations between substep ends (biwi_eth): checkpoints of their own
-            et = np.array(extra_t)
-            epos, epres = replay.positions_at(et)
-            k = np.searchsorted(times, et) - 1  # the substep holding each
-            w = ((et - times[k]) / (times[k + 1] - times[k]))[:, None]
-            erobot = robot[k] + w * (robot[k + 1] - robot[k])
-            order = np.argsort(np.concatenate([times, et]), kind="stable")
-            all_pos = np.concatenate([positions, epos])[order]
-            all_present = np.concatenate([present, epres])[order]
-            all_robot = np.concatenate([robot, erobot])[order]
-            all_annotation = np.concatenate([annotation, np.array(extra_i, dtype=np.int64)])[order]
-            boundary = np.concatenate([np.ones(num, dtype=bool), np.zeros(len(et), dtype=bool)])[order]
-        else:
-            all_pos, all_present, all_robot, all_annotation = positions, present, robot, annotation
-            boundary = np.ones(num, dtype=bool)
-        close = self._distance(all_pos, all_robot[:, None, :]) < self.clear_m  # (C, N)
-        out = np.empty((num, present.shape[1]), dtype=bool)
+        all_pos, all_present, all_robot, boundary = positions, present, robot, np.ones(num, dtype=bool)
+        if hi > lo:
+            ann_t = replay.times[lo:hi]  # annotations in (times[0], times[-1]]
+            gap = np.abs(times[:, None] - ann_t[None, :])  # (S + 1, n)
+            on_boundary = gap.min(axis=0) <= TIME_TOL_S
+            annotation[gap[:, on_boundary].argmin(axis=0)] = np.arange(lo, hi)[on_boundary]
+            if not on_boundary.all():  # annotations between substep ends (biwi_eth): checkpoints of their own
+                et, ei = ann_t[~on_boundary], np.arange(lo, hi)[~on_boundary]
+                epos, epres = replay.positions_at(et)
+                k = np.searchsorted(times, et) - 1  # the substep holding each
+                w = ((et - times[k]) / (times[k + 1] - times[k]))[:, None]
+                order = np.argsort(np.concatenate([times, et]), kind="stable")
+                all_pos = np.concatenate([positions, epos])[order]
+                all_present = np.concatenate([present, epres])[order]
+                all_robot = np.concatenate([robot, robot[k] + w * (robot[k + 1] - robot[k])])[order]
+                annotation = np.concatenate([annotation, ei])[order]
+                boundary = np.concatenate([boundary, np.zeros(len(et), dtype=bool)])[order]
+        out = np.zeros((num, present.shape[1]), dtype=bool)
         out[0] = self.ghost
+        close = self._distance(all_pos, all_robot[:, None, :]) < self.clear_m  # (C, N)
+        # only pedestrians that are ghosts now or appear close to the robot during the step can be ghosts in it
+        # (checkpoint 0 is the last one of the previous step: its presence is the state's)
+        cols = np.flatnonzero(self.ghost | (all_present[1:] & ~all_present[:-1] & close[1:]).any(axis=0))
+        close = close[:, cols]
+        ghost, was = self.ghost[cols], self._present[cols]
+        self._present = all_present[-1].copy()
         row = 1
         for c in range(1, len(all_present)):
-            now = all_present[c]
-            appear = now & ~self._present
+            now = all_present[c, cols]
+            appear = now & ~was
             self.events += int(np.count_nonzero(appear & close[c]))
-            self.ghost = now & close[c] & (self.ghost | appear)
-            self._present = now
-            if all_annotation[c] >= 0:
-                self._annotation = (int(all_annotation[c]), self.ghost.copy())
+            ghost = now & close[c] & (ghost | appear)
+            was = now
+            if annotation[c] >= 0:
+                self._annotation = (int(annotation[c]), cols, ghost.copy())
             if boundary[c]:
-                out[row] = self.ghost
+                out[row, cols] = ghost
                 row += 1
+        self.ghost = np.zeros_like(self.ghost)
+        self.ghost[cols] = ghost
+        self._any_ghost = bool(ghost.any())
         return out
 
     def dropped(self, annotation_index: int, num: int) -> np.ndarray:
         """``(num,)`` bool: pedestrians perception leaves out when it reports annotation ``annotation_index`` (the
         ghosts at that annotation's time; nobody for an annotation before the episode's start)."""
+        out = np.zeros(num, dtype=bool)
         if self._annotation is not None and self._annotation[0] == annotation_index:
-            return self._annotation[1]
-        return np.zeros(num, dtype=bool)
+            out[self._annotation[1]] = self._annotation[2]
+        return out
 
     @staticmethod
     def _distance(points: np.ndarray, robot: np.ndarray) -> np.ndarray:
