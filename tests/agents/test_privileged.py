@@ -11,7 +11,7 @@ import pytest
 from agents.evaluate import ceiling_fraction, evaluate, format_summary, main, read_episodes
 from agents.planners import StraightToGoal, make_planner
 from agents.privileged import PrivilegedPlanner
-from envs.crowd_nav import CrowdNavEnv
+from envs.crowd_nav import ENV_REVISION, CrowdNavEnv
 from envs.crowds import scripted_recording
 
 HEAD_ON = {"t0_s": 3.2, "start": (0.0, 0.0), "goal": (10.0, 0.0)}
@@ -77,6 +77,7 @@ def test_privileged_planner_needs_its_environments_and_holonomic_motion() -> Non
 def test_evaluate_labels_the_privileged_ceiling(tmp_path: Path) -> None:
     s = evaluate("privileged", "none", "zara1", 3, out_dir=tmp_path, env_overrides={"crowd": "synthetic"}, n_envs=2)
     assert s["privileged"] is True and s["policy"] == "privileged" and s["success_rate"] == 1.0
+    assert s["env_revision"] == ENV_REVISION and s["code_version"]  # which rules and code the result ran under
     assert json.loads((tmp_path / "summary.json").read_text())["privileged"] is True
     assert "PRIVILEGED" in format_summary(s)
     other = evaluate("straight", "none", "zara1", 3, env_overrides={"crowd": "synthetic"}, ceiling=tmp_path)
