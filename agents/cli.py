@@ -77,6 +77,8 @@ def _demo(args: argparse.Namespace) -> int:
         kwargs["predictor"] = "cv"
         env = CrowdNavEnv(render_mode=render_mode, **kwargs)
     policy = load_policy(spec, env.config)
+    if hasattr(policy, "bind_envs"):  # the privileged ceiling reads the environment itself
+        policy.bind_envs([env])
     check_spaces(policy, env)
     name = spec if spec in PLANNERS else f"{spec} (trained with {trained_on or 'unknown'} forecasts)"
 
@@ -130,7 +132,8 @@ def add_demo(sub: Any) -> None:
     p.add_argument(
         "--policy",
         default=None,
-        help="planner, straight, or a trained model (.zip or run folder); default: the shipped PPO policy",
+        help="planner, search, straight, privileged (PRIVILEGED: reads the replay's true future), or a trained model "
+        "(.zip or run folder); default: the shipped PPO policy",
     )
     p.add_argument("--split", default="zara1", choices=SPLITS, help="its held-out scene is crossed (default: zara1)")
     p.add_argument(

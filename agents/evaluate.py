@@ -38,7 +38,7 @@ from agents.stats import bootstrap_mean_ci, wilson_interval
 from crowdnav_mesrnn.config import ConfigError, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
-from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text
+from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
 from envs.config import FORECAST_SOURCES, CrowdNavConfig, check_predictor_name, config_from
 
 #: Outcomes of an episode, each reported as a rate with a Wilson interval.
@@ -64,7 +64,7 @@ SUCCESS_ONLY_METRICS: Final[tuple[str, ...]] = ("navigation_time_s", "path_lengt
 EPISODE_COLUMNS: Final[tuple[str, ...]] = (
     *("episode", "seed", "recording", "t0_s", "outcome"),
     *METRICS[:-2],
-    *("pedestrians_near_path", "collisions", "collision_fault", "steps", "return"),
+    *("pedestrians_near_path", "collisions", "collision_fault", "popin_events", "steps", "return"),
 )
 #: Names of the models a run folder holds, for ``which=``.
 RUN_MODELS: Final[tuple[str, ...]] = ("best", "final")
@@ -344,7 +344,9 @@ def run_episodes(
     """Run one episode per seed, stepping ``envs`` in lockstep with one batched ``predict`` per step.
 
     Args:
-        policy: anything with SB3's ``predict`` accepting batched observation dicts.
+        policy: anything with SB3's ``predict`` accepting batched observation dicts. A policy with a ``bind_envs``
+            method (the privileged planner, :mod:`agents.privileged`) is given the environment of each row of the
+            batch before each ``predict``.
         envs: environments of one configuration (each takes the next seed when its episode ends).
         seeds: episode ``k`` is ``reset(seed=seeds[k])``.
         on_step: called as ``on_step(k, obs, action, reward, terminated, truncated)`` after every step of
@@ -357,6 +359,7 @@ def run_episodes(
         one row per episode, in seed order (see :func:`episode_row`).
     """
     n = len(seeds)
+    bind = getattr(policy, "bind_envs", None)
     rows: list[dict[str, Any] | None] = [None] * n
     active: dict[int, list[Any]] = {}  # env index -> [episode, obs, return, reset info]
     next_k = 0
@@ -379,6 +382,8 @@ def run_episodes(
         idx = list(active)
         first = active[idx[0]][1]
         batch = {key: np.stack([active[i][1][key] for i in idx]) for key in first}
+        if bind is not None:
+            bind([envs[i] for i in idx])
         actions, _ = policy.predict(batch, deterministic=deterministic)
         for j, i in enumerate(idx):
             k, obs, ret, rinfo = active[i]
@@ -421,7 +426,9 @@ def summarise(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95, seed:
     Returns:
         ``episodes``; for each outcome ``<outcome>_rate``, ``<outcome>_ci`` ([lo, hi], Wilson) and
         ``<outcome>_count`` (summaries written before this name held ``successs``, ``collisions`` and
-        ``timeouts``; nothing in the project reads the counts back); for each of :data:`METRICS` ``<metric>_mean``, ``<metric>_ci``
+        ``timeouts``; nothing in the project reads the counts back); ``popin_episodes`` (episodes with at least
+        one pop-in event, see :mod:`envs.popin`) and ``popin_events`` (their total); for each of :data:`METRICS`
+        ``<metric>_mean``, ``<metric>_ci``
         (bootstrap, seeded) and ``<metric>_n`` (episodes it is defined for: all, or the successful ones
         for :data:`SUCCESS_ONLY_METRICS`; ``None`` values such as the ``none`` arm's forecast ADE are
         left out). Undefined means and intervals are ``None``.
@@ -434,6 +441,9 @@ def summarise(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95, seed:
         out[f"{name}_rate"] = count / n if n else None
         out[f"{name}_ci"] = list(wilson_interval(count, n, confidence)) if n else None
         out[f"{name}_count"] = count
+    popins = np.array([_number(r.get("popin_events")) for r in rows], dtype=np.float64)
+    out["popin_episodes"] = int(np.sum(popins > 0))  # episodes in which a track began on the robot (envs.popin)
+    out["popin_events"] = int(np.nansum(popins)) if n else 0
     for metric in METRICS:
         use = [r for r in rows if metric not in SUCCESS_ONLY_METRICS or r.get("outcome") == "success"]
         values = np.array([_number(r.get(metric)) for r in use], dtype=np.float64)
@@ -442,6 +452,89 @@ def summarise(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95, seed:
         out[f"{metric}_mean"] = float(values.mean()) if len(values) else None
         lo, hi = bootstrap_mean_ci(values, confidence=confidence, seed=seed) if len(values) else (math.nan, math.nan)
         out[f"{metric}_ci"] = [_json_float(lo), _json_float(hi)] if len(values) else None
+    return out
+
+
+def read_episodes(path: str | Path) -> list[dict[str, Any]]:
+    """The rows of an ``episodes.csv`` (``path`` is the file or an evaluation folder holding it), as strings."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "episodes.csv"
+    if not p.is_file():
+        raise FileNotFoundError(f"no episodes.csv at {path} (give the file or an evaluation folder with --out)")
+    with open(p, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    for key in ("seed", "outcome"):
+        if rows and key not in rows[0]:
+            raise ValueError(f"{p}: no {key!r} column; not an episodes.csv of agents.evaluate")
+    return rows
+
+
+def ceiling_fraction(
+    rows: Sequence[Mapping[str, Any]],
+    ceiling_rows: Sequence[Mapping[str, Any]],
+    confidence: float = 0.95,
+    seed: int = 0,
+    n_resamples: int = 2000,
+) -> dict[str, Any]:
+    """A policy's success as a fraction of the privileged ceiling's (:mod:`agents.privileged`) on the same episodes.
+
+    Episodes are paired by seed (rows of the same evaluation list); a pair whose recording or start time differ
+    is an error (the two evaluations ran different environment settings).
+
+    Args:
+        rows: the policy's episodes (``seed``, ``outcome``; ``recording``, ``t0_s`` checked when both have them).
+        ceiling_rows: the ceiling's episodes.
+        confidence: level of the interval.
+        seed: seed of the bootstrap.
+        n_resamples: bootstrap resamples.
+
+    Returns:
+        ``episodes`` (pairs), ``success_rate`` and ``ceiling_success_rate`` on them, ``fraction`` (their ratio;
+        None when the ceiling never succeeds), ``fraction_ci`` (paired bootstrap over episodes, percentile, from
+        ``scipy.stats.bootstrap``), and ``success_where_ceiling_succeeds`` (the policy's success rate on the
+        episodes the ceiling solves).
+    """
+    from scipy import stats
+
+    ceiling = {int(r["seed"]): r for r in ceiling_rows}
+    mine, theirs = [], []
+    for r in rows:
+        other = ceiling.get(int(r["seed"]))
+        if other is None:
+            continue
+        for key in ("recording", "t0_s"):
+            a, b = r.get(key), other.get(key)
+            if a not in (None, "") and b not in (None, "") and str(a) != str(b) and _number(a) != _number(b):
+                raise ValueError(
+                    f"episode seed {r['seed']}: {key} {a!r} here but {b!r} in the ceiling's episodes; the two "
+                    "evaluations ran different episodes (split, require_pedestrians or env settings differ)"
+                )
+        mine.append(r.get("outcome") == "success")
+        theirs.append(other.get("outcome") == "success")
+    n = len(mine)
+    a, c = np.array(mine, dtype=np.float64), np.array(theirs, dtype=np.float64)
+    out: dict[str, Any] = {"episodes": n, "success_rate": None, "ceiling_success_rate": None, "fraction": None}
+    out.update(fraction_ci=None, success_where_ceiling_succeeds=None)
+    if n == 0:
+        return out
+    out["success_rate"], out["ceiling_success_rate"] = float(a.mean()), float(c.mean())
+    if c.any():
+        out["fraction"] = float(a.mean() / c.mean())
+        out["success_where_ceiling_succeeds"] = float(a[c > 0].mean())
+
+        def ratio(x: np.ndarray, y: np.ndarray, axis: int = -1) -> np.ndarray:
+            den = y.mean(axis=axis)
+            return np.divide(x.mean(axis=axis), den, out=np.full(np.shape(den), np.nan), where=den > 0)
+
+        if np.all(a == a[0]) and np.all(c == c[0]):
+            out["fraction_ci"] = [out["fraction"], out["fraction"]]
+        else:
+            res = stats.bootstrap(
+                (a, c), ratio, paired=True, vectorized=True, method="percentile", n_resamples=n_resamples,
+                confidence_level=confidence, rng=np.random.default_rng(seed),
+            )  # fmt: skip
+            out["fraction_ci"] = [_json_float(res.confidence_interval.low), _json_float(res.confidence_interval.high)]
     return out
 
 
@@ -486,11 +579,13 @@ def evaluate(
     which: str = "best",
     progress: bool = False,
     planner_kwargs: Mapping[str, Any] | None = None,
+    ceiling: str | Path | None = None,
 ) -> dict[str, Any]:
     """Evaluate a policy on the held-out scene of ``split`` over :func:`evaluation_seeds`.
 
     Args:
-        spec: ``"planner"``, ``"straight"``, an SB3 ``.zip``, or a run folder of :mod:`agents.train`.
+        spec: a planner name (:data:`agents.planners.PLANNERS`: ``straight``, ``planner``, ``search``,
+            ``privileged``), an SB3 ``.zip``, or a run folder of :mod:`agents.train`.
         predictor: the forecast arm of the environment.
         split: whose held-out scene is replayed.
         episodes: how many episodes.
@@ -501,20 +596,25 @@ def evaluate(
         n_envs: environments stepped in lockstep (only speed changes).
         which: ``best`` or ``final`` model of a run folder.
         progress: show a progress bar.
-        planner_kwargs: options of the sampling planner (``headings_deg``, ``speed_fractions``, ``margin_m``,
-            ``lookahead_steps``).
+        planner_kwargs: options of the planner (e.g. the sampling planner's ``candidates``, ``headings_deg``,
+            ``speed_fractions``, ``margin_m``, ``lookahead_steps``; see :mod:`agents.planners`).
+        ceiling: the privileged ceiling's ``episodes.csv`` (or its evaluation folder) on the same episode list: the
+            summary then holds ``ceiling`` (:func:`ceiling_fraction`).
 
     Returns:
         the summary (see :func:`summarise`) plus ``policy``, ``predictor``, ``split``, ``crowd`` (``{"kind",
         "data_dir"}``: ``replay`` from that ETH/UCY folder, or ``synthetic``/``empty``), ``seed``,
-        ``require_pedestrians``, ``env`` (the settings given to the environments), ``seconds`` and ``out_dir``.
+        ``require_pedestrians``, ``env`` (the settings given to the environments), ``privileged`` (the policy
+        reads the replay's true future: :mod:`agents.privileged`), ``env_revision`` (the environment's rules,
+        :data:`envs.crowd_nav.ENV_REVISION`), ``code_version``, ``seconds`` and ``out_dir``.
     """
-    from envs.crowd_nav import CrowdNavEnv
+    from envs.crowd_nav import ENV_REVISION, CrowdNavEnv
 
     check_predictor_name(predictor)
     if n_envs < 1:
         raise ValueError(f"n_envs must be >= 1, got {n_envs!r}")
     started = time.perf_counter()
+    ceiling_rows = read_episodes(ceiling) if ceiling is not None else None  # fail before running anything
     kwargs = evaluation_env_kwargs(spec, predictor, split, env_overrides, require_pedestrians)
     config = config_from(kwargs, {})
     policy = load_policy(spec, config, which, planner_kwargs)
@@ -539,9 +639,14 @@ def evaluate(
         require_pedestrians=kwargs["require_pedestrians"],
         env=kwargs,
         planner=dict(planner_kwargs or {}) if str(spec) in PLANNERS else None,
+        privileged=bool(getattr(policy, "privileged", False)),
+        env_revision=ENV_REVISION,
+        code_version=code_version(),
         seconds=round(time.perf_counter() - started, 3),
         out_dir=None if out_dir is None else str(out_dir),
     )
+    if ceiling_rows is not None:
+        summary["ceiling"] = {"source": str(ceiling), **ceiling_fraction(rows, ceiling_rows)}
     if out_dir is not None:
         out = Path(out_dir)
         atomic_write_text(out / "episodes.csv", episodes_csv(rows))
@@ -592,8 +697,18 @@ def format_summary(summary: Mapping[str, Any]) -> str:
         f"{summary.get('policy')} on {where}, forecasts {summary.get('predictor')}, "
         f"{summary['episodes']} episodes in {summary.get('seconds', 0):.1f} s"
     ]
+    if summary.get("privileged"):
+        lines.append("  PRIVILEGED: reads every pedestrian's true future from the replay (a ceiling, not a policy)")
     for label, value, ci_key in rows:
         lines.append(f"  {label:<{width}}{'-' if value is None else f'{value:.3f}'}{ci(ci_key)}")
+        if label == f"{OUTCOMES[-1]} rate":
+            ceiling = summary.get("ceiling")
+            if ceiling and ceiling.get("fraction") is not None:
+                lo, hi = ceiling["fraction_ci"]
+                lines.append(
+                    f"  {'success / ceiling':<{width}}{ceiling['fraction']:.3f}  [{lo:.3f}, {hi:.3f}]  (ceiling "
+                    f"{ceiling['ceiling_success_rate']:.3f} on {ceiling['episodes']} paired episodes)"
+                )
     return "\n".join(lines)
 
 
@@ -614,7 +729,11 @@ def parse_set(items: Sequence[str] | None) -> dict[str, Any]:
 
 
 def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("policy", help="a run folder of agents.train, an SB3 .zip, 'planner' or 'straight'")
+    p.add_argument(
+        "policy",
+        help="a run folder of agents.train, an SB3 .zip, or a planner: 'straight', 'planner' (sampling), 'search', "
+        "'privileged' (PRIVILEGED ceiling: reads the replay's true future)",
+    )
     p.add_argument(
         "--predictor",
         default="mesrnn",
@@ -643,7 +762,14 @@ def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
         dest="planner_set",
         action="append",
         metavar="KEY=VALUE",
-        help="sampling planner option, e.g. headings_deg=[0,15,-15,30,-30,45,-45,60,-60,75,-75,90,-90]",
+        help="planner option, e.g. candidates=dense (sampling planner), lookahead_steps=8 (search), "
+        "max_states=3000 (privileged)",
+    )
+    p.add_argument(
+        "--ceiling",
+        default=None,
+        metavar="PATH",
+        help="the privileged ceiling's episodes.csv (or --out folder) on the same episodes: report success / ceiling",
     )
     p.add_argument("--n-envs", type=int, default=4, help="environments stepped in lockstep (default: 4)")
     p.add_argument("--set", dest="env_set", action="append", metavar="KEY=VALUE", help="environment setting override")
@@ -667,6 +793,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         n_envs=args.n_envs,
         which=args.model,
         planner_kwargs=parse_set(args.planner_set),
+        ceiling=args.ceiling,
         progress=not (args.no_progress or args.json),
     )
     if args.json:

@@ -41,6 +41,7 @@ from envs.forecasts import (
     make_forecast_source,
 )
 from envs.observation import ObservationBuilder, nearest_visible, observation_space
+from envs.popin import POPIN_MARGIN_M, PopInRule
 from envs.recordings import empty_recording, synthetic_recording
 from envs.rendering import HUMAN_NEEDS_PYGAME
 from envs.replay import Replay
@@ -53,6 +54,10 @@ _CONFIGURED: Final[Any] = object()
 #: Keys accepted in ``reset(options=...)``.
 RESET_OPTIONS: Final[tuple[str, ...]] = ("recording", "t0_s", "start", "goal", "time_limit_s")
 TIMING_KEYS: Final[tuple[str, ...]] = ("replay", "physics", "forecasts", "observation", "reward", "reset")
+#: Revision of the environment's rules (episodes, physics, perception), in every reset ``info`` and evaluation
+#: summary, so a result says which rules it ran under; bumped whenever the same seed can give another episode
+#: (see the class docstring's Version History).
+ENV_REVISION: Final[int] = 1
 
 
 @dataclass(frozen=True)
@@ -62,7 +67,7 @@ class _Moved:
     robot_before: np.ndarray
     robot_after: np.ndarray
     positions: np.ndarray  # (1 + H, N, 2) replay positions at t_next + h * dt_s
-    present: np.ndarray  # (1 + H, N)
+    present: np.ndarray  # (1 + H, N); row 0 without the pop-in ghosts
     gap_m: float  # smallest surface gap during the step (substeps after its start)
     collided: bool
     fault: str | None
@@ -184,6 +189,14 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     annotations fall between control steps, positions are up to 0.53 s old). The world (physics,
     contacts, gaps, intrusion, the oracle's truth) interpolates between annotations.
 
+    **Pedestrians do not appear on the robot** (:mod:`envs.popin`). A track that begins (or resumes after a
+    gap) with its centre closer than the sum of radii plus ``POPIN_MARGIN_M`` (0.1 m) to the robot's is a
+    *ghost*: no contacts, no gap, not perceived, until the first physics substep end or annotation time at which
+    its recorded position is that far from the robot; from then on it is an ordinary pedestrian. Perception
+    drops a pedestrian that was a ghost at the annotation it reports (so it stays causal between ``biwi_eth``
+    annotations). The rule is the same in every arm; ``info["episode_metrics"]["popin_events"]`` counts the
+    ghosted appearances of an episode.
+
     ## Rewards
 
     The reward is the sum of the components in ``info["reward_components"]``:
@@ -207,9 +220,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     of the straight start-goal segment. All randomness comes from ``reset(seed=...)``;
     ``reset(options=...)`` may fix ``recording``, ``t0_s``, ``start``, ``goal`` and ``time_limit_s``.
     The reset ``info`` holds ``recording``, ``crowd``, ``predictor``, ``t0_s``, ``start``, ``goal``,
-    ``time_limit_s``, ``crowd_density`` (mean number of pedestrians within ``sensor_range_m`` of the
-    start-goal segment at the annotation times of the episode, frames the file skips counting as empty) and
-    ``pedestrians_near_path``.
+    ``time_limit_s``, ``env_revision`` (:data:`ENV_REVISION`, the revision of the rules), ``crowd_density``
+    (mean number of pedestrians within ``sensor_range_m`` of the start-goal segment at the annotation times of
+    the episode, frames the file skips counting as empty) and ``pedestrians_near_path``.
 
     ## Episode End
 
@@ -245,7 +258,10 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 
     ## Version History
 
-    * v0: initial version.
+    * v0: initial version (``env_revision`` 0, not recorded).
+    * v0, ``env_revision`` 1: the pop-in rule (a pedestrian whose track begins on the robot is a contact-less,
+      unperceived ghost until clear of it; ``popin_events`` in the episode metrics). Episodes in which a track
+      begins within 0.7 m of the robot's centre change; every other episode is unchanged.
     """
 
     metadata: dict[str, Any] = {"render_modes": ["human", "rgb_array"], "render_fps": 2.5}  # noqa: RUF012
@@ -336,6 +352,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._obs_offsets = cfg.dt_s * np.arange(cfg.horizon_steps + 1)
         self._r_sum = cfg.robot_radius_m + cfg.pedestrian_radius_m
         self._near_m = self._r_sum + max(cfg.discomfort_dist_m, 0.0) + cfg.robot_pref_speed_mps * cfg.dt_s + 0.05
+        self._popin = PopInRule(self._r_sum + POPIN_MARGIN_M)
 
         self._timer = PhaseTimer(TIMING_KEYS)
         self._renderer: Any = None
@@ -411,6 +428,16 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         return self.world.robot_position
 
     @property
+    def steps_taken(self) -> int:
+        """Control steps taken in the current episode (0 after ``reset``)."""
+        return self._n
+
+    def substep_times(self, n: int) -> np.ndarray:
+        """``(S + 1,)`` times (seconds since the recording's first frame) of the physics substep ends of control
+        step ``n`` of the episode, its start first: where the world places the pedestrians and checks contacts."""
+        return np.append(self._time(n) + self._sub_offsets, self._time(n + 1))
+
+    @property
     def observed_rows(self) -> np.ndarray:
         """Replay rows of the pedestrians in the last observation, in observation order."""
         return self._last["rows"].copy()
@@ -456,7 +483,10 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             except (TypeError, ValueError):  # a generator without a seed sequence
                 self._forecast_rng = np.random.default_rng(int(self.np_random.integers(2**63)))
         ep = self._start_episode(reset_options(options, self.config.goal_tolerance_m))
+        assert self._replay is not None
+        self._popin.reset(self._replay, self._time(0), ep.start)
         pos, present = self._world_positions(self._time(0) + self._obs_offsets)
+        present[0] &= ~self._popin.ghost
         obs, _ = self._observe(self._time(0), pos, present, ep.start)
         info = {
             "recording": ep.recording.name,
@@ -468,6 +498,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             "time_limit_s": ep.time_limit_s,
             "crowd_density": ep.crowd_density,
             "pedestrians_near_path": ep.pedestrians_near_path,
+            "env_revision": ENV_REVISION,
         }
         if self.render_mode == "human":
             self.render()
@@ -556,10 +587,18 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """Move the robot through the replayed crowd for one control step (pymunk substeps), with contacts and the
         smallest gap during the step; the replay at the substep boundaries and over the horizon after it."""
         s = self._substeps
-        t_now, t_next = self._time(self._n), self._time(self._n + 1)
-        pos, present = self._world_positions(np.concatenate([t_now + self._sub_offsets, t_next + self._obs_offsets]))
+        # the substep ends of the step (as substep_times), then its end + h * dt_s
+        pos_times = np.concatenate(
+            [self._time(self._n) + self._sub_offsets, self._time(self._n + 1) + self._obs_offsets]
+        )
+        pos, present = self._world_positions(pos_times)
         robot0 = self.world.robot_position
-        sub_pos, sub_present = pos[: s + 1], present[: s + 1]
+        sub_pos = pos[: s + 1]
+        # the pop-in rule: ghosts at the substep ends take no part in the step (no body, no contact, no gap)
+        ghost = self._popin.step(
+            self._replay, pos_times[: s + 1], sub_pos, present[: s + 1], lambda: self._robot_path(robot0, velocities)
+        )
+        sub_present = present[: s + 1] if ghost is None else present[: s + 1] & ~ghost
         d_sub = np.hypot(sub_pos[..., 0] - robot0[0], sub_pos[..., 1] - robot0[1])
         d_sub = np.where(sub_present, d_sub, np.inf)
         near = np.flatnonzero(d_sub.min(axis=0) < self._near_m) if d_sub.size else np.zeros(0, dtype=np.int64)
@@ -575,10 +614,26 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._touch_fault = {r: f for r, f in self._touch_fault.items() if r in ws.touching}
         fault = ws.contacts[0].fault if ws.contacts else next(iter(self._touch_fault.values()), None)
         collided = bool(ws.contacts) or bool(ws.touching)
+        present_after = present[s:]
+        if ghost is not None:
+            present_after = present_after.copy()
+            present_after[0] = sub_present[s]
         return _Moved(
-            robot0, ws.robot_positions[-1], pos[s:], present[s:], gap, collided, fault if collided else None,
+            robot0, ws.robot_positions[-1], pos[s:], present_after, gap, collided, fault if collided else None,
             len(ws.contacts),
         )  # fmt: skip
+
+    def _robot_path(self, robot0: np.ndarray, velocities: list[tuple[float, float]]) -> np.ndarray:
+        """``(S + 1, 2)`` robot centre at the substep ends of a step commanding ``velocities``, integrated as pymunk
+        does (``p += v * h`` per substep; nothing pushes the robot)."""
+        h = self._substep_s
+        path = np.empty((len(velocities) + 1, 2))
+        x, y = float(robot0[0]), float(robot0[1])
+        path[0] = x, y
+        for k, (vx, vy) in enumerate(velocities):
+            x, y = x + vx * h, y + vy * h
+            path[k + 1] = x, y
+        return path
 
     @timed("reward")
     def _reward(self, moved: _Moved, sensed: _Sensed) -> tuple[float, bool, bool, dict[str, Any]]:
@@ -621,6 +676,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             self._outcome = outcome
             # info["episode"] belongs to Gymnasium's RecordEpisodeStatistics and SB3's Monitor
             self._forecast_errors()
+            self._metrics.popin_events = self._popin.events
             info["episode_metrics"] = self._metrics.summary(outcome, self._n * cfg.dt_s, self.with_forecasts)
         return reward, terminated, truncated, info
 
@@ -654,7 +710,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         cfg = self.config
         assert self.episode is not None and self._replay is not None
         seen = self._replay.perceived_at(t_s)
-        rows, _ = nearest_visible(robot, seen.positions, seen.present, cfg.sensor_range_m, cfg.num_pedestrians)
+        # a pedestrian that was a pop-in ghost at the reported annotation is not perceived (causal: see envs.popin)
+        perceived = seen.present & ~self._popin.dropped(seen.index, len(seen.present))
+        rows, _ = nearest_visible(robot, seen.positions, perceived, cfg.sensor_range_m, cfg.num_pedestrians)
         p_now, pres_now = positions[0], present[0]
         gap = math.inf
         intruding = False

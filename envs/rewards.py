@@ -118,6 +118,7 @@ class EpisodeMetrics:
     intrusion_steps: int = 0
     collisions: int = 0
     collision_fault: str | None = None
+    popin_events: int = 0
     ade_sum: float = 0.0
     ade_count: int = 0
     fde_sum: float = 0.0
@@ -180,7 +181,9 @@ class EpisodeMetrics:
         on a pedestrian's true future path), ``mean_jerk_mps3``, ``forecast_ade_m``,
         ``forecast_fde_m`` (the arm's forecasts of the observed pedestrians against the replay's
         truth), ``mean_visible_pedestrians`` (pedestrians in the observation, mean over steps),
-        ``crowd_density`` and ``pedestrians_near_path`` (as in the reset info), ``steps``, and ``r``/``l``
+        ``crowd_density`` and ``pedestrians_near_path`` (as in the reset info), ``popin_events`` (pedestrians
+        whose track began on the robot and were kept as contact-less ghosts, see :mod:`envs.popin`), ``steps``,
+        and ``r``/``l``
         (return and length; kept so the metrics are complete without a monitoring wrapper).
         """
         straight = float(np.linalg.norm(self.goal - self.start))
@@ -201,6 +204,7 @@ class EpisodeMetrics:
             "mean_visible_pedestrians": self.visible_sum / n,
             "crowd_density": self.crowd_density,
             "pedestrians_near_path": self.pedestrians_near_path,
+            "popin_events": self.popin_events,
             "steps": self.steps,
             "r": self.episode_return,
             "l": self.steps,

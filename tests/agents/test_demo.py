@@ -85,3 +85,14 @@ def test_the_shipped_policy_crosses_the_held_out_zara1_scene(
     out = capsys.readouterr().out
     assert "policy" in out.splitlines()[0] and "ppo_mesrnn_zara1.zip" in out.splitlines()[0]
     assert '"outcome"' in out
+
+
+@pytest.mark.parametrize("policy", ["search", "privileged"])
+def test_demo_with_the_search_planner_and_the_privileged_ceiling(
+    policy: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["demo", "--policy", policy, "--synthetic", "--predictor", "cv", "--no-gif", "--json"]
+    assert main(args) == 0
+    lines = capsys.readouterr().out.splitlines()
+    record = json.loads("\n".join(lines[1 : lines.index("}") + 1]))
+    assert record["policy"] == policy and record["outcome"] in ("success", "collision", "timeout")

@@ -201,3 +201,12 @@ def test_every_summary_names_its_crowd_source(data_dir: Path) -> None:
     s = evaluate("straight", "none", "zara1", 1, n_envs=1)
     assert s["crowd"] == {"kind": "replay", "data_dir": str(data_dir)}
     assert f"ETH/UCY replay from {data_dir}" in format_summary(s).splitlines()[0]
+
+
+def test_summary_counts_popin_episodes_and_events() -> None:
+    rows = hand_made_rows()
+    for row, events in zip(rows, [0, 2, 0, 1, 0, 0, 0, 0, 0, 0], strict=True):
+        row["popin_events"] = events
+    s = summarise(rows)
+    assert s["popin_episodes"] == 2 and s["popin_events"] == 3
+    assert "popin_events" in EPISODE_COLUMNS
