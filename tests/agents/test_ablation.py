@@ -133,7 +133,7 @@ def test_bad_config_names_key_value_and_allowed(tmp_path: Path, change: dict[str
 def test_bad_policy_entries(tmp_path: Path) -> None:
     raw = _raw(tmp_path)
     raw["policies"]["ppo"]["kind"] = "dqn"
-    with pytest.raises(ConfigError, match=r"'policies.ppo.kind'.*'dqn'.*ppo, sac, planner, straight"):
+    with pytest.raises(ConfigError, match=r"'policies.ppo.kind'.*'dqn'.*ppo, sac, planner, search, privileged"):
         ab.config_from_mapping(raw)
     raw = _raw(tmp_path)
     raw["policies"]["planner"]["timesteps"] = 10
@@ -320,6 +320,41 @@ def test_changed_weights_or_spec_make_cells_stale(
     assert states["eval/zara1/planner/none"].state == "stale"
     assert "episodes" in states["eval/zara1/planner/none"].reason
     assert states["train/zara1/ppo/none/seed0"].state == "done"
+
+
+def test_planner_options_and_the_environment_revision_are_part_of_a_cells_spec(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import agents.evaluate
+    import envs.crowd_nav
+
+    calls: dict[str, Any] = {}
+
+    def evaluate(spec: str, predictor: str, split: str, episodes: int, **kw: Any) -> dict[str, Any]:
+        calls[f"{Path(kw['out_dir']).parent.name}/{predictor}"] = kw.get("planner_kwargs")
+        _write_csv(Path(kw["out_dir"]) / "episodes.csv", _episode_rows("SC", [1.0, 1.0], [1.0, 2.0]))
+        return {"episodes": 2}
+
+    monkeypatch.setattr(agents.evaluate, "evaluate", evaluate)
+    raw = _raw(tmp_path, seeds=[0], arms=["none", "cv"], comparisons=[["cv", "none"]])
+    raw["policies"] = {"planner": {"kind": "planner"}, "dense": {"kind": "planner", "options": {"candidates": "dense"}}}
+    del raw["policy_comparisons"]
+    cfg = ab.config_from_mapping(raw)
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert calls == {
+        "planner/none": None,
+        "planner/cv": None,
+        "dense/none": {"candidates": "dense"},
+        "dense/cv": {"candidates": "dense"},
+    }
+    raw["policies"]["dense"]["options"] = {"candidates": "default"}
+    states = {st.cell.name: st.state for st in ab.plan(ab.config_from_mapping(raw))}
+    assert states["eval/zara1/dense/none"] == "stale" and states["eval/zara1/planner/none"] == "done"
+    monkeypatch.setattr(envs.crowd_nav, "ENV_REVISION", envs.crowd_nav.ENV_REVISION + 1)
+    assert {st.state for st in ab.plan(cfg)} == {"stale"}, "cells of another environment revision are stale"
+    raw["policies"]["dense"]["options"] = ["dense"]
+    with pytest.raises(ConfigError, match=r"'policies.dense.options'"):
+        ab.config_from_mapping(raw)
 
 
 def test_failed_cell_is_reported_and_its_evaluation_skipped(tmp_path: Path, fakes: Fakes) -> None:
@@ -593,6 +628,27 @@ def test_summary_pairs_ppo_seeds_with_the_planner_and_counts_missing(tmp_path: P
         ("ppo", "mesrnn", "planner", "mesrnn"),
     }
     assert summary["multiple_comparisons"]["family_sizes"]["success"] == 2
+
+
+def test_success_is_reported_as_a_fraction_of_the_privileged_ceiling(tmp_path: Path, fakes: Fakes) -> None:
+    raw = _raw(tmp_path, arms=["none", "oracle"], comparisons=[["oracle", "none"]], seeds=[0])
+    raw["policies"] = {"planner": {"kind": "planner"}, "ceiling": {"kind": "privileged", "arms": ["oracle"]}}
+    raw["evaluation"] = {"episodes": 4, "seed": 0}
+    del raw["policy_comparisons"]
+    cfg = ab.config_from_mapping(raw)
+    density = [1.0, 2.0, 3.0, 4.0]
+    _fake_done_cell(cfg, "eval/zara1/planner/none", _episode_rows("SCCS", [1.0] * 4, density))
+    _fake_done_cell(cfg, "eval/zara1/planner/oracle", _episode_rows("SSCS", [1.0] * 4, density))
+    _fake_done_cell(cfg, "eval/zara1/ceiling/oracle", _episode_rows("SSSS", [1.0] * 4, density))
+    summary = ab.summarize(cfg, out=lambda s: None, plots=False)
+    ceiling = summary["ceiling"]
+    assert ceiling["policy"] == "ceiling" and ceiling["by_split"] == {"zara1": 1.0}
+    assert ceiling["fractions"] == {"planner": {"none": {"zara1": 0.5}, "oracle": {"zara1": 0.75}}}
+    text = (cfg.out_path() / "summary.md").read_text()
+    assert "## Fraction of the privileged ceiling" in text and "PRIVILEGED" in text
+    assert "| planner | oracle | 0.750 |" in text
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    assert ab.summarize(ab.config_from_mapping(raw), out=lambda s: None, plots=False, force=True)["ceiling"] is None
 
 
 def test_json_has_no_nan(tmp_path: Path, fakes: Fakes) -> None:
