@@ -396,7 +396,7 @@ class SearchPlanner(_Planner):
         lookahead_steps: int = 10,
         margin_m: float = 0.05,
         margin_growth_mps: float = 0.05,
-        margin_per_m: float = 0.1,
+        margin_per_m: float = 0.0,
         headings_deg: Sequence[float] = SEARCH_HEADINGS_DEG,
         speed_fractions: Sequence[float] = SEARCH_SPEED_FRACTIONS,
         cell_m: float = 0.15,
