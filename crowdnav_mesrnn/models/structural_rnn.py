@@ -10,7 +10,8 @@ states nor influences its neighbours (its features and its contribution to their
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import torch
@@ -18,6 +19,11 @@ from torch import nn
 
 from crowdnav_mesrnn.config import ConfigError, replace_checked
 from crowdnav_mesrnn.graph.metapaths import stacked_features_step
+from crowdnav_mesrnn.models.gaussian import params_from_raw, raw_sigma_init
+from crowdnav_mesrnn.models.gaussian import sample as gaussian_sample
+
+#: Values of :attr:`ModelConfig.head`.
+HEADS: tuple[str, ...] = ("point", "gaussian")
 
 MODEL_TYPES: dict[str, tuple[str, ...]] = {
     "mesrnn": ("S", "T", "SS", "ST", "TS", "TT"),
@@ -55,8 +61,19 @@ class ModelConfig:
     standardise: bool = False
     """Scale every edge feature type and the node input by the inverse of its RMS on the training data
     (fitted once before training, stored with the weights). Off in the paper."""
+    head: str = "point"
+    """What the decoder predicts: ``point`` (paper: the offset of the next position) or ``gaussian`` (a bivariate
+    Gaussian over the next position: the same offset as its mean, plus two scales and a correlation from a
+    second linear layer on the node state, :mod:`crowdnav_mesrnn.models.gaussian`; trained by negative
+    log-likelihood). The point path is the same arithmetic with either head."""
     types: tuple[str, ...] = field(default=())
     """Meta-path types; filled from ``model`` (not set by hand)."""
+
+    def __repr__(self) -> str:
+        # ``head`` appears only when it is not the default, so a point config's repr (hashed into the forecast
+        # cache's keys, envs.forecast_cache.predictor_fingerprint) is what it was before the field existed.
+        names = [f.name for f in fields(self) if f.name != "head" or self.head != "point"]
+        return f"ModelConfig({', '.join(f'{n}={getattr(self, n)!r}' for n in names)})"
 
     def __post_init__(self) -> None:
         if self.model not in MODEL_TYPES:
@@ -67,6 +84,8 @@ class ModelConfig:
             raise ConfigError(f"node_input must be 'position' or 'velocity', got {self.node_input!r}")
         if self.offset not in ("absolute", "cv_residual"):
             raise ConfigError(f"offset must be 'absolute' or 'cv_residual', got {self.offset!r}")
+        if self.head not in HEADS:
+            raise ConfigError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
         if self.types != MODEL_TYPES[self.model]:
             if self.types:
                 raise ConfigError(f"types {self.types} do not match model {self.model!r} ({MODEL_TYPES[self.model]})")
@@ -83,8 +102,12 @@ class ModelConfig:
         return replace_checked(cls(model=d.get("model", "mesrnn")), d, "model config")
 
     def to_dict(self) -> dict:
+        """The config as saved in checkpoints (``head`` only when not ``point``, so point configs read the same as
+        those saved before the field existed: resuming and comparing them keeps working)."""
         out = asdict(self)
         out["types"] = list(self.types)
+        if self.head == "point":
+            del out["head"]
         return out
 
 
@@ -228,6 +251,13 @@ class StructuralRNN(nn.Module):
         if cfg.offset == "cv_residual":
             nn.init.zeros_(self.decoder.weight)
             nn.init.zeros_(self.decoder.bias)
+        self.gaussian = cfg.head == "gaussian"
+        if self.gaussian:
+            # raw (σx, σy, ρ) of the next position; starts at σ = SIGMA_INIT, ρ = 0 for every input
+            self.scale_head = nn.Linear(cfg.node_hidden, 3)
+            nn.init.zeros_(self.scale_head.weight)
+            with torch.no_grad():
+                self.scale_head.bias.copy_(torch.tensor([raw_sigma_init(), raw_sigma_init(), 0.0]))
         self._prepared: tuple[tuple[int, ...], dict[str, torch.Tensor]] | None = None
 
     # ------------------------------------------------------------------ state
@@ -356,11 +386,18 @@ class StructuralRNN(nn.Module):
         return node, torch.baddbmm(w["edge_b"], self.drop(e), w["edge_x_w"]), vel
 
     def _decode(self, h: torch.Tensor) -> torch.Tensor:
-        """``(P, 2)`` offsets; always float32 (under bf16 autocast too: they are added to positions)."""
+        """``(P, 2)`` offsets, or with the gaussian head ``(P, 5)``: the offset (the mean's) then the head's raw
+        ``(σx, σy, ρ)``; always float32 (under bf16 autocast too: they are added to positions)."""
         if torch.is_autocast_enabled("cpu"):
             with torch.autocast("cpu", enabled=False):
-                return torch.tanh(nn.functional.linear(h.float(), self.decoder.weight, self.decoder.bias))
-        return torch.tanh(nn.functional.linear(h, self.decoder.weight, self.decoder.bias))
+                return self._decode_fp32(h.float())
+        return self._decode_fp32(h)
+
+    def _decode_fp32(self, h: torch.Tensor) -> torch.Tensor:
+        offset = torch.tanh(nn.functional.linear(h, self.decoder.weight, self.decoder.bias))
+        if not self.gaussian:
+            return offset
+        return torch.cat([offset, nn.functional.linear(h, self.scale_head.weight, self.scale_head.bias)], dim=-1)
 
     def _recurrent(
         self,
@@ -405,6 +442,30 @@ class StructuralRNN(nn.Module):
         roll_mask: torch.Tensor | None = None,
         first_pred: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """Run ``L`` steps with given inputs, then ``free_steps`` steps fed with the model's own predictions
+        (the means, with the gaussian head); see :meth:`scan_distribution` for the arguments and the head's output.
+
+        Returns:
+            ``(L + free_steps, B, N, 2)`` predictions of the next positions, the presence used at each
+            step ``(L + free_steps, B, N)``, and the new state (rows absent at a step keep theirs).
+        """
+        preds, _, used, new = self.scan_distribution(
+            known_p, known_m, history_p, history_m, state, free_steps, roll_mask, first_pred
+        )
+        return preds, used, new
+
+    def scan_distribution(
+        self,
+        known_p: torch.Tensor,
+        known_m: torch.Tensor,
+        history_p: tuple[torch.Tensor, torch.Tensor],
+        history_m: tuple[torch.Tensor, torch.Tensor],
+        state: dict[str, torch.Tensor],
+        free_steps: int = 0,
+        roll_mask: torch.Tensor | None = None,
+        first_pred: torch.Tensor | None = None,
+        feed: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, dict[str, torch.Tensor]]:
         """Run ``L`` steps with given inputs, then ``free_steps`` steps fed with the model's own predictions.
 
         Args:
@@ -417,17 +478,25 @@ class StructuralRNN(nn.Module):
                 pedestrians of ``roll_mask`` (the others are absent).
             roll_mask: ``(B, N)`` bool, who is rolled out (needed when ``free_steps > 0``).
             first_pred: ``(B, N, 2)`` the prediction fed to the first free step when ``L == 0``.
+            feed: with the gaussian head, ``(mean (B, N, 2), raw (B, N, 3)) -> (B, N, 2)``: what replaces (is fed
+                back and returned) the last known step's prediction when ``free_steps > 0`` and every free step's,
+                e.g. a sample drawn from the step's Gaussian; None keeps the means.
 
         Returns:
-            ``(L + free_steps, B, N, 2)`` predictions of the next positions, the presence used at each
-            step ``(L + free_steps, B, N)``, and the new state (rows absent at a step keep theirs).
+            ``(L + free_steps, B, N, 2)`` predictions of the next positions (the means, or what ``feed`` made
+            of them), the gaussian head's raw ``(σx, σy, ρ)`` at each step ``(L + free_steps, B, N, 3)`` (None
+            with the point head; :func:`crowdnav_mesrnn.models.gaussian.params_from_raw` turns them into scales
+            and correlations), the presence used at each step ``(L + free_steps, B, N)``, and the new state
+            (rows absent at a step keep theirs).
         """
         n_known, b, n = known_m.shape
         r = b * n
         w = self._weights()
         live = _LiveRows(state, self._decode)
         residual = self.cfg.offset == "cv_residual"
+        gaussian = self.gaussian
         preds: list[torch.Tensor] = []
+        raws: list[torch.Tensor] = []
         used: list[torch.Tensor] = []
         h_p, h_m = history_p, history_m
         if n_known:
@@ -444,7 +513,10 @@ class StructuralRNN(nn.Module):
             rows_all = idx.split(counts)
             for t, count in enumerate(counts):
                 rows = None if count == r else rows_all[t] - t * r
-                offset = self._advance(w, live, rows, node_xs[t], edge_xs[t]).view(b, n, 2)
+                offset = self._advance(w, live, rows, node_xs[t], edge_xs[t]).view(b, n, -1)
+                if gaussian:
+                    raws.append(offset[..., 2:])
+                    offset = offset[..., :2]
                 preds.append(known_p[t] + offset + vel[t] if residual else known_p[t] + offset)
                 used.append(known_m[t])
             h_p = (known_p[-1], known_p[-2] if n_known > 1 else h_p[0])
@@ -455,6 +527,8 @@ class StructuralRNN(nn.Module):
             roll = roll_mask.bool()
             rows_idx = torch.nonzero(roll.reshape(-1)).flatten()
             rows = None if len(rows_idx) == r else rows_idx
+            if feed is not None and preds:
+                preds[-1] = feed(preds[-1], raws[-1])
             prev = preds[-1] if preds else first_pred
             if prev is None:
                 raise ValueError("free steps after no known step need first_pred")
@@ -462,15 +536,21 @@ class StructuralRNN(nn.Module):
             for _ in range(free_steps):
                 p_t = torch.where(roll.unsqueeze(-1), prev, zeros)
                 node_x, edge_x, vel = self._gate_inputs(w, (p_t, *h_p), (roll, *h_m), rows)
-                offset = self._advance(w, live, rows, node_x, edge_x).view(b, n, 2)
+                offset = self._advance(w, live, rows, node_x, edge_x).view(b, n, -1)
+                if gaussian:
+                    raws.append(offset[..., 2:])
+                    offset = offset[..., :2]
                 prev = p_t + offset + vel if residual else p_t + offset
+                if feed is not None:
+                    prev = feed(prev, raws[-1])
                 preds.append(prev)
                 used.append(roll)
                 h_p, h_m = (p_t, h_p[0]), (roll, h_m[0])
         live.flush()
         if not preds:
-            return known_p.new_zeros(0, b, n, 2), known_m.new_zeros(0, b, n), live.full
-        return torch.stack(preds), torch.stack(used), live.full
+            none_raw = known_p.new_zeros(0, b, n, 3) if gaussian else None
+            return known_p.new_zeros(0, b, n, 2), none_raw, known_m.new_zeros(0, b, n), live.full
+        return torch.stack(preds), torch.stack(raws) if gaussian else None, torch.stack(used), live.full
 
     def step(
         self,
@@ -506,26 +586,42 @@ class StructuralRNN(nn.Module):
                 the last observed step (the true autoregressive rollout used in evaluation).
 
         Returns:
-            ``pred: (B, T−1, N, 2)`` where ``pred[:, t]`` is the prediction of step ``t+1``, and the
-            input mask ``(B, T−1, N)`` used at each step.
+            ``pred: (B, T−1, N, 2)`` where ``pred[:, t]`` is the prediction of step ``t+1`` (the mean, with the
+            gaussian head), and the input mask ``(B, T−1, N)`` used at each step.
         """
-        steps = positions.shape[1] - 1
-        known = steps if teacher_forcing else min(obs_len, steps)
-        pred, used = self._run(positions[:, :known], mask[:, :known], steps - known, mask[:, obs_len - 1])
+        pred, _, used = self.forward_distribution(positions, mask, obs_len, teacher_forcing)
         return pred, used
 
+    def forward_distribution(
+        self, positions: torch.Tensor, mask: torch.Tensor, obs_len: int, teacher_forcing: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """:meth:`forward` plus the gaussian head's raw ``(σx, σy, ρ)`` at each step ``(B, T−1, N, 3)`` (None
+        with the point head). Without teacher forcing the rollout feeds back the means, so the Gaussian at a
+        predicted step is the model's distribution of that step's position given the observed steps."""
+        steps = positions.shape[1] - 1
+        known = steps if teacher_forcing else min(obs_len, steps)
+        return self._run(positions[:, :known], mask[:, :known], steps - known, mask[:, obs_len - 1])
+
     def _run(
-        self, positions: torch.Tensor, mask: torch.Tensor, free_steps: int, roll_mask: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """From a zero state: ``(B, L, N, 2)`` known inputs then ``free_steps``; ``(B, L + free, N, ·)`` out."""
+        self,
+        positions: torch.Tensor,
+        mask: torch.Tensor,
+        free_steps: int,
+        roll_mask: torch.Tensor,
+        feed: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """From a zero state: ``(B, L, N, 2)`` known inputs then ``free_steps``; ``(B, L + free, N, ·)`` out
+        (predictions, the head's raw output or None, the masks used)."""
         b, _, n, _ = positions.shape
         m = mask.bool().transpose(0, 1)
         p = torch.where(m.unsqueeze(-1), positions.transpose(0, 1), positions.new_zeros(()))
         zeros_p = positions.new_zeros(b, n, 2)
         zeros_m = torch.zeros(b, n, dtype=torch.bool, device=positions.device)
         state = self.init_state(b * n, positions.device)
-        pred, used, _ = self.scan(p, m, (zeros_p, zeros_p), (zeros_m, zeros_m), state, free_steps, roll_mask.bool())
-        return pred.transpose(0, 1), used.transpose(0, 1)
+        pred, raw, used, _ = self.scan_distribution(
+            p, m, (zeros_p, zeros_p), (zeros_m, zeros_m), state, free_steps, roll_mask.bool(), feed=feed
+        )
+        return pred.transpose(0, 1), None if raw is None else raw.transpose(0, 1), used.transpose(0, 1)
 
     def rollout(self, obs_positions: torch.Tensor, obs_mask: torch.Tensor, pred_len: int) -> torch.Tensor:
         """Autoregressive forecast from observed steps only.
@@ -536,8 +632,83 @@ class StructuralRNN(nn.Module):
             pred_len: steps to forecast.
 
         Returns:
-            ``(B, pred_len, N, 2)`` normalised; meaningful for pedestrians present at the last observed step.
+            ``(B, pred_len, N, 2)`` normalised; meaningful for pedestrians present at the last observed step
+            (the means, with the gaussian head).
         """
         obs_len = obs_positions.shape[1]
-        pred, _ = self._run(obs_positions, obs_mask, pred_len - 1, obs_mask[:, obs_len - 1])
+        pred, _, _ = self._run(obs_positions, obs_mask, pred_len - 1, obs_mask[:, obs_len - 1])
         return pred[:, obs_len - 1 :]
+
+    def _need_gaussian(self) -> None:
+        if not self.gaussian:
+            raise ValueError(
+                f"this {self.cfg.model!r} network has a point head (head: point); a distribution needs head: gaussian"
+            )
+
+    def rollout_distribution(
+        self, obs_positions: torch.Tensor, obs_mask: torch.Tensor, pred_len: int
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The mean rollout (as :meth:`rollout`) and each step's Gaussian; gaussian head only.
+
+        Returns:
+            ``mean (B, pred_len, N, 2)``, ``sigma (B, pred_len, N, 2)`` and ``rho (B, pred_len, N)``, normalised units.
+        """
+        self._need_gaussian()
+        obs_len = obs_positions.shape[1]
+        pred, raw, _ = self._run(obs_positions, obs_mask, pred_len - 1, obs_mask[:, obs_len - 1])
+        assert raw is not None
+        sigma, rho = params_from_raw(raw[:, obs_len - 1 :])
+        return pred[:, obs_len - 1 :], sigma, rho
+
+    def sample_rollout(
+        self,
+        obs_positions: torch.Tensor,
+        obs_mask: torch.Tensor,
+        pred_len: int,
+        samples: int,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Sampled futures whose every step is drawn from the step's Gaussian and fed back as the next input
+        (the observed steps are run once and their state shared by the samples); gaussian head only.
+
+        Returns:
+            ``(B, samples, pred_len, N, 2)`` normalised.
+        """
+        self._need_gaussian()
+        b, obs_len, n, _ = obs_positions.shape
+        m = obs_mask.bool()
+        p = torch.where(m.unsqueeze(-1), obs_positions, obs_positions.new_zeros(()))
+        zeros_p = p.new_zeros(b, n, 2)
+        zeros_m = torch.zeros(b, n, dtype=torch.bool, device=p.device)
+        state = self.init_state(b * n, p.device)
+        pred, raw, _, state = self.scan_distribution(
+            p.transpose(0, 1), m.transpose(0, 1), (zeros_p, zeros_p), (zeros_m, zeros_m), state
+        )
+        assert raw is not None
+
+        def draw(mean: torch.Tensor, raw_t: torch.Tensor) -> torch.Tensor:
+            sigma, rho = params_from_raw(raw_t)
+            eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+            return gaussian_sample(mean, sigma, rho, eps)
+
+        def rep(x: torch.Tensor, dim: int = 0) -> torch.Tensor:  # (B, ...) -> (B * samples, ...)
+            return x.repeat_interleave(samples, dim=dim)
+
+        roll = rep(m[:, -1])
+        first = draw(rep(pred[-1]), rep(raw[-1]))
+        prev2 = rep(p[:, -2]) if obs_len > 1 else rep(zeros_p)
+        prev2_m = rep(m[:, -2]) if obs_len > 1 else rep(zeros_m)
+        rows = {k: rep(v.view(*v.shape[:-2], b, n, v.shape[-1]), v.dim() - 2).flatten(-3, -2) for k, v in state.items()}
+        rest, _, _, _ = self.scan_distribution(
+            first.new_zeros(0, b * samples, n, 2),
+            roll.new_zeros(0, b * samples, n),
+            (rep(p[:, -1]), prev2),
+            (rep(m[:, -1]), prev2_m),
+            rows,
+            free_steps=pred_len - 1,
+            roll_mask=roll,
+            first_pred=first,
+            feed=draw,
+        )
+        out = torch.cat([first[None], rest], 0)  # (pred_len, B * samples, N, 2)
+        return out.view(pred_len, b, samples, n, 2).permute(1, 2, 0, 3, 4)
