@@ -77,14 +77,59 @@ def _eval(args: argparse.Namespace) -> int:
         def checkpoint_for(split: str):  # type: ignore[no-redef]
             return load_predictor(template.format(split=split, model=args.model), model=args.model, split=split)
 
+    head = args.head or ("gaussian" if args.samples else "point")
     result = evaluate_model(
-        args.model, args.split, data_dir=args.data_dir, checkpoint_for=checkpoint_for, part=args.part
+        args.model,
+        args.split,
+        data_dir=args.data_dir,
+        checkpoint_for=checkpoint_for,
+        part=args.part,
+        samples=args.samples,
+        sampling=args.sampling,
+        seed=args.seed,
+        head=head if args.model != "cv" else "point",
+        block_len=args.block_len,
+        n_resamples=args.resamples,
     )
     if args.out:
         from crowdnav_mesrnn.utils import atomic_write_json
 
         atomic_write_json(args.out, result)
     print(json.dumps(result, indent=2) if args.json else format_result(result))
+    return 0
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    import torch
+
+    from crowdnav_mesrnn.calibration import calibrate_model, format_calibration
+
+    torch.set_num_threads(args.threads)
+    predictor_for = None
+    if args.checkpoint:
+        from crowdnav_mesrnn.models.learned import load_predictor
+
+        template = args.checkpoint
+
+        def predictor_for(split: str):  # type: ignore[no-redef]
+            return load_predictor(template.format(split=split, model=args.model), model=args.model, split=split)
+
+    result = calibrate_model(
+        args.model,
+        args.split,
+        score=args.score,
+        head=args.head if args.model != "cv" else "point",
+        levels=args.levels,
+        data_dir=args.data_dir,
+        predictor_for=predictor_for,
+        block_len=args.block_len,
+        n_resamples=args.resamples,
+    )
+    if args.out:
+        from crowdnav_mesrnn.utils import atomic_write_json
+
+        atomic_write_json(args.out, result)
+    print(json.dumps(result, indent=2) if args.json else format_calibration(result))
     return 0
 
 
@@ -203,9 +248,60 @@ def add_parser(sub: Any) -> None:
     e.add_argument("--checkpoint", default=None, help="checkpoint path; may contain {split} and {model}")
     e.add_argument("--json", action="store_true")
     e.add_argument("--out", default=None, help="also write the JSON result here (atomically)")
+    e.add_argument(
+        "--samples",
+        type=int,
+        default=0,
+        help="with a distribution head: best-of-K ADE/FDE over K sampled futures (min_ade_m, min_fde_m, with "
+        "block-bootstrap intervals); implies --head gaussian for shipped weights",
+    )
+    e.add_argument(
+        "--sampling",
+        default="marginal",
+        choices=("marginal", "feedback"),
+        help="marginal: each step drawn from its Gaussian of the mean rollout (Social-STGCNN's protocol, default); "
+        "feedback: every draw fed back as the next input",
+    )
+    e.add_argument("--seed", type=int, default=0, help="seed of the samples (default 0)")
+    e.add_argument(
+        "--head",
+        default=None,
+        choices=("point", "gaussian"),
+        help="which shipped weights (default point; gaussian with --samples); a distribution head also gets nll_m",
+    )
+    e.add_argument("--block-len", type=int, default=20, help="block bootstrap block length in windows (default 20)")
+    e.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
     e.add_argument("--data-dir", default=None)
     e.add_argument("--threads", type=int, default=1)
     e.set_defaults(func=_eval)
+
+    c = psub.add_parser(
+        "calibrate",
+        help="conformal uncertainty regions: calibrate on validation windows, coverage on test",
+        description="Split conformal calibration per horizon step on each split's validation windows (never its "
+        "test scene), then the fraction of true test positions inside the 50/90/95 %% regions, per step and pooled, "
+        "with block-bootstrap intervals, and the model's own (uncalibrated) regions. Point forecasts (constant "
+        "velocity, point weights) get an error model fitted on the split's training windows "
+        "(crowdnav_mesrnn.calibration).",
+    )
+    c.add_argument("--model", required=True, choices=MODELS)
+    c.add_argument("--split", default="all", choices=(*SPLITS, "all"))
+    c.add_argument(
+        "--score",
+        default="scaled",
+        choices=("scaled", "radius"),
+        help="scaled: a per-step scale on the forecast's Gaussian (default); radius: a per-step disc in metres",
+    )
+    c.add_argument("--head", default="point", choices=("point", "gaussian"), help="which shipped weights")
+    c.add_argument("--checkpoint", default=None, help="checkpoint path instead; may contain {split} and {model}")
+    c.add_argument("--levels", type=float, nargs="+", default=[0.5, 0.9, 0.95], help="coverage levels")
+    c.add_argument("--json", action="store_true")
+    c.add_argument("--out", default=None, help="also write the JSON result here (atomically)")
+    c.add_argument("--block-len", type=int, default=20, help="block bootstrap block length in windows (default 20)")
+    c.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
+    c.add_argument("--data-dir", default=None)
+    c.add_argument("--threads", type=int, default=1)
+    c.set_defaults(func=_calibrate)
 
     x = psub.add_parser("export", help="copy a trained checkpoint into the package's pretrained weights")
     x.add_argument("checkpoint")
