@@ -39,9 +39,9 @@ from typing import Any, Final
 import numpy as np
 from scipy.optimize import nnls
 
-from crowdnav_mesrnn.data.constants import SPLITS, check_split
+from crowdnav_mesrnn.data.constants import check_split
 from crowdnav_mesrnn.data.windows import Window, split_windows
-from crowdnav_mesrnn.evaluation import ScoredForecasts, collect_forecasts, cv_predict_batch
+from crowdnav_mesrnn.evaluation import ScoredForecasts, collect_forecasts, cv_predict_batch, resolve_splits
 from crowdnav_mesrnn.models import gaussian
 from crowdnav_mesrnn.stats import DEFAULT_BLOCK_LEN, DEFAULT_RESAMPLES, PairedErrors, average_ci, block_bootstrap_ci
 
@@ -339,12 +339,7 @@ def calibrate_model(
     ``calibration_pedestrians``. ``average`` is the unweighted mean over the splits (intervals resample each
     split independently).
     """
-    if splits == "all":
-        splits = SPLITS
-    elif isinstance(splits, str):
-        splits = [splits]
-    for s in splits:
-        check_split(s)
+    splits = resolve_splits(splits)
     levels = tuple(float(c) for c in levels)
     for c in levels:
         gaussian.chi2_radius(c)  # validates the level

@@ -62,21 +62,27 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _checkpoint_loader(args: argparse.Namespace) -> Any:
+    """``split -> LearnedPredictor`` from ``--checkpoint`` (a path that may hold ``{split}`` and ``{model}``), or None."""
+    if not args.checkpoint:
+        return None
+    from crowdnav_mesrnn.models.learned import load_predictor
+
+    template = args.checkpoint
+
+    def load(split: str) -> Any:
+        return load_predictor(template.format(split=split, model=args.model), model=args.model, split=split)
+
+    return load
+
+
 def _eval(args: argparse.Namespace) -> int:
     import torch
 
     from crowdnav_mesrnn.evaluation import evaluate_model, format_result
 
     torch.set_num_threads(args.threads)
-    checkpoint_for = None
-    if args.checkpoint:
-        from crowdnav_mesrnn.models.learned import load_predictor
-
-        template = args.checkpoint
-
-        def checkpoint_for(split: str):  # type: ignore[no-redef]
-            return load_predictor(template.format(split=split, model=args.model), model=args.model, split=split)
-
+    checkpoint_for = _checkpoint_loader(args)
     head = args.head or ("gaussian" if args.samples else "point")
     result = evaluate_model(
         args.model,
@@ -105,15 +111,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     from crowdnav_mesrnn.calibration import calibrate_model, format_calibration
 
     torch.set_num_threads(args.threads)
-    predictor_for = None
-    if args.checkpoint:
-        from crowdnav_mesrnn.models.learned import load_predictor
-
-        template = args.checkpoint
-
-        def predictor_for(split: str):  # type: ignore[no-redef]
-            return load_predictor(template.format(split=split, model=args.model), model=args.model, split=split)
-
+    predictor_for = _checkpoint_loader(args)
     result = calibrate_model(
         args.model,
         args.split,

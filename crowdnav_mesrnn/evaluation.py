@@ -201,6 +201,19 @@ def evaluate_windows(
     return summarise(window_errors(predict, windows, norm, batch_size))
 
 
+def resolve_splits(splits: Sequence[str] | str) -> list[str]:
+    """``"all"`` -> every split, a name -> ``[name]``; each checked (``ValueError`` naming the valid splits)."""
+    if splits == "all":
+        out = list(SPLITS)
+    elif isinstance(splits, str):
+        out = [splits]
+    else:
+        out = list(splits)
+    for s in out:
+        check_split(s)
+    return out
+
+
 def split_norm(split: str, data_dir: str | os.PathLike[str] | None = None) -> MinMax:
     """The split's normalisation, fitted on its training part (used for the normalised metric)."""
     return MinMax.fit_recordings(load_split(split, "train", data_dir))
@@ -269,12 +282,7 @@ def evaluate_model(
     its Gaussians (nats per position, densities per m²), with its interval. Intervals of ``splits.average`` resample
     each split independently (:func:`crowdnav_mesrnn.stats.average_ci`).
     """
-    if splits == "all":
-        splits = SPLITS
-    elif isinstance(splits, str):
-        splits = [splits]
-    for s in splits:
-        check_split(s)
+    splits = resolve_splits(splits)
     if sampling not in SAMPLINGS:
         raise ValueError(f"unknown sampling {sampling!r}; valid: {', '.join(SAMPLINGS)}")
     if samples < 0:
