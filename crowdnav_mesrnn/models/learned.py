@@ -184,7 +184,7 @@ class OnlineForecaster:
             else:
                 self.state[k][idx] = v
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def observe(self, positions_m: np.ndarray, present: np.ndarray) -> None:
         """One annotation step: ``(num_slots, 2)`` metres and ``(num_slots,)`` bool presence.
 
@@ -197,31 +197,43 @@ class OnlineForecaster:
         p_t = torch.where(
             m.unsqueeze(-1), self.p.norm.normalise(torch.from_numpy(pos)[None]), torch.zeros(1, self.n, 2)
         )
+        net = self.p.net
         live = m | self.mask[0]
         every = bool(live.all())
         idx = None if every else torch.nonzero(live[0]).flatten()
+
+        def cols(x: torch.Tensor) -> torch.Tensor:
+            return x if idx is None else x[:, idx]
+
         if every or len(idx):  # type: ignore[arg-type]
-
-            def cols(x: torch.Tensor) -> torch.Tensor:
-                return x if idx is None else x[:, idx]
-
-            nxt, raw, _, sub = self.p.net.scan_distribution(
-                cols(p_t)[None],
-                cols(m)[None],
-                (cols(self.pos[0]), cols(self.pos[1])),
-                (cols(self.mask[0]), cols(self.mask[1])),
-                self._gather(idx),
-            )
+            if bool(m[live].all()):  # nobody left since the last frame: all computed rows are present now
+                m1, m2 = cols(self.mask[0])[0], cols(self.mask[1])[0]
+                nxt, sub = net.online_step(
+                    (cols(p_t)[0], cols(self.pos[0])[0], cols(self.pos[1])[0]),
+                    None if bool(m1.all()) else m1,
+                    None if bool(m2.all()) else m2,
+                    self._gather(idx),
+                )
+                raw = net.head_raw(sub["node_h"]) if net.gaussian else None
+            else:  # rows that left keep their state: the general step
+                nxt_b, raw_b, _, sub = net.scan_distribution(
+                    cols(p_t)[None],
+                    cols(m)[None],
+                    (cols(self.pos[0]), cols(self.pos[1])),
+                    (cols(self.mask[0]), cols(self.mask[1])),
+                    self._gather(idx),
+                )
+                nxt, raw = nxt_b[0, 0], None if raw_b is None else raw_b[0, 0]
             self._scatter(idx, sub)
             if idx is None:
-                self.next_pred = nxt[0]
+                self.next_pred = nxt[None]
                 if raw is not None:
-                    self.next_raw = raw[0]
+                    self.next_raw = raw[None]
             else:
-                self.next_pred[:, idx] = nxt[0]
+                self.next_pred[:, idx] = nxt
                 if raw is not None:
                     assert self.next_raw is not None
-                    self.next_raw[:, idx] = raw[0]
+                    self.next_raw[:, idx] = raw
         self.pos = [p_t, self.pos[0]]
         self.mask = [m, self.mask[0]]
         self.last_seen_m[now] = pos[now]
@@ -240,28 +252,24 @@ class OnlineForecaster:
         def cols(x: torch.Tensor) -> torch.Tensor:
             return x if idx is None else x[:, idx]
 
-        roll = cols(self.mask[0])
-        first = cols(self.next_pred)
-        none_p, none_m = first.new_zeros(0, *first.shape), torch.zeros(0, *roll.shape, dtype=torch.bool)
-        rest, raws, _, _ = net.scan_distribution(
-            none_p,
-            none_m,
-            (cols(self.pos[0]), cols(self.pos[1])),
-            (roll, cols(self.mask[1])),
+        first = cols(self.next_pred)[0]
+        rest, raws = net.continue_rollout(
+            first,
+            cols(self.pos[0])[0],
+            cols(self.pos[1])[0],
+            cols(self.mask[1])[0],
             self._gather(idx),
-            free_steps=self.p.pred_len - 1,
-            roll_mask=roll,
-            first_pred=first,
+            self.p.pred_len - 1,
         )
-        preds = torch.cat([first, rest[:, 0]], 0)  # (pred_len, n, 2)
+        preds = torch.cat([first[None], rest], 0)  # (pred_len, n, 2)
         raw = None
         if raws is not None:
             assert self.next_raw is not None
-            raw = torch.cat([cols(self.next_raw), raws[:, 0]], 0)
+            raw = torch.cat([cols(self.next_raw), raws], 0)
         slots = np.arange(self.n) if idx is None else idx.numpy()
         return slots, preds, raw
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def forecast(self) -> np.ndarray:
         """``(num_slots, pred_len, 2)`` metres for pedestrians present at the last observation
         (rolled out together, each step feeding all their predictions back); other slots hold their
@@ -272,7 +280,7 @@ class OnlineForecaster:
             out[slots] = self.p.norm.denormalise(preds).permute(1, 0, 2).numpy().astype(np.float32)
         return out
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def forecast_distribution(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`forecast` with each step's Gaussian (gaussian head only): ``mean (num_slots, pred_len, 2)``
         metres, ``sigma (num_slots, pred_len, 2)`` metres and ``rho (num_slots, pred_len)``, float32; slots not

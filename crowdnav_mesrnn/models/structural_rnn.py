@@ -128,6 +128,15 @@ def tanh_from_doubled(z2: torch.Tensor) -> torch.Tensor:
     return torch.sigmoid(z2).mul(2.0).sub_(1.0)
 
 
+def lstm_pointwise_regrouped(gates: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`lstm_pointwise` in fewer operations (``i (2g − 1) = 2 i g − i``, ``o (2 s − 1) = 2 o s − o``): the
+    same function, different float32 rounding; used by the online path only."""
+    s = torch.sigmoid(gates)
+    i, f, g, o = s.chunk(4, dim=-1)
+    c_new = torch.addcmul(torch.addcmul(-i, f, c), i, g, value=2.0)
+    return torch.addcmul(-o, o, torch.sigmoid(c_new * 2.0), value=2.0), c_new
+
+
 def lstm_pointwise(gates: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The LSTM update from pre-activations ``(..., 4H)`` ordered ``[i, f, g, o]`` whose ``g`` block is
     already doubled (see :func:`_gate_scale`); returns ``(h, c)``, each ``(..., H)``."""
@@ -259,6 +268,15 @@ class StructuralRNN(nn.Module):
             with torch.no_grad():
                 self.scale_head.bias.copy_(torch.tensor([raw_sigma_init(), raw_sigma_init(), 0.0]))
         self._prepared: tuple[tuple[int, ...], dict[str, torch.Tensor]] | None = None
+        self._online: tuple[tuple[int, ...], dict[str, Any]] | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        # the cached derived weights (one of them an opaque oneDNN tensor) are not part of the network: copies and
+        # pickles rebuild them on first use
+        state = self.__dict__.copy()
+        state["_prepared"] = None
+        state["_online"] = None
+        return state
 
     # ------------------------------------------------------------------ state
     def init_state(self, rows: int, device: torch.device | None = None) -> dict[str, torch.Tensor]:
@@ -310,25 +328,164 @@ class StructuralRNN(nn.Module):
             self._prepared = (key, out)
         return out
 
+    def _online_weights(self) -> dict[str, Any]:
+        """Weights of :meth:`continue_rollout` (inference only): the input and recurrent halves of every LSTM in one
+        matrix each (one product per LSTM and step), and the node LSTM's matrix prepacked for oneDNN where this
+        torch build has it. Cached like :meth:`_weights`."""
+        w = self._weights()
+        key = tuple(v for p in [*self.parameters(), *self.buffers()] for v in (p.data_ptr(), p._version))
+        if self._online is not None and self._online[0] == key:
+            return self._online[1]
+        node_w = torch.cat([w["node_x_w"], w["node_rec_w"]], 0)  # (embed + K edge_hidden + node_hidden, 4 H)
+        out: dict[str, Any] = {"node_w": node_w.contiguous(), "node_b": w["node_b"].contiguous(), "packed": None}
+        try:  # the product of the node LSTM, the largest of a step, prepacked (oneDNN, x86 builds)
+            packed = torch.ops.mkldnn._reorder_linear_weight(node_w.t().contiguous(), 64)
+            out["packed"] = (packed, torch.ops.mkldnn._linear_pointwise)
+        except (AttributeError, RuntimeError):
+            pass
+        if self.types:
+            out["edge_w"] = torch.cat([w["edge_x_w"], w["edge_h_w"]], 1).contiguous()  # (K, embed + hidden, 4 H)
+        self._online = (key, out)
+        return out
+
+    def online_step(
+        self,
+        p: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        m_tm1: torch.Tensor | None,
+        m_tm2: torch.Tensor | None,
+        state: dict[str, torch.Tensor],
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """One step of :meth:`step` for online forecasting (inference only) when all ``n`` pedestrians are present
+        at ``t``, with the operations regrouped for one forecast of a few dozen pedestrians (equal to float32
+        rounding, ``tests/models/test_gaussian_head.py``): the masks are skipped when everyone is also present at
+        ``t − 1`` and ``t − 2``, each LSTM's input and recurrent products are one matrix product, and the node
+        LSTM's weights are prepacked. The distribution head is not applied (see :meth:`continue_rollout`).
+
+        Args:
+            p: positions at ``t, t − 1, t − 2``, each ``(n, 2)`` normalised (0 where absent).
+            m_tm1, m_tm2: ``(n,)`` bool presence at ``t − 1`` and ``t − 2`` (None: everyone present).
+            state: hidden states of the ``n`` rows (not modified).
+
+        Returns:
+            ``(n, 2)`` the (mean) prediction of step ``t + 1`` and the new state.
+        """
+        w, ow = self._weights(), self._online_weights()
+        n, k = p[0].shape[0], len(self.types)
+        masks = None
+        if m_tm1 is not None or m_tm2 is not None:
+            ones = torch.ones(1, n, dtype=torch.bool)
+            masks = (ones, ones if m_tm1 is None else m_tm1[None], ones if m_tm2 is None else m_tm2[None])
+        if masks is None and k:
+            feats, vel = stacked_features_step(p[0], p[1], p[2], None, None, None, self.types)
+            feats = feats * self._online_feature_scale(n)
+        else:
+            feats, vel = self._features((p[0][None], p[1][None], p[2][None]), masks)
+            vel = vel[0]
+        node_in = vel if self.cfg.node_input == "velocity" else p[0]
+        x = tanh_from_doubled(torch.addmm(w["node_embed_b"], node_in * self.node_scale, w["node_embed_w"]))
+        new: dict[str, torch.Tensor] = {}
+        if k:
+            assert feats is not None
+            e = tanh_from_doubled(torch.baddbmm(w["edge_embed_b"], feats.reshape(k, -1, 2), w["edge_embed_w"]))
+            gates = torch.baddbmm(w["edge_b"], torch.cat([e, state["edge_h"]], -1), ow["edge_w"])
+            new["edge_h"], new["edge_c"] = lstm_pointwise_regrouped(gates, state["edge_c"])
+            z = torch.cat([x, *new["edge_h"].unbind(0), state["node_h"]], 1)
+        else:
+            new["edge_h"], new["edge_c"] = state["edge_h"], state["edge_c"]
+            z = torch.cat([x, state["node_h"]], 1)
+        packed = ow["packed"] if n >= 8 else None  # prepacking pays only for enough rows
+        if packed is not None:
+            node_gates = packed[1](z, packed[0], ow["node_b"], "none", [], "")
+        else:
+            node_gates = torch.addmm(ow["node_b"], z, ow["node_w"])
+        new["node_h"], new["node_c"] = lstm_pointwise_regrouped(node_gates, state["node_c"])
+        offset = torch.tanh(nn.functional.linear(new["node_h"], self.decoder.weight, self.decoder.bias))
+        nxt = p[0] + offset + vel if self.cfg.offset == "cv_residual" else p[0] + offset
+        return nxt, new
+
+    def _online_feature_scale(self, n: int) -> torch.Tensor:
+        """``(K, 1, 2)``: the mean aggregation's divisors (everyone of ``n`` present), ``feature_scale`` and the
+        input scales in one factor, cached per ``n`` with the online weights (one product instead of one per type)."""
+        ow = self._online_weights()
+        cache = ow.setdefault("feature_scale", {})
+        if n not in cache:
+            k = len(self.types)
+            nb = float(max(n - 1, 1))
+            div = {"S": nb, "ST": nb, "SS": nb * max(n - 2, 1), "TS": nb} if self.cfg.aggregate == "mean" else {}
+            inv = torch.tensor([1.0 / div.get(t, 1.0) for t in self.types], dtype=self.edge_scale.dtype)
+            cache[n] = (inv[:, None, None] * self.cfg.feature_scale * self.edge_scale[:k]).contiguous()
+        return cache[n]
+
+    def head_raw(self, node_h: torch.Tensor) -> torch.Tensor:
+        """The distribution head's raw ``(σx, σy, ρ)`` ``(..., 3)`` from node states ``(..., node_hidden)``."""
+        return nn.functional.linear(node_h, self.scale_head.weight, self.scale_head.bias)
+
+    def continue_rollout(
+        self,
+        first: torch.Tensor,
+        p_t: torch.Tensor,
+        p_tm1: torch.Tensor,
+        m_tm1: torch.Tensor,
+        state: dict[str, torch.Tensor],
+        steps: int,
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The free steps of :meth:`scan_distribution` after an observed step ``t``, by :meth:`online_step`
+        (inference only), for ``n`` pedestrians all present at ``t`` and all rolled out.
+
+        Args:
+            first: ``(n, 2)`` the prediction of step ``t + 1`` (the observed step's output), normalised.
+            p_t, p_tm1: ``(n, 2)`` positions at ``t`` and ``t − 1`` (0 where absent), normalised.
+            m_tm1: ``(n,)`` bool presence at ``t − 1``.
+            state: hidden states of the ``n`` rows after step ``t`` (not modified).
+            steps: free steps after ``first``.
+
+        Returns:
+            ``(steps, n, 2)`` the means of steps ``t + 2 ..`` and, with the gaussian head, the raw ``(σx, σy, ρ)``
+            ``(steps, n, 3)`` (None with the point head), computed for all steps at once after the loop.
+        """
+        n = first.shape[0]
+        cur, h0, h1 = first, p_t, p_tm1
+        m2: torch.Tensor | None = None if bool(m_tm1.all()) else m_tm1  # presence at t − 1, for the first step
+        preds: list[torch.Tensor] = []
+        hs: list[torch.Tensor] = []
+        for _ in range(steps):
+            nxt, state = self.online_step((cur, h0, h1), None, m2, state)
+            h1, h0, cur, m2 = h0, cur, nxt, None
+            preds.append(nxt)
+            hs.append(state["node_h"])
+        if not preds:
+            return first.new_zeros(0, n, 2), (first.new_zeros(0, n, 3) if self.gaussian else None)
+        raw = self.head_raw(torch.cat(hs, 0)).view(steps, n, 3) if self.gaussian else None
+        return torch.stack(preds), raw
+
     # --------------------------------------------------------------- features
     def _features(
-        self, p: tuple[torch.Tensor, ...], m: tuple[torch.Tensor, ...]
+        self, p: tuple[torch.Tensor, ...], m: tuple[torch.Tensor, ...] | None
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
         """Scaled edge features ``(K, ..., N, 2)`` (``None`` without edge types) and the velocity
-        ``(..., N, 2)``, from positions/masks at t, t−1, t−2 (each ``(..., N, ·)``)."""
+        ``(..., N, 2)``, from positions/masks at t, t−1, t−2 (each ``(..., N, ·)``); ``m=None`` when every
+        pedestrian is present at all three steps (the same values with fewer operations)."""
         dt = p[0].dtype
         k = len(self.types)
         if not k:
-            return None, (p[0] - p[1]) * (m[0] & m[1]).unsqueeze(-1).to(dt)
-        w = [x.to(dt).unsqueeze(-1) for x in m]  # (..., N, 1)
-        feats, vel = stacked_features_step(p[0], p[1], p[2], w[0], w[1], w[2], self.types)
-        if self.cfg.aggregate == "mean":
-            n_t = w[0].sum(-2, keepdim=True)  # (..., 1, 1)
-            nb = (n_t - 1).clamp(min=1)
-            div = {"S": nb, "ST": nb, "SS": nb * (n_t - 2).clamp(min=1)}
-            if "TS" in self.types:
-                div["TS"] = (w[1].sum(-2, keepdim=True) - 1).clamp(min=1)
-            feats = torch.stack([f / div[t] if t in div else f for t, f in zip(self.types, feats, strict=True)])
+            return None, p[0] - p[1] if m is None else (p[0] - p[1]) * (m[0] & m[1]).unsqueeze(-1).to(dt)
+        if m is None:
+            feats, vel = stacked_features_step(p[0], p[1], p[2], None, None, None, self.types)
+            if self.cfg.aggregate == "mean":
+                n = p[0].shape[-2]
+                nb = float(max(n - 1, 1))
+                div_d = {"S": nb, "ST": nb, "SS": nb * max(n - 2, 1), "TS": nb}
+                feats = torch.stack([f / div_d[t] if t in div_d else f for t, f in zip(self.types, feats, strict=True)])
+        else:
+            w = [x.to(dt).unsqueeze(-1) for x in m]  # (..., N, 1)
+            feats, vel = stacked_features_step(p[0], p[1], p[2], w[0], w[1], w[2], self.types)
+            if self.cfg.aggregate == "mean":
+                n_t = w[0].sum(-2, keepdim=True)  # (..., 1, 1)
+                nb_t = (n_t - 1).clamp(min=1)
+                div = {"S": nb_t, "ST": nb_t, "SS": nb_t * (n_t - 2).clamp(min=1)}
+                if "TS" in self.types:
+                    div["TS"] = (w[1].sum(-2, keepdim=True) - 1).clamp(min=1)
+                feats = torch.stack([f / div[t] if t in div else f for t, f in zip(self.types, feats, strict=True)])
         if self.cfg.feature_scale != 1.0:
             feats = feats * self.cfg.feature_scale
         return feats * self.edge_scale[:k].reshape(k, *([1] * (feats.dim() - 2)), 2), vel
@@ -362,11 +519,11 @@ class StructuralRNN(nn.Module):
         self,
         w: dict[str, torch.Tensor],
         p: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-        m: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        m: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None,
         rows: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
         """Input halves of the node and edge gates for ``rows`` of the flattened ``(..., N)`` grid
-        (``None``: all), from positions/masks at t, t−1, t−2 (each ``(..., N, ·)``).
+        (``None``: all), from positions/masks at t, t−1, t−2 (each ``(..., N, ·)``; ``m=None``: everyone present).
 
         Returns ``node (P, 4 node_hidden)``, ``edge (K, P, 4 edge_hidden)`` or ``None``, and the
         velocity ``(..., N, 2)``.
@@ -527,6 +684,9 @@ class StructuralRNN(nn.Module):
             roll = roll_mask.bool()
             rows_idx = torch.nonzero(roll.reshape(-1)).flatten()
             rows = None if len(rows_idx) == r else rows_idx
+            # everyone rolled out and present at the two steps before: the masks are all True, and the features
+            # are computed without them (the same values); this holds from the third free step on when rows is None
+            full = [rows is None and bool(x.all()) for x in h_m]
             if feed is not None and preds:
                 preds[-1] = feed(preds[-1], raws[-1])
             prev = preds[-1] if preds else first_pred
@@ -534,8 +694,9 @@ class StructuralRNN(nn.Module):
                 raise ValueError("free steps after no known step need first_pred")
             zeros = prev.new_zeros(())
             for _ in range(free_steps):
-                p_t = torch.where(roll.unsqueeze(-1), prev, zeros)
-                node_x, edge_x, vel = self._gate_inputs(w, (p_t, *h_p), (roll, *h_m), rows)
+                dense = rows is None and full[0] and full[1]
+                p_t = prev if rows is None else torch.where(roll.unsqueeze(-1), prev, zeros)
+                node_x, edge_x, vel = self._gate_inputs(w, (p_t, *h_p), None if dense else (roll, *h_m), rows)
                 offset = self._advance(w, live, rows, node_x, edge_x).view(b, n, -1)
                 if gaussian:
                     raws.append(offset[..., 2:])
@@ -546,6 +707,7 @@ class StructuralRNN(nn.Module):
                 preds.append(prev)
                 used.append(roll)
                 h_p, h_m = (p_t, h_p[0]), (roll, h_m[0])
+                full = [rows is None, full[0]]
         live.flush()
         if not preds:
             none_raw = known_p.new_zeros(0, b, n, 3) if gaussian else None
