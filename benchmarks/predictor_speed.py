@@ -157,7 +157,7 @@ def with_random_head(pred: LearnedPredictor) -> LearnedPredictor:
     """The same weights with a distribution head (random head weights: the timing does not depend on them)."""
     net = StructuralRNN(ModelConfig.from_dict({**pred.net.cfg.to_dict(), "head": "gaussian"}))
     torch.manual_seed(0)
-    head = {f"scale_head.{k}": torch.randn_like(v) * 0.1 for k, v in net.scale_head.state_dict().items()}
+    head = {k: torch.randn_like(v) * 0.1 for k, v in net.state_dict().items() if k not in pred.net.state_dict()}
     net.load_state_dict({**pred.net.state_dict(), **head})
     return LearnedPredictor(net, pred.norm)
 

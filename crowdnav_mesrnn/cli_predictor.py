@@ -58,7 +58,10 @@ def _train(args: argparse.Namespace) -> int:
         f"{len(trainer.val_windows)} val windows -> {out}"
     )
     res = trainer.fit(progress=not args.no_progress, tensorboard=args.tensorboard)
-    print(f"best val ADE {res['best_val_ade_m']:.3f} m; checkpoints in {out}")
+    if res["select_on"] == "nll":
+        print(f"best val NLL {res['best_val_nll_m']:.3f} (ADE {res['best_val_ade_m']:.3f} m); checkpoints in {out}")
+    else:
+        print(f"best val ADE {res['best_val_ade_m']:.3f} m; checkpoints in {out}")
     return 0
 
 

@@ -469,7 +469,7 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
     from crowdnav_mesrnn.evaluation import batches, collect_forecasts
     from crowdnav_mesrnn.models.learned import LearnedPredictor
     from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
-    from crowdnav_mesrnn.training import rotate_windows, training_loss
+    from crowdnav_mesrnn.training import make_optimizer, rotate_windows, training_loss
 
     windows = split_windows("zara1", "train", tcfg.min_scored, data_dir)
     norm = MinMax.fit(np.concatenate([w.positions[w.present] for w in windows]))
@@ -480,7 +480,7 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
     chunks = [chunks[0], *(chunks[i] for i in picks)]
     torch.manual_seed(0)
     net = StructuralRNN(mcfg).train()
-    opt = torch.optim.Adam(net.parameters(), tcfg.lr)
+    opt = make_optimizer(net, tcfg)
     rng = np.random.default_rng(0)
     seen = peds = 0
     elapsed = 0.0
@@ -491,7 +491,7 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
             pos = rotate_windows(pos, pres, rng)
         p, m = torch.from_numpy(pos), torch.from_numpy(pres)
         p = torch.where(m.unsqueeze(-1), norm.normalise(p), torch.zeros_like(p))
-        loss = training_loss(net, p, m, tcfg.teacher_forcing, tcfg.precision)
+        loss = training_loss(net, p, m, tcfg.teacher_forcing, tcfg.precision, tcfg.nll_beta, tcfg.mean_loss)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), tcfg.grad_clip)

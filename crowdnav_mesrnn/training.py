@@ -67,6 +67,21 @@ class TrainConfig:
     """Arithmetic of the training forward pass: ``fp32``, or ``bf16`` (``torch.autocast`` on the CPU: the
     matmuls in bfloat16 with float32 states, positions and loss; about twice the throughput on CPUs with
     AVX-512 BF16). Validation and the shipped weights are always float32."""
+    mean_loss: str = "nll"
+    """For a distribution head, what trains the means: ``nll`` (the negative log-likelihood, as the scales) or
+    ``mse`` (the point head's squared error, :func:`masked_loss`; the likelihood then trains only the scales and
+    correlation, its errors taken as constants). With ``mse`` and ``scale_detach`` the point forecast is trained
+    exactly as a point head is, and the distribution is fitted to its errors."""
+    scale_lr: float | None = None
+    """Learning rate of the distribution head's layer (None: ``lr``). The head starts at one scale for every step
+    and must reach scales that grow tenfold over the horizon; Adam moves a weight by about the learning rate per
+    step, so at the recipe's ``lr`` it takes thousands of steps, while the means (a correction to constant velocity)
+    need small moves."""
+    nll_beta: float = 0.0
+    """β of the β-NLL (Seitzer et al., ICLR 2022) for a distribution head: each position's negative log-likelihood
+    is weighted by ``(σx σy)^β`` with the gradient stopped through the weight. 0 is the plain NLL, whose gradient on
+    the mean is divided by the variance (a small initial scale then pushes the means hard while the scales are
+    still wrong); 1 gives the means the gradient of a squared error. In [0, 1]."""
     select_on: str = "ade"
     """Which validation figure picks ``best.pt`` among the epochs: ``ade`` (metres) or ``nll`` (the negative
     log-likelihood of the true positions under the distribution head's Gaussians; needs ``head: gaussian``)."""
@@ -99,6 +114,12 @@ def load_configs(
     check_split(tcfg.split)
     if tcfg.precision not in PRECISIONS:
         raise ConfigError(f"precision must be one of {', '.join(PRECISIONS)}, got {tcfg.precision!r}")
+    if tcfg.scale_lr is not None and not (isinstance(tcfg.scale_lr, float | int) and tcfg.scale_lr > 0):
+        raise ConfigError(f"scale_lr must be a positive number or null, got {tcfg.scale_lr!r}")
+    if tcfg.mean_loss not in ("nll", "mse"):
+        raise ConfigError(f"mean_loss must be 'nll' or 'mse', got {tcfg.mean_loss!r}")
+    if not 0.0 <= tcfg.nll_beta <= 1.0:
+        raise ConfigError(f"nll_beta must lie in [0, 1], got {tcfg.nll_beta!r}")
     if tcfg.select_on not in SELECT_ON:
         raise ConfigError(f"select_on must be one of {', '.join(SELECT_ON)}, got {tcfg.select_on!r}")
     if tcfg.select_on == "nll" and mcfg.head != "gaussian":
@@ -150,21 +171,53 @@ def masked_loss(pred: torch.Tensor, used: torch.Tensor, positions: torch.Tensor,
     return (((p - target) ** 2) * valid).sum() / n
 
 
+def make_optimizer(net: StructuralRNN, tcfg: TrainConfig) -> torch.optim.Adam:
+    """Adam over every parameter at ``lr``; the distribution head's at ``scale_lr`` when set."""
+    if tcfg.scale_lr is None or not net.gaussian:
+        return torch.optim.Adam(net.parameters(), lr=tcfg.lr)
+    head = net.head_parameters()
+    ids = {id(p) for p in head}
+    rest = [p for p in net.parameters() if id(p) not in ids]
+    return torch.optim.Adam([{"params": rest}, {"params": head, "lr": tcfg.scale_lr}], lr=tcfg.lr)
+
+
 def gaussian_nll_loss(
-    pred: torch.Tensor, raw: torch.Tensor, used: torch.Tensor, positions: torch.Tensor, mask: torch.Tensor
+    pred: torch.Tensor,
+    raw: torch.Tensor,
+    used: torch.Tensor,
+    positions: torch.Tensor,
+    mask: torch.Tensor,
+    beta: float = 0.0,
+    mean_loss: str = "nll",
 ) -> torch.Tensor:
     """Mean negative log-likelihood (normalised units) of the targets ``OBS_LEN..T-1`` under the distribution
-    head's Gaussians (means ``pred``, raw scales ``raw (B, T−1, N, 3)``), where input and target are present."""
+    head's Gaussians (means ``pred``, raw scales ``raw (B, T−1, N, 3)``), where input and target are present;
+    with ``beta > 0`` the β-NLL (each term weighted by the detached ``(σx σy)^β``, :attr:`TrainConfig.nll_beta`);
+    with ``mean_loss="mse"`` the means are trained by :func:`masked_loss` and the likelihood sees them as constants
+    (:attr:`TrainConfig.mean_loss`)."""
+    if mean_loss == "mse":
+        return masked_loss(pred, used, positions, mask) + gaussian_nll_loss(
+            pred.detach(), raw, used, positions, mask, beta
+        )
     p = pred[:, OBS_LEN - 1 :]
     sigma, rho = params_from_raw(raw[:, OBS_LEN - 1 :])
     valid = used[:, OBS_LEN - 1 :] & mask[:, OBS_LEN:]
     target = torch.where(valid.unsqueeze(-1), positions[:, OBS_LEN:], p.detach())
     per = gaussian.nll(target - p, sigma, rho)
-    return (per * valid.to(per.dtype)).sum() / valid.sum().clamp(min=1)
+    weight = valid.to(per.dtype)
+    if beta:
+        weight = weight * (sigma[..., 0] * sigma[..., 1]).detach().pow(beta)
+    return (per * weight).sum() / valid.sum().clamp(min=1)
 
 
 def training_loss(
-    net: StructuralRNN, normed: torch.Tensor, mask: torch.Tensor, teacher_forcing: bool, precision: str = "fp32"
+    net: StructuralRNN,
+    normed: torch.Tensor,
+    mask: torch.Tensor,
+    teacher_forcing: bool,
+    precision: str = "fp32",
+    nll_beta: float = 0.0,
+    mean_loss: str = "nll",
 ) -> torch.Tensor:
     """The loss of one batch ``(B, T, N, 2)`` normalised: :func:`masked_loss` (MSE) for a point head,
     :func:`gaussian_nll_loss` for the distribution head."""
@@ -172,7 +225,7 @@ def training_loss(
         pred, raw, used = net.forward_distribution(normed, mask, OBS_LEN, teacher_forcing=teacher_forcing)
     if raw is None:
         return masked_loss(pred.float(), used, normed, mask)
-    return gaussian_nll_loss(pred.float(), raw.float(), used, normed, mask)
+    return gaussian_nll_loss(pred.float(), raw.float(), used, normed, mask, nll_beta, mean_loss)
 
 
 class Trainer:
@@ -183,7 +236,7 @@ class Trainer:
         self.out = Path(out_dir)
         torch.manual_seed(tcfg.seed)
         self.net = StructuralRNN(mcfg)
-        self.opt = torch.optim.Adam(self.net.parameters(), lr=tcfg.lr)
+        self.opt = make_optimizer(self.net, tcfg)
         train_recs = load_split(tcfg.split, "train", tcfg.data_dir)
         self.norm = MinMax.fit_recordings(train_recs)
         self.train_windows: list[Window] = split_windows(tcfg.split, "train", tcfg.min_scored, tcfg.data_dir)
@@ -292,7 +345,7 @@ class Trainer:
             pos_t = torch.from_numpy(pos)
             mask_t = torch.from_numpy(pres)
             normed = torch.where(mask_t.unsqueeze(-1), self.norm.normalise(pos_t), torch.zeros_like(pos_t))
-            loss = training_loss(self.net, normed, mask_t, t.teacher_forcing, t.precision)
+            loss = training_loss(self.net, normed, mask_t, t.teacher_forcing, t.precision, t.nll_beta, t.mean_loss)
             if not torch.isfinite(loss):
                 raise TrainingDivergedError(
                     f"loss became {loss.item()} in epoch {self.epoch + 1}; stopped. The last good checkpoint "

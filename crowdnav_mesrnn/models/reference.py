@@ -87,7 +87,8 @@ def reference_forward(
         p_t = torch.where(m_t.unsqueeze(-1), p_t, zeros_p)
         pred, state = reference_step(net, (p_t, hist_p[0], hist_p[1]), (m_t, hist_m[0], hist_m[1]), state)
         if net.gaussian:
-            raw = net.scale_head(state["node_h"]).reshape(b, n, 3)
+            ahead = 0 if (t < obs_len or teacher_forcing) else t - obs_len + 1  # steps after the last observed input
+            raw = (net.scale_head(state["node_h"]) + net.step_bias[min(ahead, len(net.step_bias) - 1)]).reshape(b, n, 3)
             if raws is not None:
                 raws.append(raw)
             if feed is not None and not teacher_forcing and t >= obs_len - 1:

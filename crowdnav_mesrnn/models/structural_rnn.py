@@ -18,12 +18,16 @@ import torch
 from torch import nn
 
 from crowdnav_mesrnn.config import ConfigError, replace_checked
+from crowdnav_mesrnn.data.constants import PRED_LEN
 from crowdnav_mesrnn.graph.metapaths import stacked_features_step
 from crowdnav_mesrnn.models.gaussian import params_from_raw, raw_sigma_init
 from crowdnav_mesrnn.models.gaussian import sample as gaussian_sample
 
 #: Values of :attr:`ModelConfig.head`.
 HEADS: tuple[str, ...] = ("point", "gaussian")
+#: Fields of the distribution head with their point-model values: left out of a config's repr and saved dict when
+#: they hold these, so point configs read (and hash, in the forecast cache's keys) as before the head existed.
+_POINT_DEFAULTS: dict[str, Any] = {"head": "point", "scale_detach": False}
 
 MODEL_TYPES: dict[str, tuple[str, ...]] = {
     "mesrnn": ("S", "T", "SS", "ST", "TS", "TT"),
@@ -66,13 +70,20 @@ class ModelConfig:
     Gaussian over the next position: the same offset as its mean, plus two scales and a correlation from a
     second linear layer on the node state, :mod:`crowdnav_mesrnn.models.gaussian`; trained by negative
     log-likelihood). The point path is the same arithmetic with either head."""
+    scale_detach: bool = False
+    """With the gaussian head: the scales and correlation are read from the node state with the gradient stopped,
+    so learning them never changes the features the mean (the point forecast) is decoded from."""
     types: tuple[str, ...] = field(default=())
     """Meta-path types; filled from ``model`` (not set by hand)."""
 
     def __repr__(self) -> str:
-        # ``head`` appears only when it is not the default, so a point config's repr (hashed into the forecast
-        # cache's keys, envs.forecast_cache.predictor_fingerprint) is what it was before the field existed.
-        names = [f.name for f in fields(self) if f.name != "head" or self.head != "point"]
+        # the head's fields appear only when they are not the point defaults, so a point config's repr (hashed into
+        # the forecast cache's keys, envs.forecast_cache.predictor_fingerprint) is what it was before they existed.
+        names = [
+            f.name
+            for f in fields(self)
+            if f.name not in _POINT_DEFAULTS or getattr(self, f.name) != _POINT_DEFAULTS[f.name]
+        ]
         return f"ModelConfig({', '.join(f'{n}={getattr(self, n)!r}' for n in names)})"
 
     def __post_init__(self) -> None:
@@ -86,6 +97,8 @@ class ModelConfig:
             raise ConfigError(f"offset must be 'absolute' or 'cv_residual', got {self.offset!r}")
         if self.head not in HEADS:
             raise ConfigError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
+        if self.scale_detach and self.head != "gaussian":
+            raise ConfigError("scale_detach needs head: gaussian")
         if self.types != MODEL_TYPES[self.model]:
             if self.types:
                 raise ConfigError(f"types {self.types} do not match model {self.model!r} ({MODEL_TYPES[self.model]})")
@@ -102,12 +115,13 @@ class ModelConfig:
         return replace_checked(cls(model=d.get("model", "mesrnn")), d, "model config")
 
     def to_dict(self) -> dict:
-        """The config as saved in checkpoints (``head`` only when not ``point``, so point configs read the same as
-        those saved before the field existed: resuming and comparing them keeps working)."""
+        """The config as saved in checkpoints (the head's fields only when not the point defaults, so point configs
+        read the same as those saved before the fields existed: resuming and comparing them keeps working)."""
         out = asdict(self)
         out["types"] = list(self.types)
-        if self.head == "point":
-            del out["head"]
+        for key, default in _POINT_DEFAULTS.items():
+            if out[key] == default:
+                del out[key]
         return out
 
 
@@ -267,6 +281,9 @@ class StructuralRNN(nn.Module):
             nn.init.zeros_(self.scale_head.weight)
             with torch.no_grad():
                 self.scale_head.bias.copy_(torch.tensor([raw_sigma_init(), raw_sigma_init(), 0.0]))
+            # added to the raw output by how many steps ahead of the last observed input the prediction is
+            # (0: the step after an observation; k: the k-th step fed with the model's own prediction)
+            self.step_bias = nn.Parameter(torch.zeros(PRED_LEN, 3))
         self._prepared: tuple[tuple[int, ...], dict[str, torch.Tensor]] | None = None
         self._online: tuple[tuple[int, ...], dict[str, Any]] | None = None
 
@@ -416,9 +433,22 @@ class StructuralRNN(nn.Module):
             cache[n] = (inv[:, None, None] * self.cfg.feature_scale * self.edge_scale[:k]).contiguous()
         return cache[n]
 
-    def head_raw(self, node_h: torch.Tensor) -> torch.Tensor:
-        """The distribution head's raw ``(σx, σy, ρ)`` ``(..., 3)`` from node states ``(..., node_hidden)``."""
+    def head_parameters(self) -> list[nn.Parameter]:
+        """The distribution head's parameters (empty with the point head)."""
+        return [*self.scale_head.parameters(), self.step_bias] if self.gaussian else []
+
+    def _head_linear(self, node_h: torch.Tensor) -> torch.Tensor:
         return nn.functional.linear(node_h, self.scale_head.weight, self.scale_head.bias)
+
+    def _step_bias(self, ahead: int) -> torch.Tensor:
+        """``(3,)`` the head's bias for a prediction ``ahead`` steps after the last observed input (the last row
+        serves every longer horizon)."""
+        return self.step_bias[min(ahead, len(self.step_bias) - 1)]
+
+    def head_raw(self, node_h: torch.Tensor, ahead: int = 0) -> torch.Tensor:
+        """The distribution head's raw ``(σx, σy, ρ)`` ``(..., 3)`` from node states ``(..., node_hidden)`` of a
+        prediction ``ahead`` steps after the last observed input."""
+        return self._head_linear(node_h) + self._step_bias(ahead)
 
     def continue_rollout(
         self,
@@ -455,7 +485,10 @@ class StructuralRNN(nn.Module):
             hs.append(state["node_h"])
         if not preds:
             return first.new_zeros(0, n, 2), (first.new_zeros(0, n, 3) if self.gaussian else None)
-        raw = self.head_raw(torch.cat(hs, 0)).view(steps, n, 3) if self.gaussian else None
+        raw = None
+        if self.gaussian:
+            ahead = torch.arange(1, steps + 1).clamp(max=len(self.step_bias) - 1)
+            raw = self._head_linear(torch.cat(hs, 0)).view(steps, n, 3) + self.step_bias[ahead][:, None]
         return torch.stack(preds), raw
 
     # --------------------------------------------------------------- features
@@ -554,7 +587,7 @@ class StructuralRNN(nn.Module):
         offset = torch.tanh(nn.functional.linear(h, self.decoder.weight, self.decoder.bias))
         if not self.gaussian:
             return offset
-        return torch.cat([offset, nn.functional.linear(h, self.scale_head.weight, self.scale_head.bias)], dim=-1)
+        return torch.cat([offset, self._head_linear(h.detach() if self.cfg.scale_detach else h)], dim=-1)
 
     def _recurrent(
         self,
@@ -672,7 +705,7 @@ class StructuralRNN(nn.Module):
                 rows = None if count == r else rows_all[t] - t * r
                 offset = self._advance(w, live, rows, node_xs[t], edge_xs[t]).view(b, n, -1)
                 if gaussian:
-                    raws.append(offset[..., 2:])
+                    raws.append(offset[..., 2:] + self._step_bias(0))
                     offset = offset[..., :2]
                 preds.append(known_p[t] + offset + vel[t] if residual else known_p[t] + offset)
                 used.append(known_m[t])
@@ -693,13 +726,13 @@ class StructuralRNN(nn.Module):
             if prev is None:
                 raise ValueError("free steps after no known step need first_pred")
             zeros = prev.new_zeros(())
-            for _ in range(free_steps):
+            for k in range(free_steps):
                 dense = rows is None and full[0] and full[1]
                 p_t = prev if rows is None else torch.where(roll.unsqueeze(-1), prev, zeros)
                 node_x, edge_x, vel = self._gate_inputs(w, (p_t, *h_p), None if dense else (roll, *h_m), rows)
                 offset = self._advance(w, live, rows, node_x, edge_x).view(b, n, -1)
                 if gaussian:
-                    raws.append(offset[..., 2:])
+                    raws.append(offset[..., 2:] + self._step_bias(k + 1))
                     offset = offset[..., :2]
                 prev = p_t + offset + vel if residual else p_t + offset
                 if feed is not None:

@@ -100,7 +100,7 @@ def test_the_heads_mean_is_the_point_networks_forecast(model: str) -> None:
     """The same weights with and without the distribution head forecast the same points, to the bit."""
     g_net = random_net(model, **RESIDUAL).eval()
     p_net = StructuralRNN(ModelConfig(model=model, **{**SMALL, **RESIDUAL})).eval()
-    shared = {k: v for k, v in g_net.state_dict().items() if not k.startswith("scale_head")}
+    shared = {k: v for k, v in g_net.state_dict().items() if not k.startswith("scale_head") and k != "step_bias"}
     p_net.load_state_dict(shared)
     pos, mask = random_batch()
     with torch.no_grad():
@@ -196,7 +196,7 @@ def test_online_distribution_equals_from_scratch(model: str) -> None:
     want = pred.forecast_distribution(hist, mask)
     for a, b in zip(got, want, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(got[0], pred.forecast(hist, mask), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(got[0], pred.forecast(hist, mask), rtol=1e-5, atol=1e-4)
     assert np.all(got[1][~mask[-1]] == 0) and np.all(got[1][mask[-1]] > 0)
 
 
@@ -292,12 +292,8 @@ def test_incremental_forecasts_equal_from_scratch_with_50_pedestrians(head: str)
     else:
         net = StructuralRNN(ModelConfig.from_dict({**shipped.net.cfg.to_dict(), "head": "gaussian"}))
         torch.manual_seed(0)
-        net.load_state_dict(
-            {
-                **shipped.net.state_dict(),
-                **{f"scale_head.{k}": torch.randn_like(v) * 0.1 for k, v in net.scale_head.state_dict().items()},
-            }
-        )
+        head = {k: torch.randn_like(v) * 0.1 for k, v in net.state_dict().items() if k not in shipped.net.state_dict()}
+        net.load_state_dict({**shipped.net.state_dict(), **head})
         pred = LearnedPredictor(net, shipped.norm)
     pos, mask = crowd_sequence(30, 50, seed=3)
     online = pred.online(50)
@@ -350,3 +346,18 @@ def test_networks_copy_and_pickle_after_online_use() -> None:
     m = torch.ones(1, 8, 3, dtype=torch.bool)
     with torch.no_grad():
         assert torch.equal(twin.rollout(x, m, 12), pred.net.rollout(x, m, 12))
+
+
+def test_scale_detach_keeps_the_scales_gradient_out_of_the_trunk() -> None:
+    pos, mask = random_batch()
+    for detach in (False, True):
+        net = random_net("srnn", scale_detach=detach, **RESIDUAL).train()
+        _, raw, _ = net.forward_distribution(pos, mask, 8, teacher_forcing=False)
+        assert raw is not None
+        grads = torch.autograd.grad(raw.sum(), [net.node_cell.weight_hh, net.scale_head.weight], allow_unused=True)
+        assert grads[1] is not None and grads[1].abs().sum() > 0
+        trunk = grads[0]
+        assert (trunk is None or trunk.abs().sum() == 0) == detach
+    with pytest.raises(Exception, match="scale_detach needs head: gaussian"):
+        ModelConfig(scale_detach=True)
+    assert "scale_detach" not in repr(ModelConfig()) and "scale_detach" not in ModelConfig().to_dict()
