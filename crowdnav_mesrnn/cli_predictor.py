@@ -258,10 +258,11 @@ def add_parser(sub: Any) -> None:
     )
     e.add_argument(
         "--sampling",
-        default="marginal",
-        choices=("marginal", "feedback"),
-        help="marginal: each step drawn from its Gaussian of the mean rollout (Social-STGCNN's protocol, default); "
-        "feedback: every draw fed back as the next input",
+        default="coherent",
+        choices=("marginal", "coherent", "feedback"),
+        help="coherent (default): each step drawn from its Gaussian of the mean rollout, one draw per sample shared "
+        "by all steps; marginal: one draw per step (Social-STGCNN's protocol); feedback: every draw fed back as the "
+        "next input",
     )
     e.add_argument("--seed", type=int, default=0, help="seed of the samples (default 0)")
     e.add_argument(

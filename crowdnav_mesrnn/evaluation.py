@@ -220,8 +220,10 @@ def split_norm(split: str, data_dir: str | os.PathLike[str] | None = None) -> Mi
 
 
 #: Values of ``sampling`` in :func:`evaluate_model`: each step drawn from its Gaussian of the mean rollout
-#: (``marginal``, the protocol of Social-STGCNN's best-of-20), or every draw fed back as the next input (``feedback``).
-SAMPLINGS: tuple[str, ...] = ("marginal", "feedback")
+#: independently of the other steps (``marginal``, the protocol of Social-STGCNN's best-of-20), the same with one
+#: draw per sample shared by all steps (``coherent``: whole trajectories at one quantile of every step's Gaussian),
+#: or every draw fed back as the next input (``feedback``).
+SAMPLINGS: tuple[str, ...] = ("marginal", "coherent", "feedback")
 #: Metrics of a distribution added by :func:`evaluate_model`, each with a ``_ci`` interval.
 DISTRIBUTION_KEYS = ("nll_m", "min_ade_m", "min_fde_m")
 
@@ -258,7 +260,7 @@ def evaluate_model(
     batch_size: int = 64,
     window_sums: dict[str, dict[str, np.ndarray]] | None = None,
     samples: int = 0,
-    sampling: str = "marginal",
+    sampling: str = "coherent",
     seed: int = 0,
     head: str = "point",
     block_len: int = 20,
@@ -322,7 +324,7 @@ def evaluate_model(
             def draw(
                 pos: torch.Tensor, mask: torch.Tensor, k: int, p: Any = predictor, g: torch.Generator = gen
             ) -> torch.Tensor:
-                return p.sample_batch(pos, mask, k, g, feedback=sampling == "feedback")
+                return p.sample_batch(pos, mask, k, g, feedback=sampling == "feedback", coherent=sampling == "coherent")
 
             scored = collect_forecasts(
                 windows, distribution=predictor.predict_distribution_batch, sample=draw, samples=samples

@@ -108,8 +108,10 @@ class GaussianForecast:
     sigma: torch.Tensor
     rho: torch.Tensor
 
-    def draw(self, samples: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """``(B, samples, P, N, 2)`` positions drawn from every step's Gaussian independently of the other steps."""
+    def draw(self, samples: int, generator: torch.Generator | None = None, coherent: bool = False) -> torch.Tensor:
+        """``(B, samples, P, N, 2)`` positions, each step drawn from its Gaussian: independently of the other steps,
+        or (``coherent``) with one standard normal draw per sample and pedestrian shared by all steps (a trajectory
+        that keeps to the same quantile of every step's Gaussian; each step's distribution is the same)."""
         b, p, n, _ = self.mean.shape
-        eps = torch.randn((b, samples, p, n, 2), generator=generator, dtype=self.mean.dtype)
-        return sample(self.mean[:, None], self.sigma[:, None], self.rho[:, None], eps)
+        eps = torch.randn((b, samples, 1 if coherent else p, n, 2), generator=generator, dtype=self.mean.dtype)
+        return sample(self.mean[:, None], self.sigma[:, None], self.rho[:, None], eps.expand(b, samples, p, n, 2))

@@ -85,19 +85,23 @@ class LearnedPredictor:
         feedback: bool = False,
         obs_len: int = OBS_LEN,
         pred_len: int = PRED_LEN,
+        coherent: bool = False,
     ) -> torch.Tensor:
         """Sampled futures ``(B, samples, pred_len, N, 2)`` metres (gaussian head only).
 
         Args:
-            feedback: False draws every step from its Gaussian of the mean rollout, independently of the other
-                steps (each step's distribution given the observation); True feeds every drawn position back as
-                the next input (:meth:`StructuralRNN.sample_rollout`).
+            feedback: False draws every step from its Gaussian of the mean rollout (each step's distribution given
+                the observation); True feeds every drawn position back as the next input
+                (:meth:`StructuralRNN.sample_rollout`).
+            coherent: without feedback, one draw per sample and pedestrian for all steps
+                (:meth:`GaussianForecast.draw`) instead of one per step.
         """
         self._distribution_needed()
         if samples < 1:
             raise ValueError(f"samples must be >= 1, got {samples}")
         if not feedback:
-            return self.predict_distribution_batch(positions_m, mask, obs_len, pred_len).draw(samples, generator)
+            dist = self.predict_distribution_batch(positions_m, mask, obs_len, pred_len)
+            return dist.draw(samples, generator, coherent=coherent)
         obs = positions_m[:, :obs_len].float()
         m = mask[:, :obs_len].bool()
         normed = torch.where(m.unsqueeze(-1), self.norm.normalise(obs), torch.zeros_like(obs))

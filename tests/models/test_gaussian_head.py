@@ -76,6 +76,17 @@ def test_samples_have_the_gaussians_moments_and_coverage() -> None:
         assert np.mean(d <= gaussian.chi2_radius(level)) == pytest.approx(level, abs=0.005)
 
 
+def test_coherent_draws_keep_each_steps_gaussian_and_one_quantile_along_the_trajectory() -> None:
+    g = torch.Generator().manual_seed(1)
+    mean = torch.tensor([[[[0.0, 0.0]], [[1.0, 0.0]]]])  # (B=1, P=2, N=1, 2)
+    sigma = torch.tensor([[[[0.5, 0.5]], [[1.0, 2.0]]]])
+    rho = torch.tensor([[[0.0], [0.5]]])
+    draws = gaussian.GaussianForecast(mean, sigma, rho).draw(100_000, g, coherent=True)[0, :, :, 0].double().numpy()
+    np.testing.assert_allclose(np.cov(draws[:, 1].T), [[1.0, 1.0], [1.0, 4.0]], rtol=0.03)
+    # the first coordinate's standardised value is the same at both steps
+    np.testing.assert_allclose(draws[:, 0, 0] / 0.5, draws[:, 1, 0] - 1.0, atol=1e-5)
+
+
 # ------------------------------------------------------------------ the point path is unchanged
 def test_point_configs_read_and_hash_as_before() -> None:
     """A point config's repr and saved dict are those of the code before the head existed: the forecast cache's
