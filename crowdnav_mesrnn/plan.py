@@ -469,7 +469,7 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
     from crowdnav_mesrnn.evaluation import batches, collect_forecasts
     from crowdnav_mesrnn.models.learned import LearnedPredictor
     from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
-    from crowdnav_mesrnn.training import make_optimizer, rotate_windows, training_loss
+    from crowdnav_mesrnn.training import clip_gradients, make_optimizer, rotate_windows, training_loss
 
     windows = split_windows("zara1", "train", tcfg.min_scored, data_dir)
     norm = MinMax.fit(np.concatenate([w.positions[w.present] for w in windows]))
@@ -494,7 +494,7 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
         loss = training_loss(net, p, m, tcfg.teacher_forcing, tcfg.precision, tcfg.nll_beta, tcfg.mean_loss)
         opt.zero_grad()
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), tcfg.grad_clip)
+        clip_gradients(net, tcfg.grad_clip)
         opt.step()
         if j:  # the first batch warms up
             elapsed += time.perf_counter() - t0
