@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from typing import Any
 
 import numpy as np
 import torch
@@ -162,10 +163,16 @@ def with_random_head(pred: LearnedPredictor) -> LearnedPredictor:
     return LearnedPredictor(net, pred.norm)
 
 
-def latency_table(repeats: int, peak_fp32: float, models: list[str], sizes: list[int]) -> None:
+def latency_table(repeats: int, peak_fp32: float, models: list[str], sizes: list[int], cpu_time: bool = False) -> None:
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
-    print("\nForecast latency, shipped zara1 weights, 1 thread (ms, median of", repeats, "calls):")
+    clock = time.process_time if cpu_time else time.perf_counter
+
+    def median_ms(fn: Any) -> float:
+        return median_seconds(fn, repeats, clock) * 1e3
+
+    what = "CPU time of this process" if cpu_time else "wall time"
+    print(f"\nForecast latency, shipped zara1 weights, 1 thread (ms of {what}, median of {repeats} calls):")
     print("  from scratch = LearnedPredictor.forecast: 8 observed steps + 12-step rollout;")
     print("  bf16         = the same under torch.autocast(bfloat16) (matmuls in bf16, states in fp32);")
     print("  scan incr.   = the incremental forecast before issue 19: one observed step + the rollout through the")
@@ -189,14 +196,14 @@ def latency_table(repeats: int, peak_fp32: float, models: list[str], sizes: list
         for n in sizes:
             hist = (np.cumsum(rng.normal(0, 0.3, (8, n, 2)), 0) + 5).astype(np.float32)
             mask = np.ones((8, n), bool)
-            scratch = median_seconds(lambda h=hist, m=mask, p=pred: p.forecast(h, m), repeats) * 1e3
+            scratch = median_ms(lambda h=hist, m=mask, p=pred: p.forecast(h, m))
 
             def scratch_bf16(h=hist, m=mask, p=pred) -> None:
                 with torch.autocast("cpu", dtype=torch.bfloat16):
                     p.forecast(h, m)
 
-            bf16 = median_seconds(scratch_bf16, repeats) * 1e3
-            scan_inc = median_seconds(ScanIncremental(pred, hist), repeats) * 1e3
+            bf16 = median_ms(scratch_bf16)
+            scan_inc = median_ms(ScanIncremental(pred, hist))
             online, online_d = pred.online(n), dist.online(n)
             for t in range(8):
                 online.observe(hist[t], mask[t])
@@ -210,8 +217,8 @@ def latency_table(repeats: int, peak_fp32: float, models: list[str], sizes: list
                 o.observe(h[-1], m[-1])
                 o.forecast_distribution()
 
-            inc = median_seconds(incremental, repeats) * 1e3
-            inc_d = median_seconds(incremental_dist, repeats) * 1e3
+            inc = median_ms(incremental)
+            inc_d = median_ms(incremental_dist)
             x = pred.norm.normalise(torch.from_numpy(hist))[None]
             mt = torch.from_numpy(mask)[None]
 
@@ -219,7 +226,7 @@ def latency_table(repeats: int, peak_fp32: float, models: list[str], sizes: list
                 with torch.no_grad():
                     reference_rollout(net, x, mt, PRED_LEN)
 
-            ref = median_seconds(first, repeats) * 1e3
+            ref = median_ms(first)
             floor = n * STEPS * macs * 2 / (peak_fp32 * 1e9) * 1e3
             online_floor = n * PRED_LEN * macs * 2 / (peak_fp32 * 1e9) * 1e3
             print(
@@ -237,6 +244,7 @@ def main() -> None:
     ap.add_argument("--latency-repeats", type=int, default=None, help="calls per latency median (default 9/25)")
     ap.add_argument("--models", nargs="+", default=["mesrnn", "srnn", "vlstm"], help="models of the latency table")
     ap.add_argument("--sizes", type=int, nargs="+", default=[1, 10, 50], help="pedestrians of the latency table")
+    ap.add_argument("--cpu-time", action="store_true", help="latency in CPU time of this process instead of wall time")
     args = ap.parse_args()
     keep_freed_memory()  # as in training
     reps = 9 if args.quick else 25
@@ -296,7 +304,13 @@ def main() -> None:
                 )
     if 1 not in peaks:
         peaks[1] = {torch.float32: matmul_peak_gflops(torch.float32, 1, reps)}
-    latency_table(args.latency_repeats or (9 if args.quick else 25), peaks[1][torch.float32], args.models, args.sizes)
+    latency_table(
+        args.latency_repeats or (9 if args.quick else 25),
+        peaks[1][torch.float32],
+        args.models,
+        args.sizes,
+        args.cpu_time,
+    )
 
 
 if __name__ == "__main__":

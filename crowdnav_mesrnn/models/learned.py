@@ -172,6 +172,7 @@ class OnlineForecaster:
         self.last_seen_m = np.zeros((num_slots, 2), np.float32)
         self.steps = 0
         self._scale = torch.as_tensor(predictor.norm.scale, dtype=torch.float32)
+        self._lo = torch.as_tensor(predictor.norm.lo, dtype=torch.float32)
 
     def _gather(self, idx: torch.Tensor | None) -> dict[str, torch.Tensor]:
         if idx is None:
@@ -198,9 +199,8 @@ class OnlineForecaster:
         pos = np.asarray(positions_m, dtype=np.float32).reshape(self.n, 2)
         now = np.asarray(present, dtype=bool).reshape(self.n)
         m = torch.from_numpy(now.reshape(1, self.n))
-        p_t = torch.where(
-            m.unsqueeze(-1), self.p.norm.normalise(torch.from_numpy(pos)[None]), torch.zeros(1, self.n, 2)
-        )
+        normed = (torch.from_numpy(pos)[None] - self._lo) * self._scale - 1.0  # MinMax.normalise, constants cached
+        p_t = normed if now.all() else torch.where(m.unsqueeze(-1), normed, torch.zeros(1, self.n, 2))
         net = self.p.net
         live = m | self.mask[0]
         every = bool(live.all())
@@ -278,10 +278,14 @@ class OnlineForecaster:
         """``(num_slots, pred_len, 2)`` metres for pedestrians present at the last observation
         (rolled out together, each step feeding all their predictions back); other slots hold their
         last observed position."""
-        out = np.repeat(self.last_seen_m[:, None, :], self.p.pred_len, axis=1)
         slots, preds, _ = self._rollout()
-        if preds is not None:
-            out[slots] = self.p.norm.denormalise(preds).permute(1, 0, 2).numpy().astype(np.float32)
+        if preds is None:
+            return np.repeat(self.last_seen_m[:, None, :], self.p.pred_len, axis=1)
+        metres = ((preds + 1.0) / self._scale + self._lo).permute(1, 0, 2).numpy()  # MinMax.denormalise
+        if len(slots) == self.n:
+            return np.ascontiguousarray(metres, dtype=np.float32)
+        out = np.repeat(self.last_seen_m[:, None, :], self.p.pred_len, axis=1)
+        out[slots] = metres
         return out
 
     @torch.inference_mode()

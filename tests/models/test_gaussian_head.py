@@ -372,3 +372,18 @@ def test_scale_detach_keeps_the_scales_gradient_out_of_the_trunk() -> None:
     with pytest.raises(Exception, match="scale_detach needs head: gaussian"):
         ModelConfig(scale_detach=True)
     assert "scale_detach" not in repr(ModelConfig()) and "scale_detach" not in ModelConfig().to_dict()
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 50])
+def test_linear_time_meta_paths_equal_the_pairwise_sums(n: int) -> None:
+    from crowdnav_mesrnn.graph.metapaths import METAPATH_TYPES, dense_features_linear, stacked_features_step
+
+    g = torch.Generator().manual_seed(n)
+    p = [torch.rand(n, 2, generator=g, dtype=torch.float64) * 2 - 1 for _ in range(3)]
+    want, want_vel = stacked_features_step(*p, None, None, None, METAPATH_TYPES)
+    got, vel = dense_features_linear(*p, METAPATH_TYPES)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)  # exact algebra (float64)
+    assert torch.equal(vel, want_vel)
+    f32, _ = dense_features_linear(*(x.float() for x in p), METAPATH_TYPES)
+    scale = want.abs().amax(dim=(1, 2), keepdim=True).clamp(min=1.0)
+    assert float(((f32.double() - want) / scale).abs().max()) < 1e-5  # float32: rounding only
