@@ -46,7 +46,7 @@ def test_a_path_clear_of_the_point_but_not_of_the_region_is_avoided() -> None:
     assert np.min(np.hypot(path[:, 0] - 2.0, path[:, 1] - 1.3)) - 1.0 >= region.clear_m - 1e-9
 
 
-def test_the_option_needs_the_key(data_dir: Path) -> None:
+def test_the_option_needs_the_key() -> None:
     obs = observation(1.0)
     del obs["forecast_uncertainty"]
     with pytest.raises(ValueError, match="forecast_uncertainty=True"):
