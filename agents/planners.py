@@ -168,6 +168,9 @@ class SamplingPlanner(_Planner):
         speed_fractions: candidate speeds as fractions of the speed cap, in (0, 1] (default: the set's).
         candidates: a named set of :data:`CANDIDATE_SETS`: ``default`` (9 headings within ±90° x 4 speeds + standing
             = 37) or ``dense`` (16 headings around the full circle, backing away included, x 6 speeds + standing = 97).
+        uncertainty: require clearance of each forecast step's uncertainty region instead of its point: the
+            gap is measured from the edge of the disc of radius ``forecast_uncertainty`` (the observation key of
+            ``forecast_uncertainty=True``, a calibrated region) around the forecast position. Needs that key.
     """
 
     def __init__(
@@ -178,8 +181,10 @@ class SamplingPlanner(_Planner):
         headings_deg: Sequence[float] | None = None,
         speed_fractions: Sequence[float] | None = None,
         candidates: str = "default",
+        uncertainty: bool = False,
     ) -> None:
         super().__init__(env_config)
+        self.uncertainty = bool(uncertainty)
         cfg = self.cfg
         if lookahead_steps < 1:
             raise ValueError(f"lookahead_steps must be >= 1, got {lookahead_steps!r}")
@@ -220,6 +225,21 @@ class SamplingPlanner(_Planner):
         fut = peds[:, :, None, :2] + ped_vel[:, :, None, :] * self._steps[None, None, :, None]
         return fut, mask
 
+    def future_radii(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
+        """``(B, K, L)`` radii (m) of the regions the robot must stay clear of around the future positions of
+        :meth:`futures`: the observation's ``forecast_uncertainty`` with ``uncertainty=True``, else 0 (points)."""
+        cfg = self.cfg
+        b = np.shape(obs["mask"])[0]
+        if not self.uncertainty:
+            return np.zeros((b, cfg.num_pedestrians, self.lookahead))
+        if "forecast_uncertainty" not in obs:
+            raise ValueError(
+                "the planner's uncertainty option needs the observation key 'forecast_uncertainty' (make the "
+                f"environment with forecast_uncertainty=True and forecasts); got keys {sorted(obs)}"
+            )
+        o = structured(dict(obs), cfg.num_pedestrians, cfg.horizon_steps)
+        return o["forecast_uncertainty"][:, :, : self.lookahead].astype(np.float64)
+
     def act(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         cfg = self.cfg
         robot = obs["robot"]
@@ -229,11 +249,12 @@ class SamplingPlanner(_Planner):
         speed = self._fractions[None, :] * cap[:, None]  # (B, C)
         vel = np.stack([speed * np.cos(theta), speed * np.sin(theta)], axis=-1)  # (B, C, 2)
         fut, mask = self.futures(obs)  # (B, K, L, 2), (B, K)
+        radii = self.future_radii(obs)  # (B, K, L): 0, or the uncertainty regions' radii
         path = vel[:, :, None, :] * self._steps[None, None, :, None]  # (B, C, L, 2)
         diff = path[:, :, None] - fut[:, None]  # (B, C, K, L, 2)
-        dist_ck = np.sqrt(np.einsum("bckld,bckld->bckl", diff, diff)).min(axis=3)  # (B, C, K)
+        dist_ck = (np.sqrt(np.einsum("bckld,bckld->bckl", diff, diff)) - radii[:, None]).min(axis=3)  # (B, C, K)
         gap = np.where(mask[:, None, :], dist_ck, np.inf).min(axis=2)  # (B, C)
-        stop_d = np.hypot(fut[..., 0], fut[..., 1]).min(axis=2)  # (B, K)
+        stop_d = (np.hypot(fut[..., 0], fut[..., 1]) - radii).min(axis=2)  # (B, K)
         stop_gap = np.where(mask, stop_d, np.inf).min(axis=1)  # (B,)
         progress = speed * np.cos(self._angles)[None, :]  # (B, C)
         ok = gap >= self.clear_m

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from typing import Any
 
 import numpy as np
 import torch
@@ -26,6 +27,7 @@ from _timing import median_seconds
 from crowdnav_mesrnn.data import MinMax, collate, data_available, split_windows
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
 from crowdnav_mesrnn.evaluation import batches
+from crowdnav_mesrnn.models.learned import LearnedPredictor
 from crowdnav_mesrnn.models.pretrained import load_pretrained
 from crowdnav_mesrnn.models.reference import reference_forward, reference_rollout
 from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
@@ -119,44 +121,104 @@ def training_batches(windows: list, norm: MinMax, batch_size: int, count: int) -
     return out
 
 
-def latency_table(repeats: int, peak_fp32: float) -> None:
+class ScanIncremental:
+    """The incremental forecast as it was before the online path (issue 19): one observed step and the rollout
+    through the general :meth:`StructuralRNN.scan` (masks everywhere, separate input and recurrent products, the
+    gathered rows' states copied), with states carried between calls; all ``n`` slots present."""
+
+    def __init__(self, pred: LearnedPredictor, hist: np.ndarray) -> None:
+        self.pred, self.net = pred, pred.net
+        n = hist.shape[1]
+        with torch.no_grad():
+            x = pred.norm.normalise(torch.from_numpy(hist))[None]
+        self.m = torch.ones(1, n, dtype=torch.bool)
+        self.state = self.net.init_state(n)
+        self.pos = [x[:, -2], x[:, -3]]
+        self.x = x[:, -1]
+
+    @torch.no_grad()
+    def __call__(self) -> np.ndarray:
+        net, m = self.net, self.m
+        nxt, self.state = net.step((self.x, *self.pos), (m, m, m), self.state)
+        rest, _, _ = net.scan(
+            nxt.new_zeros(0, *nxt.shape),
+            torch.zeros(0, *m.shape, dtype=torch.bool),
+            (self.x, self.pos[0]),
+            (m, m),
+            dict(self.state),
+            free_steps=self.pred.pred_len - 1,
+            roll_mask=m,
+            first_pred=nxt,
+        )
+        preds = torch.cat([nxt, rest[:, 0]], 0)
+        return self.pred.norm.denormalise(preds).permute(1, 0, 2).numpy()
+
+
+def with_random_head(pred: LearnedPredictor) -> LearnedPredictor:
+    """The same weights with a distribution head (random head weights: the timing does not depend on them)."""
+    net = StructuralRNN(ModelConfig.from_dict({**pred.net.cfg.to_dict(), "head": "gaussian"}))
+    torch.manual_seed(0)
+    head = {k: torch.randn_like(v) * 0.1 for k, v in net.state_dict().items() if k not in pred.net.state_dict()}
+    net.load_state_dict({**pred.net.state_dict(), **head})
+    return LearnedPredictor(net, pred.norm)
+
+
+def latency_table(repeats: int, peak_fp32: float, models: list[str], sizes: list[int], cpu_time: bool = False) -> None:
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
-    print("\nForecast latency, shipped zara1 weights, 1 thread (ms, median of", repeats, "calls):")
+    clock = time.process_time if cpu_time else time.perf_counter
+
+    def median_ms(fn: Any) -> float:
+        return median_seconds(fn, repeats, clock) * 1e3
+
+    what = "CPU time of this process" if cpu_time else "wall time"
+    print(f"\nForecast latency, shipped zara1 weights, 1 thread (ms of {what}, median of {repeats} calls):")
     print("  from scratch = LearnedPredictor.forecast: 8 observed steps + 12-step rollout;")
     print("  bf16         = the same under torch.autocast(bfloat16) (matmuls in bf16, states in fp32);")
-    print("  incremental  = OnlineForecaster.observe (one step, carried states) + forecast;")
+    print("  scan incr.   = the incremental forecast before issue 19: one observed step + the rollout through the")
+    print("                 general StructuralRNN.scan, states carried (today's path until then);")
+    print("  online       = OnlineForecaster.observe (one step, carried states) + forecast (the online path);")
+    print("  online+dist  = the same with a distribution head: observe + forecast_distribution (means, scales, rho);")
     print("  first impl.  = the same from-scratch rollout through crowdnav_mesrnn.models.reference;")
     print(
         f"  floor        = the from-scratch forecast's multiply-adds ({STEPS} steps) at the 1-thread fp32 matmul "
-        f"peak ({peak_fp32:.0f} GFLOP/s):\n                 no fp32 implementation on one thread can be faster"
+        f"peak ({peak_fp32:.0f} GFLOP/s):\n                 no fp32 implementation on one thread can be faster; "
+        f"online floor: the same for the {PRED_LEN} steps of an incremental forecast"
     )
     print(
-        f"{'model':<8}{'N':>5}{'from scratch':>14}{'bf16':>8}{'incremental':>13}{'first impl.':>13}"
-        f"{'speed-up':>10}{'floor':>8}"
+        f"{'model':<8}{'N':>5}{'from scratch':>14}{'bf16':>8}{'scan incr.':>12}{'online':>9}{'online+dist':>13}"
+        f"{'first impl.':>13}{'online/scan':>13}{'floor':>8}{'online floor':>14}"
     )
-    for model in ("mesrnn", "srnn", "vlstm"):
+    for model in models:
         pred = load_pretrained(model, "zara1")
+        dist = with_random_head(pred)
         macs = macs_per_pedestrian_step(pred.net.cfg)
-        for n in (1, 10, 50):
+        for n in sizes:
             hist = (np.cumsum(rng.normal(0, 0.3, (8, n, 2)), 0) + 5).astype(np.float32)
             mask = np.ones((8, n), bool)
-            scratch = median_seconds(lambda h=hist, m=mask, p=pred: p.forecast(h, m), repeats) * 1e3
+            scratch = median_ms(lambda h=hist, m=mask, p=pred: p.forecast(h, m))
 
             def scratch_bf16(h=hist, m=mask, p=pred) -> None:
                 with torch.autocast("cpu", dtype=torch.bfloat16):
                     p.forecast(h, m)
 
-            bf16 = median_seconds(scratch_bf16, repeats) * 1e3
-            online = pred.online(n)
+            bf16 = median_ms(scratch_bf16)
+            scan_inc = median_ms(ScanIncremental(pred, hist))
+            online, online_d = pred.online(n), dist.online(n)
             for t in range(8):
                 online.observe(hist[t], mask[t])
+                online_d.observe(hist[t], mask[t])
 
             def incremental(o=online, h=hist, m=mask) -> None:
                 o.observe(h[-1], m[-1])
                 o.forecast()
 
-            inc = median_seconds(incremental, repeats) * 1e3
+            def incremental_dist(o=online_d, h=hist, m=mask) -> None:
+                o.observe(h[-1], m[-1])
+                o.forecast_distribution()
+
+            inc = median_ms(incremental)
+            inc_d = median_ms(incremental_dist)
             x = pred.norm.normalise(torch.from_numpy(hist))[None]
             mt = torch.from_numpy(mask)[None]
 
@@ -164,11 +226,12 @@ def latency_table(repeats: int, peak_fp32: float) -> None:
                 with torch.no_grad():
                     reference_rollout(net, x, mt, PRED_LEN)
 
-            ref = median_seconds(first, repeats) * 1e3
+            ref = median_ms(first)
             floor = n * STEPS * macs * 2 / (peak_fp32 * 1e9) * 1e3
+            online_floor = n * PRED_LEN * macs * 2 / (peak_fp32 * 1e9) * 1e3
             print(
-                f"{model:<8}{n:>5}{scratch:>14.2f}{bf16:>8.2f}{inc:>13.2f}{ref:>13.2f}{ref / scratch:>9.1f}x"
-                f"{floor:>8.2f}"
+                f"{model:<8}{n:>5}{scratch:>14.2f}{bf16:>8.2f}{scan_inc:>12.2f}{inc:>9.2f}{inc_d:>13.2f}{ref:>13.2f}"
+                f"{inc / scan_inc:>12.2f}x{floor:>8.2f}{online_floor:>14.2f}"
             )
 
 
@@ -177,9 +240,16 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="fewer batches and repeats")
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts for training")
     ap.add_argument("--skip-training", action="store_true")
+    ap.add_argument("--latency-only", action="store_true", help="only the latency table (and the 1-thread peak)")
+    ap.add_argument("--latency-repeats", type=int, default=None, help="calls per latency median (default 9/25)")
+    ap.add_argument("--models", nargs="+", default=["mesrnn", "srnn", "vlstm"], help="models of the latency table")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1, 10, 50], help="pedestrians of the latency table")
+    ap.add_argument("--cpu-time", action="store_true", help="latency in CPU time of this process instead of wall time")
     args = ap.parse_args()
     keep_freed_memory()  # as in training
     reps = 9 if args.quick else 25
+    if args.latency_only:
+        args.threads, args.skip_training = [1], True
     peaks = {}
     print("Matmul peak: torch.mm of 1024 x 1024 matrices (GFLOP/s, best of repeats)")
     print(f"{'threads':>7}{'fp32':>9}{'bf16':>9}")
@@ -234,7 +304,13 @@ def main() -> None:
                 )
     if 1 not in peaks:
         peaks[1] = {torch.float32: matmul_peak_gflops(torch.float32, 1, reps)}
-    latency_table(9 if args.quick else 25, peaks[1][torch.float32])
+    latency_table(
+        args.latency_repeats or (9 if args.quick else 25),
+        peaks[1][torch.float32],
+        args.models,
+        args.sizes,
+        args.cpu_time,
+    )
 
 
 if __name__ == "__main__":

@@ -59,8 +59,25 @@ def _train(args: argparse.Namespace) -> int:
         f"{len(trainer.val_windows)} val windows -> {out}"
     )
     res = trainer.fit(progress=not args.no_progress, tensorboard=args.tensorboard)
-    print(f"best val ADE {res['best_val_ade_m']:.3f} m; checkpoints in {out}")
+    if res["select_on"] == "nll":
+        print(f"best val NLL {res['best_val_nll_m']:.3f} (ADE {res['best_val_ade_m']:.3f} m); checkpoints in {out}")
+    else:
+        print(f"best val ADE {res['best_val_ade_m']:.3f} m; checkpoints in {out}")
     return 0
+
+
+def _checkpoint_loader(args: argparse.Namespace) -> Any:
+    """``split -> LearnedPredictor`` from ``--checkpoint`` (a path that may hold ``{split}`` and ``{model}``), or None."""
+    if not args.checkpoint:
+        return None
+    from crowdnav_mesrnn.models.learned import load_predictor
+
+    template = args.checkpoint
+
+    def load(split: str) -> Any:
+        return load_predictor(template.format(split=split, model=args.model), model=args.model, split=split)
+
+    return load
 
 
 def _eval(args: argparse.Namespace) -> int:
@@ -69,23 +86,52 @@ def _eval(args: argparse.Namespace) -> int:
     from crowdnav_mesrnn.evaluation import evaluate_model, format_result
 
     torch.set_num_threads(args.threads)
-    checkpoint_for = None
-    if args.checkpoint:
-        from crowdnav_mesrnn.models.learned import load_predictor
-
-        template = args.checkpoint
-
-        def checkpoint_for(split: str):  # type: ignore[no-redef]
-            return load_predictor(template.format(split=split, model=args.model), model=args.model, split=split)
-
+    checkpoint_for = _checkpoint_loader(args)
+    head = args.head or ("gaussian" if args.samples else "point")
     result = evaluate_model(
-        args.model, args.split, data_dir=args.data_dir, checkpoint_for=checkpoint_for, part=args.part
+        args.model,
+        args.split,
+        data_dir=args.data_dir,
+        checkpoint_for=checkpoint_for,
+        part=args.part,
+        samples=args.samples,
+        sampling=args.sampling,
+        seed=args.seed,
+        head=head if args.model != "cv" else "point",
+        block_len=args.block_len,
+        n_resamples=args.resamples,
     )
     if args.out:
         from crowdnav_mesrnn.utils import atomic_write_json
 
         atomic_write_json(args.out, result)
     print(json.dumps(result, indent=2) if args.json else format_result(result))
+    return 0
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    import torch
+
+    from crowdnav_mesrnn.calibration import calibrate_model, format_calibration
+
+    torch.set_num_threads(args.threads)
+    predictor_for = _checkpoint_loader(args)
+    result = calibrate_model(
+        args.model,
+        args.split,
+        score=args.score,
+        head=args.head if args.model != "cv" else "point",
+        levels=args.levels,
+        data_dir=args.data_dir,
+        predictor_for=predictor_for,
+        block_len=args.block_len,
+        n_resamples=args.resamples,
+    )
+    if args.out:
+        from crowdnav_mesrnn.utils import atomic_write_json
+
+        atomic_write_json(args.out, result)
+    print(json.dumps(result, indent=2) if args.json else format_calibration(result))
     return 0
 
 
@@ -237,9 +283,61 @@ def add_parser(sub: Any) -> None:
     e.add_argument("--checkpoint", default=None, help="checkpoint path; may contain {split} and {model}")
     e.add_argument("--json", action="store_true", help="print the result as one JSON object")
     e.add_argument("--out", default=None, help="also write the JSON result here (atomically)")
+    e.add_argument(
+        "--samples",
+        type=int,
+        default=0,
+        help="with a distribution head: best-of-K ADE/FDE over K sampled futures (min_ade_m, min_fde_m, with "
+        "block-bootstrap intervals); implies --head gaussian for shipped weights",
+    )
+    e.add_argument(
+        "--sampling",
+        default="coherent",
+        choices=("marginal", "coherent", "feedback"),
+        help="coherent (default): each step drawn from its Gaussian of the mean rollout, one draw per sample shared "
+        "by all steps; marginal: one draw per step (Social-STGCNN's protocol); feedback: every draw fed back as the "
+        "next input",
+    )
+    e.add_argument("--seed", type=int, default=0, help="seed of the samples (default 0)")
+    e.add_argument(
+        "--head",
+        default=None,
+        choices=("point", "gaussian"),
+        help="which shipped weights (default point; gaussian with --samples); a distribution head also gets nll_m",
+    )
+    e.add_argument("--block-len", type=int, default=20, help="block bootstrap block length in windows (default 20)")
+    e.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
     e.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     e.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     e.set_defaults(func=_eval)
+
+    c = psub.add_parser(
+        "calibrate",
+        help="conformal uncertainty regions: calibrate on validation windows, coverage on test",
+        description="Split conformal calibration per horizon step on each split's validation windows (never its "
+        "test scene), then the fraction of true test positions inside the 50/90/95 %% regions, per step and pooled, "
+        "with block-bootstrap intervals, and the model's own (uncalibrated) regions. Point forecasts (constant "
+        "velocity, point weights) get an error model fitted on the split's training windows "
+        "(crowdnav_mesrnn.calibration).",
+    )
+    c.add_argument("--model", required=True, choices=MODELS, help="which model (shipped weights unless --checkpoint)")
+    c.add_argument("--split", default="all", choices=(*SPLITS, "all"), help="split(s) to calibrate (default: all)")
+    c.add_argument(
+        "--score",
+        default="scaled",
+        choices=("scaled", "radius"),
+        help="scaled: a per-step scale on the forecast's Gaussian (default); radius: a per-step disc in metres",
+    )
+    c.add_argument("--head", default="point", choices=("point", "gaussian"), help="which shipped weights")
+    c.add_argument("--checkpoint", default=None, help="checkpoint path instead; may contain {split} and {model}")
+    c.add_argument("--levels", type=float, nargs="+", default=[0.5, 0.9, 0.95], help="coverage levels")
+    c.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    c.add_argument("--out", default=None, help="also write the JSON result here (atomically)")
+    c.add_argument("--block-len", type=int, default=20, help="block bootstrap block length in windows (default 20)")
+    c.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
+    c.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
+    c.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    c.set_defaults(func=_calibrate)
 
     x = psub.add_parser("export", help="copy a trained checkpoint into the package's pretrained weights")
     x.add_argument("checkpoint", help="a training checkpoint (RUN/best.pt)")

@@ -9,6 +9,9 @@ candidate is applied to every model. Stages:
 - ``export`` (explicit only): per (model, split), the seed with the lowest validation ADE becomes the
   shipped pretrained weights.
 
+A plan with ``select_on: nll`` (distribution heads) selects on the validation negative log-likelihood instead
+of the ADE, at every one of those places (and its runs keep the epoch of lowest validation NLL).
+
 Each run is a folder ``OUT/MODEL/SPLIT/CANDIDATE/seedK`` holding what ``predictor train`` writes plus
 ``done.json`` once finished; finished runs are skipped and interrupted ones resumed, so the same
 command can be re-run (or run as shards ``--shard i/n`` on several cores) until everything is done. A run
@@ -70,6 +73,18 @@ class Plan:
     export: bool = True
     """Whether stage ``export`` may ship this plan's weights (``export: false`` for a plan that only
     measures, e.g. a fixed-candidate comparison that reuses another plan's runs)."""
+    select_on: str = "ade"
+    """The validation figure that selects candidates, seeds to ship and each run's best epoch: ``ade`` or
+    ``nll`` (distribution heads only)."""
+
+    @property
+    def done_key(self) -> str:
+        """The ``done.json`` field selection reads."""
+        return "best_val_nll_m" if self.select_on == "nll" else "best_val_ade_m"
+
+    @property
+    def unit(self) -> str:
+        return "NLL" if self.select_on == "nll" else "ADE"
 
 
 @dataclass(frozen=True)
@@ -83,14 +98,18 @@ class Run:
     seed: int
     out: Path
 
+    select_on: str = "ade"
+
     @property
     def overrides(self) -> dict[str, Any]:
-        return {**self.candidate.overrides, "seed": self.seed, "split": self.split}
+        extra = {"select_on": self.select_on} if self.select_on != "ade" else {}
+        return {**self.candidate.overrides, **extra, "seed": self.seed, "split": self.split}
 
     def command(self) -> str:
         """The equivalent single ``predictor train`` command."""
+        extra = {"select_on": self.select_on} if self.select_on != "ade" else {}
         sets = " ".join(
-            f"--set {k}={yaml_scalar(v)}" for k, v in {**self.candidate.overrides, "seed": self.seed}.items()
+            f"--set {k}={yaml_scalar(v)}" for k, v in {**self.candidate.overrides, **extra, "seed": self.seed}.items()
         )
         config = self.candidate.config.format(model=self.model)
         return (
@@ -108,7 +127,12 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
     """Read and check a plan file; unknown keys, models, splits or missing configs are errors."""
     path = Path(path)
     raw = load_yaml(path)
-    check_keys(raw, ["models", "splits", "candidates", "selection_seed", "seeds", "out_dir", "export"], path.name)
+    check_keys(
+        raw, ["models", "splits", "candidates", "selection_seed", "seeds", "out_dir", "export", "select_on"], path.name
+    )
+    select_on = raw.get("select_on", "ade")
+    if select_on not in ("ade", "nll"):
+        raise ConfigError(f"{path}: 'select_on' is {select_on!r}; valid: ade, nll")
     ships = raw.get("export", True)
     if not isinstance(ships, bool):
         raise ConfigError(f"{path}: 'export' is {ships!r}; valid: true or false")
@@ -129,7 +153,7 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
         if "config" not in spec:
             raise ConfigError(f"{path}: candidate {name!r} needs a 'config' path (may contain {{model}})")
         cand = Candidate(str(name), str(spec["config"]), dict(spec.get("set") or {}))
-        for key in ("seed", "split"):
+        for key in ("seed", "split", "select_on"):
             if key in cand.overrides:
                 raise ConfigError(f"{path}: candidate {name!r} may not set {key!r} (the plan sets it)")
         for m in models:
@@ -151,6 +175,7 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
         Path(raw.get("out_dir", "runs/predictor/plan")),
         str(path),
         ships,
+        select_on,
     )
 
 
@@ -161,7 +186,9 @@ def run_dir(plan: Plan, model: str, split: str, candidate: str, seed: int) -> Pa
 def candidate_runs(plan: Plan) -> list[Run]:
     """Every candidate for every model and split, with the selection seed."""
     return [
-        Run("candidates", m, s, c, plan.selection_seed, run_dir(plan, m, s, c.name, plan.selection_seed))
+        Run(
+            "candidates", m, s, c, plan.selection_seed, run_dir(plan, m, s, c.name, plan.selection_seed), plan.select_on
+        )
         for m in plan.models
         for s in plan.splits
         for c in plan.candidates
@@ -171,7 +198,7 @@ def candidate_runs(plan: Plan) -> list[Run]:
 def seed_runs(plan: Plan, model: str, split: str, candidate: Candidate) -> list[Run]:
     """The further seeds of the selected ``candidate`` (the selection-seed run is reused)."""
     return [
-        Run("seeds", model, split, candidate, k, run_dir(plan, model, split, candidate.name, k))
+        Run("seeds", model, split, candidate, k, run_dir(plan, model, split, candidate.name, k), plan.select_on)
         for k in plan.seeds
         if k != plan.selection_seed
     ]
@@ -198,13 +225,13 @@ def status(run: Run) -> tuple[str, int]:
 
 
 def selected_candidate(plan: Plan, model: str, split: str) -> tuple[Candidate | None, dict[str, float]]:
-    """The candidate with the lowest validation ADE once all candidates of (model, split) are done
-    (``None`` before), and every finished candidate's best validation ADE (metres)."""
+    """The candidate with the lowest validation ADE (NLL with ``select_on: nll``) once all candidates of
+    (model, split) are done (``None`` before), and every finished candidate's best validation figure."""
     vals: dict[str, float] = {}
     for c in plan.candidates:
         done = read_done(run_dir(plan, model, split, c.name, plan.selection_seed))
         if done is not None:
-            vals[c.name] = float(done["best_val_ade_m"])
+            vals[c.name] = float(done[plan.done_key])
     if len(vals) < len(plan.candidates):
         return None, vals
     best = min(plan.candidates, key=lambda c: (vals[c.name], c.name))
@@ -218,7 +245,11 @@ def summary(plan: Plan) -> dict[str, dict[str, Any]]:
     for m in plan.models:
         for s in plan.splits:
             cand, vals = selected_candidate(plan, m, s)
-            row: dict[str, Any] = {"candidates_val_ade_m": vals, "selected": cand.name if cand else None, "seeds": {}}
+            row: dict[str, Any] = {
+                f"candidates_{plan.done_key.removeprefix('best_')}": vals,
+                "selected": cand.name if cand else None,
+                "seeds": {},
+            }
             if cand is not None:
                 for k in plan.seeds:
                     folder = run_dir(plan, m, s, cand.name, k)
@@ -228,8 +259,11 @@ def summary(plan: Plan) -> dict[str, dict[str, Any]]:
                             "val_ade_m": float(done["best_val_ade_m"]),
                             "checkpoint": str(folder / "best.pt"),
                         }
+                        if "best_val_nll_m" in done:
+                            row["seeds"][k]["val_nll_m"] = float(done["best_val_nll_m"])
                 if len(row["seeds"]) == len(plan.seeds):
-                    row["shipped_seed"] = min(row["seeds"], key=lambda k: (row["seeds"][k]["val_ade_m"], k))
+                    field_ = "val_nll_m" if plan.select_on == "nll" else "val_ade_m"
+                    row["shipped_seed"] = min(row["seeds"], key=lambda k: (row["seeds"][k][field_], k))
             out[f"{m}/{s}"] = row
     return out
 
@@ -305,6 +339,8 @@ def train_run(
         "seed": run.seed,
         "epochs": trainer.epoch,
         "best_val_ade_m": res["best_val_ade_m"],
+        **({"best_val_nll_m": res["best_val_nll_m"]} if "best_val_nll_m" in res else {}),
+        "select_on": res["select_on"],
         "cpu_seconds_this_session": time.process_time() - t0,
         "code_version": code_version(),
         "command": run.command(),
@@ -362,7 +398,10 @@ def execute(
                     continue
                 log(f"[{st}] {run.model} {run.split} {run.candidate.name} seed {run.seed} -> {run.out}")
                 done = train_run(run, data_dir, log=log)
-                log(f"  done: best val ADE {done['best_val_ade_m']:.3f} m")
+                if plan.select_on == "nll":
+                    log(f"  done: best val NLL {done['best_val_nll_m']:.3f} (ADE {done['best_val_ade_m']:.3f} m)")
+                else:
+                    log(f"  done: best val ADE {done['best_val_ade_m']:.3f} m")
     runs, waiting = stage_runs(plan, stage)
     missing = sum(status(r)[0] != "done" for r in runs) + len(waiting) * (len(plan.seeds) - 1)
     if missing:
@@ -390,11 +429,13 @@ def export(plan: Plan, log: Callable[[str], None] = print) -> int:
             log(f"{key}: not all seeds finished; not exported")
             continue
         k = row["shipped_seed"]
-        seeds = "; ".join(f"seed {s} {v['val_ade_m']:.3f} m" for s, v in sorted(row["seeds"].items()))
-        cands = "; ".join(f"{c} {v:.3f} m" for c, v in sorted(row["candidates_val_ade_m"].items()))
+        field_, unit = ("val_nll_m", "") if plan.select_on == "nll" else ("val_ade_m", " m")
+        seeds = "; ".join(f"seed {s} {v[field_]:.3f}{unit}" for s, v in sorted(row["seeds"].items()))
+        cands = "; ".join(f"{c} {v:.3f}{unit}" for c, v in sorted(row[f"candidates_{field_}"].items()))
         note = (
-            f"lowest val ADE {row['seeds'][k]['val_ade_m']:.3f} m (seed {k}) of: {seeds}; candidate "
-            f"{row['selected']} selected on val ADE (seed {plan.selection_seed}) among: {cands}; plan {plan.source}"
+            f"lowest val {plan.unit} {row['seeds'][k][field_]:.3f}{unit} (seed {k}) of: {seeds}; candidate "
+            f"{row['selected']} selected on val {plan.unit} (seed {plan.selection_seed}) among: {cands}; "
+            f"plan {plan.source}"
         )
         path = export_checkpoint(row["seeds"][k]["checkpoint"], model, split, note)
         log(f"{key}: wrote {path}")
@@ -425,11 +466,10 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
     import torch
 
     from crowdnav_mesrnn.data import MinMax, collate, split_windows
-    from crowdnav_mesrnn.data.constants import OBS_LEN
-    from crowdnav_mesrnn.evaluation import batches
+    from crowdnav_mesrnn.evaluation import batches, collect_forecasts
     from crowdnav_mesrnn.models.learned import LearnedPredictor
     from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
-    from crowdnav_mesrnn.training import masked_loss, rotate_windows
+    from crowdnav_mesrnn.training import clip_gradients, make_optimizer, rotate_windows, training_loss
 
     windows = split_windows("zara1", "train", tcfg.min_scored, data_dir)
     norm = MinMax.fit(np.concatenate([w.positions[w.present] for w in windows]))
@@ -440,7 +480,7 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
     chunks = [chunks[0], *(chunks[i] for i in picks)]
     torch.manual_seed(0)
     net = StructuralRNN(mcfg).train()
-    opt = torch.optim.Adam(net.parameters(), tcfg.lr)
+    opt = make_optimizer(net, tcfg)
     rng = np.random.default_rng(0)
     seen = peds = 0
     elapsed = 0.0
@@ -451,12 +491,10 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
             pos = rotate_windows(pos, pres, rng)
         p, m = torch.from_numpy(pos), torch.from_numpy(pres)
         p = torch.where(m.unsqueeze(-1), norm.normalise(p), torch.zeros_like(p))
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=tcfg.precision == "bf16"):
-            pred, used = net(p, m, OBS_LEN, teacher_forcing=tcfg.teacher_forcing)
-        loss = masked_loss(pred.float(), used, p, m)
+        loss = training_loss(net, p, m, tcfg.teacher_forcing, tcfg.precision, tcfg.nll_beta, tcfg.mean_loss)
         opt.zero_grad()
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), tcfg.grad_clip)
+        clip_gradients(net, tcfg.grad_clip)
         opt.step()
         if j:  # the first batch warms up
             elapsed += time.perf_counter() - t0
@@ -468,6 +506,8 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
     from crowdnav_mesrnn.evaluation import evaluate_windows
 
     evaluate_windows(pred.predict_batch, val, norm)
+    if pred.has_distribution:  # validation also rolls out the distribution (its NLL)
+        collect_forecasts(val, distribution=pred.predict_distribution_batch)
     val_rate = len(val) / (time.perf_counter() - t0)
     return Rate(seen / elapsed, val_rate, peds / seen)
 

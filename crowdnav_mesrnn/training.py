@@ -17,7 +17,9 @@ from crowdnav_mesrnn.data.constants import OBS_LEN, check_split
 from crowdnav_mesrnn.data.normalization import MinMax
 from crowdnav_mesrnn.data.recordings import load_split
 from crowdnav_mesrnn.data.windows import Window, collate, split_windows
-from crowdnav_mesrnn.evaluation import batches, evaluate_windows
+from crowdnav_mesrnn.evaluation import batches, collect_forecasts, evaluate_windows
+from crowdnav_mesrnn.models import gaussian
+from crowdnav_mesrnn.models.gaussian import params_from_raw
 from crowdnav_mesrnn.models.learned import CHECKPOINT_FORMAT, LearnedPredictor, lean_state
 from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
 from crowdnav_mesrnn.utils import atomic_write, code_version
@@ -27,6 +29,8 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "predictor"
 
 #: Values of :attr:`TrainConfig.precision`.
 PRECISIONS = ("fp32", "bf16")
+#: Values of :attr:`TrainConfig.select_on`.
+SELECT_ON = ("ade", "nll")
 
 
 class TrainingDivergedError(RuntimeError):
@@ -63,6 +67,24 @@ class TrainConfig:
     """Arithmetic of the training forward pass: ``fp32``, or ``bf16`` (``torch.autocast`` on the CPU: the
     matmuls in bfloat16 with float32 states, positions and loss; about twice the throughput on CPUs with
     AVX-512 BF16). Validation and the shipped weights are always float32."""
+    mean_loss: str = "nll"
+    """For a distribution head, what trains the means: ``nll`` (the negative log-likelihood, as the scales) or
+    ``mse`` (the point head's squared error, :func:`masked_loss`; the likelihood then trains only the scales and
+    correlation, its errors taken as constants). With ``mse`` and ``scale_detach`` the point forecast is trained
+    exactly as a point head is, and the distribution is fitted to its errors."""
+    scale_lr: float | None = None
+    """Learning rate of the distribution head's layer (None: ``lr``). The head starts at one scale for every step
+    and must reach scales that grow tenfold over the horizon; Adam moves a weight by about the learning rate per
+    step, so at the recipe's ``lr`` it takes thousands of steps, while the means (a correction to constant velocity)
+    need small moves."""
+    nll_beta: float = 0.0
+    """β of the β-NLL (Seitzer et al., ICLR 2022) for a distribution head: each position's negative log-likelihood
+    is weighted by ``(σx σy)^β`` with the gradient stopped through the weight. 0 is the plain NLL, whose gradient on
+    the mean is divided by the variance (a small initial scale then pushes the means hard while the scales are
+    still wrong); 1 gives the means the gradient of a squared error. In [0, 1]."""
+    select_on: str = "ade"
+    """Which validation figure picks ``best.pt`` among the epochs: ``ade`` (metres) or ``nll`` (the negative
+    log-likelihood of the true positions under the distribution head's Gaussians; needs ``head: gaussian``)."""
     extra: dict = field(default_factory=dict)
     """Free-form notes recorded with the run (e.g. the config file it came from)."""
 
@@ -92,6 +114,16 @@ def load_configs(
     check_split(tcfg.split)
     if tcfg.precision not in PRECISIONS:
         raise ConfigError(f"precision must be one of {', '.join(PRECISIONS)}, got {tcfg.precision!r}")
+    if tcfg.scale_lr is not None and not (isinstance(tcfg.scale_lr, float | int) and tcfg.scale_lr > 0):
+        raise ConfigError(f"scale_lr must be a positive number or null, got {tcfg.scale_lr!r}")
+    if tcfg.mean_loss not in ("nll", "mse"):
+        raise ConfigError(f"mean_loss must be 'nll' or 'mse', got {tcfg.mean_loss!r}")
+    if not 0.0 <= tcfg.nll_beta <= 1.0:
+        raise ConfigError(f"nll_beta must lie in [0, 1], got {tcfg.nll_beta!r}")
+    if tcfg.select_on not in SELECT_ON:
+        raise ConfigError(f"select_on must be one of {', '.join(SELECT_ON)}, got {tcfg.select_on!r}")
+    if tcfg.select_on == "nll" and mcfg.head != "gaussian":
+        raise ConfigError("select_on: nll needs a distribution head (model key head: gaussian)")
     return mcfg, tcfg
 
 
@@ -139,6 +171,76 @@ def masked_loss(pred: torch.Tensor, used: torch.Tensor, positions: torch.Tensor,
     return (((p - target) ** 2) * valid).sum() / n
 
 
+def clip_gradients(net: StructuralRNN, max_norm: float) -> None:
+    """Clip the gradient norm of the network to ``max_norm``; the distribution head's parameters are clipped on their
+    own, so the likelihood's gradients never scale down those of the means (with ``scale_detach`` and
+    ``mean_loss: mse`` the means then train exactly as a point head's)."""
+    head = net.head_parameters()
+    if not head:
+        torch.nn.utils.clip_grad_norm_(net.parameters(), max_norm)
+        return
+    ids = {id(p) for p in head}
+    torch.nn.utils.clip_grad_norm_([p for p in net.parameters() if id(p) not in ids], max_norm)
+    torch.nn.utils.clip_grad_norm_(head, max_norm)
+
+
+def make_optimizer(net: StructuralRNN, tcfg: TrainConfig) -> torch.optim.Adam:
+    """Adam over every parameter at ``lr``; the distribution head's at ``scale_lr`` when set."""
+    if tcfg.scale_lr is None or not net.gaussian:
+        return torch.optim.Adam(net.parameters(), lr=tcfg.lr)
+    head = net.head_parameters()
+    ids = {id(p) for p in head}
+    rest = [p for p in net.parameters() if id(p) not in ids]
+    return torch.optim.Adam([{"params": rest}, {"params": head, "lr": tcfg.scale_lr}], lr=tcfg.lr)
+
+
+def gaussian_nll_loss(
+    pred: torch.Tensor,
+    raw: torch.Tensor,
+    used: torch.Tensor,
+    positions: torch.Tensor,
+    mask: torch.Tensor,
+    beta: float = 0.0,
+    mean_loss: str = "nll",
+) -> torch.Tensor:
+    """Mean negative log-likelihood (normalised units) of the targets ``OBS_LEN..T-1`` under the distribution
+    head's Gaussians (means ``pred``, raw scales ``raw (B, T−1, N, 3)``), where input and target are present;
+    with ``beta > 0`` the β-NLL (each term weighted by the detached ``(σx σy)^β``, :attr:`TrainConfig.nll_beta`);
+    with ``mean_loss="mse"`` the means are trained by :func:`masked_loss` and the likelihood sees them as constants
+    (:attr:`TrainConfig.mean_loss`)."""
+    if mean_loss == "mse":
+        return masked_loss(pred, used, positions, mask) + gaussian_nll_loss(
+            pred.detach(), raw, used, positions, mask, beta
+        )
+    p = pred[:, OBS_LEN - 1 :]
+    sigma, rho = params_from_raw(raw[:, OBS_LEN - 1 :])
+    valid = used[:, OBS_LEN - 1 :] & mask[:, OBS_LEN:]
+    target = torch.where(valid.unsqueeze(-1), positions[:, OBS_LEN:], p.detach())
+    per = gaussian.nll(target - p, sigma, rho)
+    weight = valid.to(per.dtype)
+    if beta:
+        weight = weight * (sigma[..., 0] * sigma[..., 1]).detach().pow(beta)
+    return (per * weight).sum() / valid.sum().clamp(min=1)
+
+
+def training_loss(
+    net: StructuralRNN,
+    normed: torch.Tensor,
+    mask: torch.Tensor,
+    teacher_forcing: bool,
+    precision: str = "fp32",
+    nll_beta: float = 0.0,
+    mean_loss: str = "nll",
+) -> torch.Tensor:
+    """The loss of one batch ``(B, T, N, 2)`` normalised: :func:`masked_loss` (MSE) for a point head,
+    :func:`gaussian_nll_loss` for the distribution head."""
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
+        pred, raw, used = net.forward_distribution(normed, mask, OBS_LEN, teacher_forcing=teacher_forcing)
+    if raw is None:
+        return masked_loss(pred.float(), used, normed, mask)
+    return gaussian_nll_loss(pred.float(), raw.float(), used, normed, mask, nll_beta, mean_loss)
+
+
 class Trainer:
     """Trains one model on one split; checkpoints ``last.pt`` and ``best.pt`` atomically every epoch."""
 
@@ -147,7 +249,7 @@ class Trainer:
         self.out = Path(out_dir)
         torch.manual_seed(tcfg.seed)
         self.net = StructuralRNN(mcfg)
-        self.opt = torch.optim.Adam(self.net.parameters(), lr=tcfg.lr)
+        self.opt = make_optimizer(self.net, tcfg)
         train_recs = load_split(tcfg.split, "train", tcfg.data_dir)
         self.norm = MinMax.fit_recordings(train_recs)
         self.train_windows: list[Window] = split_windows(tcfg.split, "train", tcfg.min_scored, tcfg.data_dir)
@@ -158,6 +260,9 @@ class Trainer:
             self._fit_scales()
         self.epoch = 0
         self.best_val = math.inf
+        """The lowest validation figure of ``select_on`` so far."""
+        self.best_row: dict[str, float] | None = None
+        """The history row of the epoch kept in ``best.pt``."""
         self.history: list[dict[str, float]] = []
 
     def _fit_scales(self, max_windows: int = 512) -> None:
@@ -177,7 +282,8 @@ class Trainer:
             "epoch": self.epoch,
             "val": self.history[-1] if self.history else None,
             "history": self.history,
-            "best_val_ade_m": self.best_val,
+            "best_val": self.best_val,
+            **self.best_fields(),
             "code_version": code_version(),
         }
         if full:
@@ -211,14 +317,22 @@ class Trainer:
         self.opt.load_state_dict(ck["optimizer"])
         self.epoch = int(ck["epoch"])
         self.history = list(ck["history"])
-        self.best_val = float(ck["best_val_ade_m"])
+        self.best_val = float(ck.get("best_val", ck["best_val_ade_m"]))
+        key = "val_nll_m" if self.tcfg.select_on == "nll" else "val_ade_m"
+        self.best_row = next((h for h in self.history if h.get(key) == self.best_val), None)
 
     # ----------------------------------------------------------------- training
     def validate(self) -> dict[str, float]:
+        """Validation ADE/FDE (and, with the distribution head, ``nll_m``: nats per position, metres)."""
         self.net.eval()
         pred = LearnedPredictor(self.net, self.norm)
         res = evaluate_windows(pred.predict_batch, self.val_windows, self.norm)
-        return {k: res[k] for k in ("ade_m", "fde_m", "ade_norm", "fde_norm")}
+        out = {k: res[k] for k in ("ade_m", "fde_m", "ade_norm", "fde_norm")}
+        if pred.has_distribution:
+            scored = collect_forecasts(self.val_windows, distribution=pred.predict_distribution_batch)
+            assert scored.sigma is not None and scored.rho is not None
+            out["nll_m"] = float(gaussian.nll(scored.error, scored.sigma, scored.rho).mean())
+        return out
 
     def train_epoch(self, progress: bool = True) -> dict[str, float]:
         t = self.tcfg
@@ -244,9 +358,7 @@ class Trainer:
             pos_t = torch.from_numpy(pos)
             mask_t = torch.from_numpy(pres)
             normed = torch.where(mask_t.unsqueeze(-1), self.norm.normalise(pos_t), torch.zeros_like(pos_t))
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=t.precision == "bf16"):
-                pred, used = self.net(normed, mask_t, OBS_LEN, teacher_forcing=t.teacher_forcing)
-            loss = masked_loss(pred.float(), used, normed, mask_t)
+            loss = training_loss(self.net, normed, mask_t, t.teacher_forcing, t.precision, t.nll_beta, t.mean_loss)
             if not torch.isfinite(loss):
                 raise TrainingDivergedError(
                     f"loss became {loss.item()} in epoch {self.epoch + 1}; stopped. The last good checkpoint "
@@ -254,7 +366,7 @@ class Trainer:
                 )
             self.opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(self.net.parameters(), t.grad_clip)
+            clip_gradients(self.net, t.grad_clip)
             self.opt.step()
             total += loss.item() * len(chunk)
             count += len(chunk)
@@ -279,9 +391,11 @@ class Trainer:
             self.epoch += 1
             row = {"epoch": self.epoch, **stats, **{f"val_{k}": v for k, v in val.items()}}
             self.history.append(row)
-            improved = val["ade_m"] < self.best_val
+            key = "nll_m" if self.tcfg.select_on == "nll" else "ade_m"
+            improved = val[key] < self.best_val
             if improved:
-                self.best_val = val["ade_m"]
+                self.best_val = val[key]
+                self.best_row = row
             self.save("last.pt", full=True)
             if improved:
                 self.save("best.pt", full=False)
@@ -289,11 +403,26 @@ class Trainer:
                 for k, v in row.items():
                     if k != "epoch":
                         writer.add_scalar(k, v, self.epoch)
+            nll = f" NLL {val['nll_m']:.3f}" if "nll_m" in val else ""
             log(
                 f"epoch {self.epoch}/{self.tcfg.epochs} loss {stats['train_loss']:.5f} "
-                f"val ADE/FDE {val['ade_m']:.3f}/{val['fde_m']:.3f} m "
+                f"val ADE/FDE {val['ade_m']:.3f}/{val['fde_m']:.3f} m{nll} "
                 f"({stats['windows_per_s']:.0f} windows/s){' *' if improved else ''}"
             )
         if writer is not None:
             writer.close()
-        return {"best_val_ade_m": self.best_val, "history": self.history, "out_dir": str(self.out)}
+        return {**self.best_fields(), "history": self.history, "out_dir": str(self.out)}
+
+    def best_fields(self) -> dict[str, Any]:
+        """What selection reads: ``best_val_ade_m`` (the validation ADE of the epoch kept in ``best.pt``: the
+        lowest with ``select_on: ade``), with the distribution head ``best_val_nll_m`` (that epoch's NLL), and
+        ``select_on``."""
+        row = self.best_row or {}
+        out: dict[str, Any] = {"select_on": self.tcfg.select_on}
+        if self.tcfg.select_on == "ade":
+            out["best_val_ade_m"] = self.best_val
+        else:
+            out["best_val_ade_m"] = float(row.get("val_ade_m", math.inf))
+        if "val_nll_m" in row:
+            out["best_val_nll_m"] = float(row["val_nll_m"])
+        return out

@@ -147,6 +147,12 @@ class CrowdNavConfig:
     flatten_observation: bool = True
     """Give ``pedestrians`` and ``forecasts`` as 1-D vectors (row-major ``(K, 4)`` and ``(K, H, 2)``), as
     Stable-Baselines3 expects; False gives them those shapes (see :func:`envs.observation.structured`)."""
+    forecast_uncertainty: bool = False
+    """Add ``forecast_uncertainty`` ``(K, H)`` to the observation (arms with forecasts): per forecast step, the
+    radius (m) of a disc around the forecast holding the true position with probability
+    ``forecast_uncertainty_level``, calibrated on the split's validation windows (:mod:`envs.uncertainty`)."""
+    forecast_uncertainty_level: float = 0.9
+    """Coverage level of the ``forecast_uncertainty`` radii, in (0, 1)."""
 
     # ----------------------------------------------------------------- forecasts
     cache_forecasts: bool = True
@@ -305,6 +311,7 @@ _FLAGS: Final[tuple[str, ...]] = (
     "observe_time_left",
     "observe_perception_age",
     "flatten_observation",
+    "forecast_uncertainty",
     "cache_forecasts",
     "forecast_disk_cache",
 )
@@ -331,6 +338,7 @@ _NUMBERS: Final[dict[str, tuple[float | None, float | None, bool, bool]]] = {
     "max_obs_speed_mps": (0.0, None, True, False),
     "max_goal_offset_m": (0.0, None, True, False),
     "noisy_oracle_ade_m": (0.0, None, False, False),
+    "forecast_uncertainty_level": (0.0, 1.0, True, True),
     "success_reward": (None, None, False, False),
     "collision_penalty": (None, None, False, False),
     "discomfort_dist_m": (0.0, None, False, False),

@@ -47,6 +47,7 @@ from envs.rendering import HUMAN_NEEDS_PYGAME
 from envs.replay import Replay
 from envs.rewards import EpisodeMetrics, reward_components, total_reward
 from envs.timing import PhaseTimer, timed
+from envs.uncertainty import UncertaintySource, make_uncertainty_source
 from envs.world import World
 
 #: Default of ``CrowdNavEnv(predictor=...)``: the config's ``predictor`` (an explicit None is an error).
@@ -180,6 +181,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     | ``pedestrians`` [:, 2:4] | (K, 2) | pedestrian minus robot velocity (*) | -(s+v) | s+v | m/s |
     | ``mask`` | (K,) | 1 where the row holds a pedestrian within R | 0 | 1 | |
     | ``forecasts`` | (K, H, 2) | forecast position at t + h dt minus robot position (absent for ``none``) | -(R+sHdt) | R+sHdt | m |
+    | ``forecast_uncertainty`` | (K, H) | radius of the calibrated region around each forecast (``forecast_uncertainty`` only) | 0 | R+sHdt | m |
 
     (*) Pedestrians are perceived causally, as a tracker reporting at the recording's annotation rate:
     at time t the latest annotation at or before t (its positions; velocities = the slope of the
@@ -323,6 +325,18 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         )
         self.predictor_name = self.forecaster.name
         self.with_forecasts = self.forecaster.active
+        self.uncertainty: UncertaintySource | None = None
+        if cfg.forecast_uncertainty and self.with_forecasts:  # the none arm has no forecasts to be uncertain about
+            self.uncertainty = make_uncertainty_source(
+                self.forecaster,
+                predictor_obj if predictor_obj is not None else cfg.predictor,
+                cfg.split,
+                cfg.forecast_uncertainty_level,
+                cfg.dt_s,
+                cfg.horizon_steps,
+                cache_root(cfg.forecast_cache_dir) if cfg.forecast_disk_cache else None,
+                cfg.data_dir,
+            )
         self.sampler = EpisodeSampler(
             self.recordings,
             dt_s=cfg.dt_s,
@@ -723,6 +737,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             dfut = np.hypot(positions[1:, :, 0] - robot[0], positions[1:, :, 1] - robot[1])
             intruding = bool(np.any((dfut < self._r_sum) & present[1:] & pres_now[None, :]))
         fc = self._forecast(t_s, rows, seen.positions, positions, present) if len(rows) else None
+        unc = None
+        if self.uncertainty is not None and fc is not None:
+            unc = self.uncertainty.radius(self._replay, t_s, rows, seen.age_s, seen.index)
         time_left = 1.0 - self._n / self.episode.max_steps
         obs = self._builder.build(
             robot,
@@ -734,6 +751,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             fc,
             time_left,
             seen.age_s,
+            unc,
         )
         self._trails.append((p_now, pres_now))
         self._last = {"rows": rows, "forecasts": fc, "positions": p_now, "present": pres_now}

@@ -30,6 +30,9 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
         ``mask``: ``(K,)`` int8 MultiBinary: 1 where a row holds a pedestrian.
         ``forecasts`` (unless the predictor is ``none``): ``(K, H, 2)`` float32 forecast positions
         relative to the robot's current position (m) at ``t + h * dt_s``, h = 1..H.
+        ``forecast_uncertainty`` (with ``forecast_uncertainty`` and forecasts): ``(K, H)`` float32 radius (m) of
+        the disc around each forecast position holding the true one with probability ``forecast_uncertainty_level``
+        (0 on empty rows; :mod:`envs.uncertainty`).
     """
     k, h = cfg.num_pedestrians, cfg.horizon_steps
     v = cfg.robot_pref_speed_mps
@@ -54,6 +57,11 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
     }
     if with_forecasts:
         out["forecasts"] = spaces.Box(-fc_hi, fc_hi, dtype=np.float32)
+        if cfg.forecast_uncertainty:
+            unc_hi = np.full((k, h), forecast_bound_m(cfg), dtype=np.float32)
+            if cfg.flatten_observation:
+                unc_hi = unc_hi.reshape(-1)
+            out["forecast_uncertainty"] = spaces.Box(np.zeros_like(unc_hi), unc_hi, dtype=np.float32)
     return spaces.Dict(out)
 
 
@@ -65,6 +73,8 @@ def structured(obs: dict[str, np.ndarray], num_pedestrians: int, horizon_steps: 
     out["pedestrians"] = obs["pedestrians"].reshape(*lead, num_pedestrians, 4)
     if "forecasts" in obs:
         out["forecasts"] = obs["forecasts"].reshape(*lead, num_pedestrians, horizon_steps, 2)
+    if "forecast_uncertainty" in obs:
+        out["forecast_uncertainty"] = obs["forecast_uncertainty"].reshape(*lead, num_pedestrians, horizon_steps)
     return out
 
 
@@ -122,6 +132,7 @@ class ObservationBuilder:
         self.sensor = cfg.sensor_range_m
         self.fc_bound = forecast_bound_m(cfg)
         self.flat = cfg.flatten_observation
+        self.with_uncertainty = with_forecasts and cfg.forecast_uncertainty
 
     def build(
         self,
@@ -134,6 +145,7 @@ class ObservationBuilder:
         forecasts: np.ndarray | None,
         time_left: float = 1.0,
         perception_age_s: float = 0.0,
+        uncertainty: np.ndarray | None = None,
     ) -> dict[str, np.ndarray]:
         """One observation.
 
@@ -147,6 +159,7 @@ class ObservationBuilder:
             forecasts: ``(m, H, 2)`` world forecast positions, or None.
             time_left: fraction of the time limit left (used with ``observe_time_left``).
             perception_age_s: age of the perceived annotation, s (used with ``observe_perception_age``).
+            uncertainty: ``(m, H)`` radii of the forecasts' regions, metres (used with ``forecast_uncertainty``).
         """
         m = len(ped_positions)
         robot = np.empty(self.robot_size, dtype=np.float32)
@@ -176,4 +189,9 @@ class ObservationBuilder:
             if m and forecasts is not None:
                 fc[:m] = _clip(forecasts - robot_position, self.fc_bound)
             obs["forecasts"] = fc.reshape(-1) if self.flat else fc
+        if self.with_uncertainty:
+            unc = np.zeros((self.k, self.h), dtype=np.float32)
+            if m and uncertainty is not None:
+                unc[:m] = np.clip(uncertainty, 0.0, self.fc_bound)
+            obs["forecast_uncertainty"] = unc.reshape(-1) if self.flat else unc
         return obs

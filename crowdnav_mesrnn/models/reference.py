@@ -8,6 +8,8 @@ It uses the same parameters, so any network can be run both ways.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from crowdnav_mesrnn.graph.metapaths import metapath_features_step
@@ -55,9 +57,20 @@ def reference_step(net: StructuralRNN, p: tuple, m: tuple, state: dict) -> tuple
 
 
 def reference_forward(
-    net: StructuralRNN, positions: torch.Tensor, mask: torch.Tensor, obs_len: int, teacher_forcing: bool = True
+    net: StructuralRNN,
+    positions: torch.Tensor,
+    mask: torch.Tensor,
+    obs_len: int,
+    teacher_forcing: bool = True,
+    raws: list[torch.Tensor] | None = None,
+    feed: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``StructuralRNN.forward`` as first written: ``(B, T−1, N, 2)`` predictions and the masks used."""
+    """``StructuralRNN.forward`` as first written: ``(B, T−1, N, 2)`` predictions and the masks used.
+
+    With the gaussian head, ``raws`` (if given) receives each step's raw ``(σx, σy, ρ)`` ``(B, N, 3)`` (the head
+    applied to the new node state), and ``feed`` (without teacher forcing) replaces every prediction from the
+    last observed step on by ``feed(mean, raw)`` before it is fed back, as ``StructuralRNN.scan_distribution``.
+    """
     b, t_len, n, _ = positions.shape
     state = net.init_state(b * n, positions.device)
     zeros_p = positions.new_zeros(b, n, 2)
@@ -73,6 +86,13 @@ def reference_forward(
             p_t, m_t = pred, roll_mask
         p_t = torch.where(m_t.unsqueeze(-1), p_t, zeros_p)
         pred, state = reference_step(net, (p_t, hist_p[0], hist_p[1]), (m_t, hist_m[0], hist_m[1]), state)
+        if net.gaussian:
+            ahead = 0 if (t < obs_len or teacher_forcing) else t - obs_len + 1  # steps after the last observed input
+            raw = (net.scale_head(state["node_h"]) + net.step_bias[min(ahead, len(net.step_bias) - 1)]).reshape(b, n, 3)
+            if raws is not None:
+                raws.append(raw)
+            if feed is not None and not teacher_forcing and t >= obs_len - 1:
+                pred = feed(pred, raw)
         preds.append(pred)
         used.append(m_t)
         hist_p, hist_m = [p_t, hist_p[0]], [m_t, hist_m[0]]

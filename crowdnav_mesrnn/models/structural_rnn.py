@@ -10,14 +10,24 @@ states nor influences its neighbours (its features and its contribution to their
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import torch
 from torch import nn
 
 from crowdnav_mesrnn.config import ConfigError, replace_checked
-from crowdnav_mesrnn.graph.metapaths import stacked_features_step
+from crowdnav_mesrnn.data.constants import PRED_LEN
+from crowdnav_mesrnn.graph.metapaths import dense_features_linear, stacked_features_step
+from crowdnav_mesrnn.models.gaussian import params_from_raw, raw_sigma_init
+from crowdnav_mesrnn.models.gaussian import sample as gaussian_sample
+
+#: Values of :attr:`ModelConfig.head`.
+HEADS: tuple[str, ...] = ("point", "gaussian")
+#: Fields of the distribution head with their point-model values: left out of a config's repr and saved dict when
+#: they hold these, so point configs read (and hash, in the forecast cache's keys) as before the head existed.
+_POINT_DEFAULTS: dict[str, Any] = {"head": "point", "scale_detach": False}
 
 MODEL_TYPES: dict[str, tuple[str, ...]] = {
     "mesrnn": ("S", "T", "SS", "ST", "TS", "TT"),
@@ -55,8 +65,26 @@ class ModelConfig:
     standardise: bool = False
     """Scale every edge feature type and the node input by the inverse of its RMS on the training data
     (fitted once before training, stored with the weights). Off in the paper."""
+    head: str = "point"
+    """What the decoder predicts: ``point`` (paper: the offset of the next position) or ``gaussian`` (a bivariate
+    Gaussian over the next position: the same offset as its mean, plus two scales and a correlation from a
+    second linear layer on the node state, :mod:`crowdnav_mesrnn.models.gaussian`; trained by negative
+    log-likelihood). The point path is the same arithmetic with either head."""
+    scale_detach: bool = False
+    """With the gaussian head: the scales and correlation are read from the node state with the gradient stopped,
+    so learning them never changes the features the mean (the point forecast) is decoded from."""
     types: tuple[str, ...] = field(default=())
     """Meta-path types; filled from ``model`` (not set by hand)."""
+
+    def __repr__(self) -> str:
+        # the head's fields appear only when they are not the point defaults, so a point config's repr (hashed into
+        # the forecast cache's keys, envs.forecast_cache.predictor_fingerprint) is what it was before they existed.
+        names = [
+            f.name
+            for f in fields(self)
+            if f.name not in _POINT_DEFAULTS or getattr(self, f.name) != _POINT_DEFAULTS[f.name]
+        ]
+        return f"ModelConfig({', '.join(f'{n}={getattr(self, n)!r}' for n in names)})"
 
     def __post_init__(self) -> None:
         if self.model not in MODEL_TYPES:
@@ -67,6 +95,10 @@ class ModelConfig:
             raise ConfigError(f"node_input must be 'position' or 'velocity', got {self.node_input!r}")
         if self.offset not in ("absolute", "cv_residual"):
             raise ConfigError(f"offset must be 'absolute' or 'cv_residual', got {self.offset!r}")
+        if self.head not in HEADS:
+            raise ConfigError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
+        if self.scale_detach and self.head != "gaussian":
+            raise ConfigError("scale_detach needs head: gaussian")
         if self.types != MODEL_TYPES[self.model]:
             if self.types:
                 raise ConfigError(f"types {self.types} do not match model {self.model!r} ({MODEL_TYPES[self.model]})")
@@ -83,8 +115,13 @@ class ModelConfig:
         return replace_checked(cls(model=d.get("model", "mesrnn")), d, "model config")
 
     def to_dict(self) -> dict:
+        """The config as saved in checkpoints (the head's fields only when not the point defaults, so point configs
+        read the same as those saved before the fields existed: resuming and comparing them keeps working)."""
         out = asdict(self)
         out["types"] = list(self.types)
+        for key, default in _POINT_DEFAULTS.items():
+            if out[key] == default:
+                del out[key]
         return out
 
 
@@ -103,6 +140,15 @@ def tanh_from_doubled(z2: torch.Tensor) -> torch.Tensor:
     """``tanh(z)`` given ``z2 = 2 z``, as ``2 σ(2z) − 1``: the same function through the sigmoid kernel,
     which is several times faster than ``torch.tanh`` on this project's CPUs (docs/results/speed.md)."""
     return torch.sigmoid(z2).mul(2.0).sub_(1.0)
+
+
+def lstm_pointwise_regrouped(gates: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`lstm_pointwise` in fewer operations (``i (2g − 1) = 2 i g − i``, ``o (2 s − 1) = 2 o s − o``): the
+    same function, different float32 rounding; used by the online path only."""
+    s = torch.sigmoid(gates)
+    i, f, g, o = s.chunk(4, dim=-1)
+    c_new = torch.addcmul(torch.addcmul(-i, f, c), i, g, value=2.0)
+    return torch.addcmul(-o, o, torch.sigmoid(c_new * 2.0), value=2.0), c_new
 
 
 def lstm_pointwise(gates: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -228,7 +274,26 @@ class StructuralRNN(nn.Module):
         if cfg.offset == "cv_residual":
             nn.init.zeros_(self.decoder.weight)
             nn.init.zeros_(self.decoder.bias)
+        self.gaussian = cfg.head == "gaussian"
+        if self.gaussian:
+            # raw (σx, σy, ρ) of the next position; starts at σ = SIGMA_INIT, ρ = 0 for every input
+            self.scale_head = nn.Linear(cfg.node_hidden, 3)
+            nn.init.zeros_(self.scale_head.weight)
+            with torch.no_grad():
+                self.scale_head.bias.copy_(torch.tensor([raw_sigma_init(), raw_sigma_init(), 0.0]))
+            # added to the raw output by how many steps ahead of the last observed input the prediction is
+            # (0: the step after an observation; k: the k-th step fed with the model's own prediction)
+            self.step_bias = nn.Parameter(torch.zeros(PRED_LEN, 3))
         self._prepared: tuple[tuple[int, ...], dict[str, torch.Tensor]] | None = None
+        self._online: tuple[tuple[int, ...], dict[str, Any]] | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        # the cached derived weights (one of them an opaque oneDNN tensor) are not part of the network: copies and
+        # pickles rebuild them on first use
+        state = self.__dict__.copy()
+        state["_prepared"] = None
+        state["_online"] = None
+        return state
 
     # ------------------------------------------------------------------ state
     def init_state(self, rows: int, device: torch.device | None = None) -> dict[str, torch.Tensor]:
@@ -280,25 +345,198 @@ class StructuralRNN(nn.Module):
             self._prepared = (key, out)
         return out
 
+    def online_weights(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+        """``(self._weights(), self._online_weights())`` with one check of the parameters' versions (inference)."""
+        key = tuple(v for p in [*self.parameters(), *self.buffers()] for v in (p.data_ptr(), p._version))
+        if self._online is not None and self._online[0] == key and self._prepared is not None:
+            return self._prepared[1], self._online[1]
+        return self._weights(), self._online_weights()
+
+    def _online_weights(self) -> dict[str, Any]:
+        """Weights of :meth:`continue_rollout` (inference only): the input and recurrent halves of every LSTM in one
+        matrix each (one product per LSTM and step), and the node LSTM's matrix prepacked for oneDNN where this
+        torch build has it. Cached like :meth:`_weights`."""
+        w = self._weights()
+        key = tuple(v for p in [*self.parameters(), *self.buffers()] for v in (p.data_ptr(), p._version))
+        if self._online is not None and self._online[0] == key:
+            return self._online[1]
+        node_w = torch.cat([w["node_x_w"], w["node_rec_w"]], 0)  # (embed + K edge_hidden + node_hidden, 4 H)
+        out: dict[str, Any] = {"node_w": node_w.contiguous(), "node_b": w["node_b"].contiguous(), "packed": None}
+        try:  # the product of the node LSTM, the largest of a step, prepacked (oneDNN, x86 builds)
+            packed = torch.ops.mkldnn._reorder_linear_weight(node_w.t().contiguous(), 64)
+            out["packed"] = (packed, torch.ops.mkldnn._linear_pointwise)
+        except (AttributeError, RuntimeError):
+            pass
+        if self.types:
+            out["edge_w"] = torch.cat([w["edge_x_w"], w["edge_h_w"]], 1).contiguous()  # (K, embed + hidden, 4 H)
+        out["decoder_w"] = self.decoder.weight.detach().t().contiguous()
+        out["decoder_b"] = self.decoder.bias.detach().contiguous()
+        if self.gaussian:
+            out["head_w"] = self.scale_head.weight.detach().t().contiguous()
+            out["head_b"] = self.scale_head.bias.detach().contiguous()
+        self._online = (key, out)
+        return out
+
+    def online_step(
+        self,
+        p: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        m_tm1: torch.Tensor | None,
+        m_tm2: torch.Tensor | None,
+        state: dict[str, torch.Tensor],
+        weights: tuple[dict[str, torch.Tensor], dict[str, Any]] | None = None,
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """One step of :meth:`step` for online forecasting (inference only) when all ``n`` pedestrians are present
+        at ``t``, with the operations regrouped for one forecast of a few dozen pedestrians (equal to float32
+        rounding, ``tests/models/test_gaussian_head.py``): when everyone is also present at ``t − 1`` and ``t − 2``
+        the masks are skipped and the meta-paths are summed in ``O(N)`` (:func:`dense_features_linear`), each LSTM's
+        input and recurrent products are one matrix product, and the node LSTM's weights are prepacked. The distribution head is not applied (see :meth:`continue_rollout`).
+
+        Args:
+            p: positions at ``t, t − 1, t − 2``, each ``(n, 2)`` normalised (0 where absent).
+            m_tm1, m_tm2: ``(n,)`` bool presence at ``t − 1`` and ``t − 2`` (None: everyone present).
+            state: hidden states of the ``n`` rows (not modified).
+            weights: ``(self._weights(), self._online_weights())`` when the caller already has them (looking them
+                up checks every parameter's version: tens of microseconds per step).
+
+        Returns:
+            ``(n, 2)`` the (mean) prediction of step ``t + 1`` and the new state.
+        """
+        w, ow = weights if weights is not None else self.online_weights()
+        n, k = p[0].shape[0], len(self.types)
+        masks = None
+        if m_tm1 is not None or m_tm2 is not None:
+            ones = torch.ones(1, n, dtype=torch.bool)
+            masks = (ones, ones if m_tm1 is None else m_tm1[None], ones if m_tm2 is None else m_tm2[None])
+        if masks is None and k:
+            feats, vel = dense_features_linear(p[0], p[1], p[2], self.types)
+            feats = feats * self._online_feature_scale(n, ow)
+        else:
+            feats, vel = self._features((p[0][None], p[1][None], p[2][None]), masks)
+            vel = vel[0]
+        node_in = vel if self.cfg.node_input == "velocity" else p[0]
+        x = tanh_from_doubled(torch.addmm(w["node_embed_b"], node_in * self.node_scale, w["node_embed_w"]))
+        new: dict[str, torch.Tensor] = {}
+        if k:
+            assert feats is not None
+            e = tanh_from_doubled(torch.baddbmm(w["edge_embed_b"], feats.reshape(k, -1, 2), w["edge_embed_w"]))
+            gates = torch.baddbmm(w["edge_b"], torch.cat([e, state["edge_h"]], -1), ow["edge_w"])
+            new["edge_h"], new["edge_c"] = lstm_pointwise_regrouped(gates, state["edge_c"])
+            z = torch.cat([x, *new["edge_h"].unbind(0), state["node_h"]], 1)
+        else:
+            new["edge_h"], new["edge_c"] = state["edge_h"], state["edge_c"]
+            z = torch.cat([x, state["node_h"]], 1)
+        packed = ow["packed"] if n >= 8 else None  # prepacking pays only for enough rows
+        if packed is not None:
+            node_gates = packed[1](z, packed[0], ow["node_b"], "none", [], "")
+        else:
+            node_gates = torch.addmm(ow["node_b"], z, ow["node_w"])
+        new["node_h"], new["node_c"] = lstm_pointwise_regrouped(node_gates, state["node_c"])
+        offset = torch.tanh(torch.addmm(ow["decoder_b"], new["node_h"], ow["decoder_w"]))
+        nxt = p[0] + offset + vel if self.cfg.offset == "cv_residual" else p[0] + offset
+        return nxt, new
+
+    def _online_feature_scale(self, n: int, ow: dict[str, Any]) -> torch.Tensor:
+        """``(K, 1, 2)``: the mean aggregation's divisors (everyone of ``n`` present), ``feature_scale`` and the
+        input scales in one factor, cached per ``n`` in the online weights ``ow`` (one product instead of one per
+        type)."""
+        cache = ow.setdefault("feature_scale", {})
+        if n not in cache:
+            k = len(self.types)
+            nb = float(max(n - 1, 1))
+            div = {"S": nb, "ST": nb, "SS": nb * max(n - 2, 1), "TS": nb} if self.cfg.aggregate == "mean" else {}
+            inv = torch.tensor([1.0 / div.get(t, 1.0) for t in self.types], dtype=self.edge_scale.dtype)
+            cache[n] = (inv[:, None, None] * self.cfg.feature_scale * self.edge_scale[:k]).contiguous()
+        return cache[n]
+
+    def head_parameters(self) -> list[nn.Parameter]:
+        """The distribution head's parameters (empty with the point head)."""
+        return [*self.scale_head.parameters(), self.step_bias] if self.gaussian else []
+
+    def _head_linear(self, node_h: torch.Tensor) -> torch.Tensor:
+        return nn.functional.linear(node_h, self.scale_head.weight, self.scale_head.bias)
+
+    def _step_bias(self, ahead: int) -> torch.Tensor:
+        """``(3,)`` the head's bias for a prediction ``ahead`` steps after the last observed input (the last row
+        serves every longer horizon)."""
+        return self.step_bias[min(ahead, len(self.step_bias) - 1)]
+
+    def head_raw(self, node_h: torch.Tensor, ahead: int = 0) -> torch.Tensor:
+        """The distribution head's raw ``(σx, σy, ρ)`` ``(..., 3)`` from node states ``(..., node_hidden)`` of a
+        prediction ``ahead`` steps after the last observed input."""
+        return self._head_linear(node_h) + self._step_bias(ahead)
+
+    def continue_rollout(
+        self,
+        first: torch.Tensor,
+        p_t: torch.Tensor,
+        p_tm1: torch.Tensor,
+        m_tm1: torch.Tensor,
+        state: dict[str, torch.Tensor],
+        steps: int,
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The free steps of :meth:`scan_distribution` after an observed step ``t``, by :meth:`online_step`
+        (inference only), for ``n`` pedestrians all present at ``t`` and all rolled out.
+
+        Args:
+            first: ``(n, 2)`` the prediction of step ``t + 1`` (the observed step's output), normalised.
+            p_t, p_tm1: ``(n, 2)`` positions at ``t`` and ``t − 1`` (0 where absent), normalised.
+            m_tm1: ``(n,)`` bool presence at ``t − 1``.
+            state: hidden states of the ``n`` rows after step ``t`` (not modified).
+            steps: free steps after ``first``.
+
+        Returns:
+            ``(steps, n, 2)`` the means of steps ``t + 2 ..`` and, with the gaussian head, the raw ``(σx, σy, ρ)``
+            ``(steps, n, 3)`` (None with the point head), computed for all steps at once after the loop.
+        """
+        n = first.shape[0]
+        cur, h0, h1 = first, p_t, p_tm1
+        m2: torch.Tensor | None = None if bool(m_tm1.all()) else m_tm1  # presence at t − 1, for the first step
+        preds: list[torch.Tensor] = []
+        hs: list[torch.Tensor] = []
+        weights = self.online_weights()
+        for _ in range(steps):
+            nxt, state = self.online_step((cur, h0, h1), None, m2, state, weights)
+            h1, h0, cur, m2 = h0, cur, nxt, None
+            preds.append(nxt)
+            hs.append(state["node_h"])
+        if not preds:
+            return first.new_zeros(0, n, 2), (first.new_zeros(0, n, 3) if self.gaussian else None)
+        raw = None
+        if self.gaussian:
+            ahead = torch.arange(1, steps + 1).clamp(max=len(self.step_bias) - 1)
+            ow = weights[1]
+            raw = torch.addmm(ow["head_b"], torch.cat(hs, 0), ow["head_w"]).view(steps, n, 3)
+            raw = raw + self.step_bias.detach()[ahead][:, None]
+        return torch.stack(preds), raw
+
     # --------------------------------------------------------------- features
     def _features(
-        self, p: tuple[torch.Tensor, ...], m: tuple[torch.Tensor, ...]
+        self, p: tuple[torch.Tensor, ...], m: tuple[torch.Tensor, ...] | None
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
         """Scaled edge features ``(K, ..., N, 2)`` (``None`` without edge types) and the velocity
-        ``(..., N, 2)``, from positions/masks at t, t−1, t−2 (each ``(..., N, ·)``)."""
+        ``(..., N, 2)``, from positions/masks at t, t−1, t−2 (each ``(..., N, ·)``); ``m=None`` when every
+        pedestrian is present at all three steps (the same values with fewer operations)."""
         dt = p[0].dtype
         k = len(self.types)
         if not k:
-            return None, (p[0] - p[1]) * (m[0] & m[1]).unsqueeze(-1).to(dt)
-        w = [x.to(dt).unsqueeze(-1) for x in m]  # (..., N, 1)
-        feats, vel = stacked_features_step(p[0], p[1], p[2], w[0], w[1], w[2], self.types)
-        if self.cfg.aggregate == "mean":
-            n_t = w[0].sum(-2, keepdim=True)  # (..., 1, 1)
-            nb = (n_t - 1).clamp(min=1)
-            div = {"S": nb, "ST": nb, "SS": nb * (n_t - 2).clamp(min=1)}
-            if "TS" in self.types:
-                div["TS"] = (w[1].sum(-2, keepdim=True) - 1).clamp(min=1)
-            feats = torch.stack([f / div[t] if t in div else f for t, f in zip(self.types, feats, strict=True)])
+            return None, p[0] - p[1] if m is None else (p[0] - p[1]) * (m[0] & m[1]).unsqueeze(-1).to(dt)
+        if m is None:
+            feats, vel = stacked_features_step(p[0], p[1], p[2], None, None, None, self.types)
+            if self.cfg.aggregate == "mean":
+                n = p[0].shape[-2]
+                nb = float(max(n - 1, 1))
+                div_d = {"S": nb, "ST": nb, "SS": nb * max(n - 2, 1), "TS": nb}
+                feats = torch.stack([f / div_d[t] if t in div_d else f for t, f in zip(self.types, feats, strict=True)])
+        else:
+            w = [x.to(dt).unsqueeze(-1) for x in m]  # (..., N, 1)
+            feats, vel = stacked_features_step(p[0], p[1], p[2], w[0], w[1], w[2], self.types)
+            if self.cfg.aggregate == "mean":
+                n_t = w[0].sum(-2, keepdim=True)  # (..., 1, 1)
+                nb_t = (n_t - 1).clamp(min=1)
+                div = {"S": nb_t, "ST": nb_t, "SS": nb_t * (n_t - 2).clamp(min=1)}
+                if "TS" in self.types:
+                    div["TS"] = (w[1].sum(-2, keepdim=True) - 1).clamp(min=1)
+                feats = torch.stack([f / div[t] if t in div else f for t, f in zip(self.types, feats, strict=True)])
         if self.cfg.feature_scale != 1.0:
             feats = feats * self.cfg.feature_scale
         return feats * self.edge_scale[:k].reshape(k, *([1] * (feats.dim() - 2)), 2), vel
@@ -332,11 +570,11 @@ class StructuralRNN(nn.Module):
         self,
         w: dict[str, torch.Tensor],
         p: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-        m: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        m: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None,
         rows: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
         """Input halves of the node and edge gates for ``rows`` of the flattened ``(..., N)`` grid
-        (``None``: all), from positions/masks at t, t−1, t−2 (each ``(..., N, ·)``).
+        (``None``: all), from positions/masks at t, t−1, t−2 (each ``(..., N, ·)``; ``m=None``: everyone present).
 
         Returns ``node (P, 4 node_hidden)``, ``edge (K, P, 4 edge_hidden)`` or ``None``, and the
         velocity ``(..., N, 2)``.
@@ -356,11 +594,18 @@ class StructuralRNN(nn.Module):
         return node, torch.baddbmm(w["edge_b"], self.drop(e), w["edge_x_w"]), vel
 
     def _decode(self, h: torch.Tensor) -> torch.Tensor:
-        """``(P, 2)`` offsets; always float32 (under bf16 autocast too: they are added to positions)."""
+        """``(P, 2)`` offsets, or with the gaussian head ``(P, 5)``: the offset (the mean's) then the head's raw
+        ``(σx, σy, ρ)``; always float32 (under bf16 autocast too: they are added to positions)."""
         if torch.is_autocast_enabled("cpu"):
             with torch.autocast("cpu", enabled=False):
-                return torch.tanh(nn.functional.linear(h.float(), self.decoder.weight, self.decoder.bias))
-        return torch.tanh(nn.functional.linear(h, self.decoder.weight, self.decoder.bias))
+                return self._decode_fp32(h.float())
+        return self._decode_fp32(h)
+
+    def _decode_fp32(self, h: torch.Tensor) -> torch.Tensor:
+        offset = torch.tanh(nn.functional.linear(h, self.decoder.weight, self.decoder.bias))
+        if not self.gaussian:
+            return offset
+        return torch.cat([offset, self._head_linear(h.detach() if self.cfg.scale_detach else h)], dim=-1)
 
     def _recurrent(
         self,
@@ -405,6 +650,30 @@ class StructuralRNN(nn.Module):
         roll_mask: torch.Tensor | None = None,
         first_pred: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """Run ``L`` steps with given inputs, then ``free_steps`` steps fed with the model's own predictions
+        (the means, with the gaussian head); see :meth:`scan_distribution` for the arguments and the head's output.
+
+        Returns:
+            ``(L + free_steps, B, N, 2)`` predictions of the next positions, the presence used at each
+            step ``(L + free_steps, B, N)``, and the new state (rows absent at a step keep theirs).
+        """
+        preds, _, used, new = self.scan_distribution(
+            known_p, known_m, history_p, history_m, state, free_steps, roll_mask, first_pred
+        )
+        return preds, used, new
+
+    def scan_distribution(
+        self,
+        known_p: torch.Tensor,
+        known_m: torch.Tensor,
+        history_p: tuple[torch.Tensor, torch.Tensor],
+        history_m: tuple[torch.Tensor, torch.Tensor],
+        state: dict[str, torch.Tensor],
+        free_steps: int = 0,
+        roll_mask: torch.Tensor | None = None,
+        first_pred: torch.Tensor | None = None,
+        feed: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, dict[str, torch.Tensor]]:
         """Run ``L`` steps with given inputs, then ``free_steps`` steps fed with the model's own predictions.
 
         Args:
@@ -417,17 +686,25 @@ class StructuralRNN(nn.Module):
                 pedestrians of ``roll_mask`` (the others are absent).
             roll_mask: ``(B, N)`` bool, who is rolled out (needed when ``free_steps > 0``).
             first_pred: ``(B, N, 2)`` the prediction fed to the first free step when ``L == 0``.
+            feed: with the gaussian head, ``(mean (B, N, 2), raw (B, N, 3)) -> (B, N, 2)``: what replaces (is fed
+                back and returned) the last known step's prediction when ``free_steps > 0`` and every free step's,
+                e.g. a sample drawn from the step's Gaussian; None keeps the means.
 
         Returns:
-            ``(L + free_steps, B, N, 2)`` predictions of the next positions, the presence used at each
-            step ``(L + free_steps, B, N)``, and the new state (rows absent at a step keep theirs).
+            ``(L + free_steps, B, N, 2)`` predictions of the next positions (the means, or what ``feed`` made
+            of them), the gaussian head's raw ``(σx, σy, ρ)`` at each step ``(L + free_steps, B, N, 3)`` (None
+            with the point head; :func:`crowdnav_mesrnn.models.gaussian.params_from_raw` turns them into scales
+            and correlations), the presence used at each step ``(L + free_steps, B, N)``, and the new state
+            (rows absent at a step keep theirs).
         """
         n_known, b, n = known_m.shape
         r = b * n
         w = self._weights()
         live = _LiveRows(state, self._decode)
         residual = self.cfg.offset == "cv_residual"
+        gaussian = self.gaussian
         preds: list[torch.Tensor] = []
+        raws: list[torch.Tensor] = []
         used: list[torch.Tensor] = []
         h_p, h_m = history_p, history_m
         if n_known:
@@ -444,7 +721,10 @@ class StructuralRNN(nn.Module):
             rows_all = idx.split(counts)
             for t, count in enumerate(counts):
                 rows = None if count == r else rows_all[t] - t * r
-                offset = self._advance(w, live, rows, node_xs[t], edge_xs[t]).view(b, n, 2)
+                offset = self._advance(w, live, rows, node_xs[t], edge_xs[t]).view(b, n, -1)
+                if gaussian:
+                    raws.append(offset[..., 2:] + self._step_bias(0))
+                    offset = offset[..., :2]
                 preds.append(known_p[t] + offset + vel[t] if residual else known_p[t] + offset)
                 used.append(known_m[t])
             h_p = (known_p[-1], known_p[-2] if n_known > 1 else h_p[0])
@@ -455,22 +735,35 @@ class StructuralRNN(nn.Module):
             roll = roll_mask.bool()
             rows_idx = torch.nonzero(roll.reshape(-1)).flatten()
             rows = None if len(rows_idx) == r else rows_idx
+            # everyone rolled out and present at the two steps before: the masks are all True, and the features
+            # are computed without them (the same values); this holds from the third free step on when rows is None
+            full = [rows is None and bool(x.all()) for x in h_m]
+            if feed is not None and preds:
+                preds[-1] = feed(preds[-1], raws[-1])
             prev = preds[-1] if preds else first_pred
             if prev is None:
                 raise ValueError("free steps after no known step need first_pred")
             zeros = prev.new_zeros(())
-            for _ in range(free_steps):
-                p_t = torch.where(roll.unsqueeze(-1), prev, zeros)
-                node_x, edge_x, vel = self._gate_inputs(w, (p_t, *h_p), (roll, *h_m), rows)
-                offset = self._advance(w, live, rows, node_x, edge_x).view(b, n, 2)
+            for k in range(free_steps):
+                dense = rows is None and full[0] and full[1]
+                p_t = prev if rows is None else torch.where(roll.unsqueeze(-1), prev, zeros)
+                node_x, edge_x, vel = self._gate_inputs(w, (p_t, *h_p), None if dense else (roll, *h_m), rows)
+                offset = self._advance(w, live, rows, node_x, edge_x).view(b, n, -1)
+                if gaussian:
+                    raws.append(offset[..., 2:] + self._step_bias(k + 1))
+                    offset = offset[..., :2]
                 prev = p_t + offset + vel if residual else p_t + offset
+                if feed is not None:
+                    prev = feed(prev, raws[-1])
                 preds.append(prev)
                 used.append(roll)
                 h_p, h_m = (p_t, h_p[0]), (roll, h_m[0])
+                full = [rows is None, full[0]]
         live.flush()
         if not preds:
-            return known_p.new_zeros(0, b, n, 2), known_m.new_zeros(0, b, n), live.full
-        return torch.stack(preds), torch.stack(used), live.full
+            none_raw = known_p.new_zeros(0, b, n, 3) if gaussian else None
+            return known_p.new_zeros(0, b, n, 2), none_raw, known_m.new_zeros(0, b, n), live.full
+        return torch.stack(preds), torch.stack(raws) if gaussian else None, torch.stack(used), live.full
 
     def step(
         self,
@@ -506,26 +799,42 @@ class StructuralRNN(nn.Module):
                 the last observed step (the true autoregressive rollout used in evaluation).
 
         Returns:
-            ``pred: (B, T−1, N, 2)`` where ``pred[:, t]`` is the prediction of step ``t+1``, and the
-            input mask ``(B, T−1, N)`` used at each step.
+            ``pred: (B, T−1, N, 2)`` where ``pred[:, t]`` is the prediction of step ``t+1`` (the mean, with the
+            gaussian head), and the input mask ``(B, T−1, N)`` used at each step.
         """
-        steps = positions.shape[1] - 1
-        known = steps if teacher_forcing else min(obs_len, steps)
-        pred, used = self._run(positions[:, :known], mask[:, :known], steps - known, mask[:, obs_len - 1])
+        pred, _, used = self.forward_distribution(positions, mask, obs_len, teacher_forcing)
         return pred, used
 
+    def forward_distribution(
+        self, positions: torch.Tensor, mask: torch.Tensor, obs_len: int, teacher_forcing: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """:meth:`forward` plus the gaussian head's raw ``(σx, σy, ρ)`` at each step ``(B, T−1, N, 3)`` (None
+        with the point head). Without teacher forcing the rollout feeds back the means, so the Gaussian at a
+        predicted step is the model's distribution of that step's position given the observed steps."""
+        steps = positions.shape[1] - 1
+        known = steps if teacher_forcing else min(obs_len, steps)
+        return self._run(positions[:, :known], mask[:, :known], steps - known, mask[:, obs_len - 1])
+
     def _run(
-        self, positions: torch.Tensor, mask: torch.Tensor, free_steps: int, roll_mask: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """From a zero state: ``(B, L, N, 2)`` known inputs then ``free_steps``; ``(B, L + free, N, ·)`` out."""
+        self,
+        positions: torch.Tensor,
+        mask: torch.Tensor,
+        free_steps: int,
+        roll_mask: torch.Tensor,
+        feed: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """From a zero state: ``(B, L, N, 2)`` known inputs then ``free_steps``; ``(B, L + free, N, ·)`` out
+        (predictions, the head's raw output or None, the masks used)."""
         b, _, n, _ = positions.shape
         m = mask.bool().transpose(0, 1)
         p = torch.where(m.unsqueeze(-1), positions.transpose(0, 1), positions.new_zeros(()))
         zeros_p = positions.new_zeros(b, n, 2)
         zeros_m = torch.zeros(b, n, dtype=torch.bool, device=positions.device)
         state = self.init_state(b * n, positions.device)
-        pred, used, _ = self.scan(p, m, (zeros_p, zeros_p), (zeros_m, zeros_m), state, free_steps, roll_mask.bool())
-        return pred.transpose(0, 1), used.transpose(0, 1)
+        pred, raw, used, _ = self.scan_distribution(
+            p, m, (zeros_p, zeros_p), (zeros_m, zeros_m), state, free_steps, roll_mask.bool(), feed=feed
+        )
+        return pred.transpose(0, 1), None if raw is None else raw.transpose(0, 1), used.transpose(0, 1)
 
     def rollout(self, obs_positions: torch.Tensor, obs_mask: torch.Tensor, pred_len: int) -> torch.Tensor:
         """Autoregressive forecast from observed steps only.
@@ -536,8 +845,83 @@ class StructuralRNN(nn.Module):
             pred_len: steps to forecast.
 
         Returns:
-            ``(B, pred_len, N, 2)`` normalised; meaningful for pedestrians present at the last observed step.
+            ``(B, pred_len, N, 2)`` normalised; meaningful for pedestrians present at the last observed step
+            (the means, with the gaussian head).
         """
         obs_len = obs_positions.shape[1]
-        pred, _ = self._run(obs_positions, obs_mask, pred_len - 1, obs_mask[:, obs_len - 1])
+        pred, _, _ = self._run(obs_positions, obs_mask, pred_len - 1, obs_mask[:, obs_len - 1])
         return pred[:, obs_len - 1 :]
+
+    def _need_gaussian(self) -> None:
+        if not self.gaussian:
+            raise ValueError(
+                f"this {self.cfg.model!r} network has a point head (head: point); a distribution needs head: gaussian"
+            )
+
+    def rollout_distribution(
+        self, obs_positions: torch.Tensor, obs_mask: torch.Tensor, pred_len: int
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The mean rollout (as :meth:`rollout`) and each step's Gaussian; gaussian head only.
+
+        Returns:
+            ``mean (B, pred_len, N, 2)``, ``sigma (B, pred_len, N, 2)`` and ``rho (B, pred_len, N)``, normalised units.
+        """
+        self._need_gaussian()
+        obs_len = obs_positions.shape[1]
+        pred, raw, _ = self._run(obs_positions, obs_mask, pred_len - 1, obs_mask[:, obs_len - 1])
+        assert raw is not None
+        sigma, rho = params_from_raw(raw[:, obs_len - 1 :])
+        return pred[:, obs_len - 1 :], sigma, rho
+
+    def sample_rollout(
+        self,
+        obs_positions: torch.Tensor,
+        obs_mask: torch.Tensor,
+        pred_len: int,
+        samples: int,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Sampled futures whose every step is drawn from the step's Gaussian and fed back as the next input
+        (the observed steps are run once and their state shared by the samples); gaussian head only.
+
+        Returns:
+            ``(B, samples, pred_len, N, 2)`` normalised.
+        """
+        self._need_gaussian()
+        b, obs_len, n, _ = obs_positions.shape
+        m = obs_mask.bool()
+        p = torch.where(m.unsqueeze(-1), obs_positions, obs_positions.new_zeros(()))
+        zeros_p = p.new_zeros(b, n, 2)
+        zeros_m = torch.zeros(b, n, dtype=torch.bool, device=p.device)
+        state = self.init_state(b * n, p.device)
+        pred, raw, _, state = self.scan_distribution(
+            p.transpose(0, 1), m.transpose(0, 1), (zeros_p, zeros_p), (zeros_m, zeros_m), state
+        )
+        assert raw is not None
+
+        def draw(mean: torch.Tensor, raw_t: torch.Tensor) -> torch.Tensor:
+            sigma, rho = params_from_raw(raw_t)
+            eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+            return gaussian_sample(mean, sigma, rho, eps)
+
+        def rep(x: torch.Tensor, dim: int = 0) -> torch.Tensor:  # (B, ...) -> (B * samples, ...)
+            return x.repeat_interleave(samples, dim=dim)
+
+        roll = rep(m[:, -1])
+        first = draw(rep(pred[-1]), rep(raw[-1]))
+        prev2 = rep(p[:, -2]) if obs_len > 1 else rep(zeros_p)
+        prev2_m = rep(m[:, -2]) if obs_len > 1 else rep(zeros_m)
+        rows = {k: rep(v.view(*v.shape[:-2], b, n, v.shape[-1]), v.dim() - 2).flatten(-3, -2) for k, v in state.items()}
+        rest, _, _, _ = self.scan_distribution(
+            first.new_zeros(0, b * samples, n, 2),
+            roll.new_zeros(0, b * samples, n),
+            (rep(p[:, -1]), prev2),
+            (rep(m[:, -1]), prev2_m),
+            rows,
+            free_steps=pred_len - 1,
+            roll_mask=roll,
+            first_pred=first,
+            feed=draw,
+        )
+        out = torch.cat([first[None], rest], 0)  # (pred_len, B * samples, N, 2)
+        return out.view(pred_len, b, samples, n, 2).permute(1, 2, 0, 3, 4)
