@@ -614,6 +614,7 @@ def evaluate(
     if n_envs < 1:
         raise ValueError(f"n_envs must be >= 1, got {n_envs!r}")
     started = time.perf_counter()
+    version = code_version()  # the code that runs (read before: the checkout may move while episodes run)
     ceiling_rows = read_episodes(ceiling) if ceiling is not None else None  # fail before running anything
     kwargs = evaluation_env_kwargs(spec, predictor, split, env_overrides, require_pedestrians)
     config = config_from(kwargs, {})
@@ -641,7 +642,7 @@ def evaluate(
         planner=dict(planner_kwargs or {}) if str(spec) in PLANNERS else None,
         privileged=bool(getattr(policy, "privileged", False)),
         env_revision=ENV_REVISION,
-        code_version=code_version(),
+        code_version=version,
         seconds=round(time.perf_counter() - started, 3),
         out_dir=None if out_dir is None else str(out_dir),
     )
