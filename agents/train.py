@@ -419,6 +419,19 @@ def algorithm_kwargs(cfg: TrainConfig) -> dict[str, Any]:
     if isinstance(kwargs.get("train_freq"), list):
         kwargs["train_freq"] = tuple(kwargs["train_freq"])
     kwargs["policy_kwargs"] = copy.deepcopy(cfg.policy_kwargs)
+    from agents.scoring import action_geometry_kwargs, is_scoring_policy
+
+    if is_scoring_policy(policy_class(cfg.policy)):  # the scoring policy rolls out the action set's velocities
+        actions = cfg.action_set()
+        if actions is None:
+            raise ConfigError(f"policy {cfg.policy} scores discrete actions: set action kind 'discrete'")
+        extractor = kwargs["policy_kwargs"].setdefault("features_extractor_kwargs", {})
+        for key, value in action_geometry_kwargs(actions).items():
+            if extractor.setdefault(key, value) != value:
+                raise ConfigError(
+                    f"policy_kwargs.features_extractor_kwargs.{key} = {extractor[key]!r} disagrees with the action set "
+                    f"and environment ({value!r}); leave it out, it is filled in from them"
+                )
     return kwargs
 
 
