@@ -80,6 +80,7 @@ PROJECT_KEY: Final[str] = "crowdnav_mesrnn"
 PROJECT_KEYS: Final[tuple[str, ...]] = (
     "algo",
     "env",
+    "train_env",
     "eval",
     "checkpoint_freq_steps",
     "keep_checkpoints",
@@ -176,11 +177,16 @@ class TrainConfig:
     goal-relative velocities of :mod:`agents.actions`, PPO only) and the discrete set's options."""
     source: str = ""
     """The file it was read from."""
+    train_env: dict[str, Any] = dataclasses.field(default_factory=dict)
+    """Environment settings of training episodes only (the warm start's too), on top of ``env``: e.g.
+    ``crowd_overlays`` (denser training crowds from the training recordings). Validation and evaluation never get
+    them."""
 
     def env_kwargs(self, episode_time: str = "train") -> dict[str, Any]:
-        """Keyword arguments of a training (``train``) or validation (``val``) environment."""
+        """Keyword arguments of a training (``train``, with ``train_env``) or validation (``val``) environment."""
         return {
             **self.env,
+            **(self.train_env if episode_time == "train" else {}),
             "predictor": self.predictor,
             "split": self.split,
             "part": "train",
@@ -207,6 +213,8 @@ class TrainConfig:
             "pretrain": None if self.pretrain is None else dataclasses.asdict(self.pretrain),
             "action": copy.deepcopy(self.action),
         }
+        if self.train_env:  # written only when set (run folders from before the key compare equal on resume)
+            project["train_env"] = copy.deepcopy(self.train_env)
         return {self.env_id: entry, PROJECT_KEY: project}
 
     def action_set(self) -> Any:
@@ -331,9 +339,15 @@ def _build(
     env = project.get("env") or {}
     if not isinstance(env, dict):
         raise ConfigError(f"{source}: {PROJECT_KEY}.env must be a mapping")
-    for key in RUN_ENV_KEYS:
-        if key in env:
-            raise ConfigError(f"{PROJECT_KEY}.env.{key} is set by the run (use --predictor/--split), not the config")
+    train_env = project.get("train_env") or {}
+    if not isinstance(train_env, dict):
+        raise ConfigError(f"{source}: {PROJECT_KEY}.train_env must be a mapping")
+    for section, values in (("env", env), ("train_env", train_env)):
+        for key in RUN_ENV_KEYS:
+            if key in values:
+                raise ConfigError(
+                    f"{PROJECT_KEY}.{section}.{key} is set by the run (use --predictor/--split), not the config"
+                )
     eval_section = project.get("eval") or {}
     eval_cfg = replace_checked(EvalConfig(), eval_section, where=f"{PROJECT_KEY}.eval")
     pre = project.get("pretrain")
@@ -367,6 +381,7 @@ def _build(
         pretrain=pretrain,
         action=action,
         source=source,
+        train_env=dict(train_env),
     )
     cfg.action_set()  # validates the environment settings and the action section now, naming the bad key
     return cfg
@@ -493,6 +508,21 @@ def make_vec_env(cfg: TrainConfig) -> Any:
         nkw.setdefault("gamma", cfg.hyperparams.get("gamma", 0.99))
         venv = VecNormalize(venv, **nkw)
     return venv
+
+
+def prepare_training_forecasts(cfg: TrainConfig, progress: bool = False) -> None:
+    """Fill the shared forecast cache for the run's training and validation episodes (the same recordings), and for
+    the overlaid training recordings when ``train_env`` densifies them (``crowd_overlays``: their forecasts differ
+    from the recordings' own and are computed here, once, rather than by the first environment that needs them)."""
+    prepare_forecasts(cfg.env_kwargs("train"), progress=progress)
+    if config_from(cfg.env_kwargs("train"), {}).crowd_overlays:
+        from envs.crowd_nav import CrowdNavEnv
+
+        env = CrowdNavEnv(**cfg.env_kwargs("train"))
+        try:
+            env.precompute_forecasts()
+        finally:
+            env.close()
 
 
 def predictor_weights(cfg: TrainConfig) -> dict[str, str]:
@@ -844,7 +874,7 @@ def train(
     atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(resolved_yaml(cfg), sort_keys=False))
 
     started = time.perf_counter()
-    prepare_forecasts(cfg.env_kwargs("train"), progress=progress)  # training and validation: the same recordings
+    prepare_training_forecasts(cfg, progress)
     venv = make_vec_env(cfg)
     validation = Validation(cfg, run_dir)
     algo_cls = _algo_class(cfg.algo)

@@ -21,7 +21,7 @@ from crowdnav_mesrnn.data.constants import OBS_LEN
 from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, DataNotFoundError
 from crowdnav_mesrnn.data.recordings import Recording, load_recording
 from envs.config import FORECAST_SOURCES, CrowdNavConfig, config_from, episode_recordings, resolve_scenes
-from envs.episodes import Episode, EpisodeSampler
+from envs.episodes import Episode, EpisodeSampler, episode_time_window
 from envs.forecast_cache import ForecastStore, cache_root
 from envs.forecasts import (
     ForecastModel,
@@ -32,7 +32,7 @@ from envs.forecasts import (
     make_forecast_source,
 )
 from envs.observation import ObservationBuilder, nearest_visible, observation_space
-from envs.recordings import empty_recording, synthetic_recording
+from envs.recordings import empty_recording, overlay_recording, synthetic_recording
 from envs.rendering import HUMAN_NEEDS_PYGAME
 from envs.replay import Replay
 from envs.rewards import EpisodeMetrics, reward_components, total_reward
@@ -335,6 +335,17 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     # ------------------------------------------------------------------ construction helpers
 
     def _resolve_crowd(self, crowd_obj: Recording | None) -> tuple[list[Recording], str]:
+        recordings, kind = self._crowd_recordings(crowd_obj)
+        cfg = self.config
+        if cfg.crowd_overlays and kind != "empty":  # denser training crowds (config: part "train" only)
+            recordings = [
+                overlay_recording(r, cfg.crowd_overlays, episode_time_window(r, cfg.episode_time, cfg.val_fraction))
+                for r in recordings
+            ]
+            kind = f"{kind}+{cfg.crowd_overlays} overlays"
+        return recordings, kind
+
+    def _crowd_recordings(self, crowd_obj: Recording | None) -> tuple[list[Recording], str]:
         cfg = self.config
         if crowd_obj is not None:
             return [crowd_obj], "custom"
