@@ -69,6 +69,7 @@ from stable_baselines3.common.logger import KVWriter, Logger, TensorBoardOutputF
 
 from agents.evaluate import SB3Policy, evaluation_seeds, parse_set, prepare_forecasts, run_episodes
 from agents.pretrain import PretrainConfig
+from agents.stats import wilson_interval
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
@@ -669,9 +670,14 @@ class Validation(BaseCallback):
             policy = DiscretePolicy(policy, self.actions)
         rows = run_episodes(policy, self.envs, self.seeds)
         n = len(rows)
+        successes = sum(r["outcome"] == "success" for r in rows)
+        lo, hi = wilson_interval(successes, n)
         result = {
             "step": int(self.num_timesteps),
-            "success_rate": sum(r["outcome"] == "success" for r in rows) / n,
+            "episodes": n,
+            "success_rate": successes / n,
+            "success_lo": lo,
+            "success_hi": hi,
             "collision_rate": sum(r["outcome"] == "collision" for r in rows) / n,
             "timeout_rate": sum(r["outcome"] == "timeout" for r in rows) / n,
             "mean_return": float(np.mean([r["return"] for r in rows])),
