@@ -38,7 +38,9 @@ from typing import Any, Final
 
 import torch
 from gymnasium import spaces
+from stable_baselines3.common.buffers import DictRolloutBuffer
 from stable_baselines3.common.policies import MultiInputActorCriticPolicy
+from stable_baselines3.common.preprocessing import preprocess_obs
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.dqn.policies import MultiInputPolicy as DQNMultiInputPolicy
 from stable_baselines3.dqn.policies import QNetwork
@@ -57,6 +59,8 @@ SOFTMIN_M: Final[float] = 0.5
 #: Where the robot's future positions come from without forecasts: the observed velocities held
 #: (``constant_velocity``, the sampling planner's fallback) or the pedestrians standing still (``static``).
 NO_FORECAST_FUTURES: Final[tuple[str, ...]] = ("constant_velocity", "static")
+#: Key under which a batch of observations may carry its precomputed geometry (:class:`GeometryCachingBuffer`).
+GEOMETRY_KEY: Final[str] = "_rollout_geometry"
 #: Observations per chunk of the (chunk, K, H, A) squared-distance tensor (sized to stay in a CPU cache).
 _CHUNK: Final[int] = 16
 
@@ -296,10 +300,18 @@ class ActionRolloutExtractor(BaseFeaturesExtractor):
             robot, fut, mask, self.angles, self.fractions, self.pref_speed_mps, self.dt_s, self.radius_sum_m
         )
 
+    def geometry(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``(B, A * F)``: the scaled, flattened rollout features (no gradient: no parameters involved)."""
+        with torch.no_grad():
+            return (self.rollout_features(observations) * self.feature_scale).flatten(1)
+
     def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:  # type: ignore[override]
-        with torch.no_grad():  # geometry of the observation: no parameters
-            feats = self.rollout_features(observations) * self.feature_scale
-        return torch.cat([feats.flatten(1), self.context(observations)], dim=1)
+        """Features of a batch; with :data:`GEOMETRY_KEY` among the observations (precomputed by :meth:`geometry`,
+        see :class:`GeometryCachingBuffer`) the geometry is not computed again."""
+        feats = observations.get(GEOMETRY_KEY)
+        if feats is None:
+            feats = self.geometry(observations)
+        return torch.cat([feats, self.context(observations)], dim=1)
 
 
 class ActionScoringHead(nn.Module):
@@ -388,6 +400,22 @@ class ActionScoringPolicy(_HeadKwargs, MultiInputActorCriticPolicy):
         _check_discrete(self.action_space, ext)
         self.mlp_extractor = ActionScoringHead(ext.num_actions, ext.num_features, ext.context_dim, **self.head_kwargs)
 
+    def extract_features(  # type: ignore[override]
+        self, obs: Any, features_extractor: BaseFeaturesExtractor | None = None
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """SB3's, passing a precomputed geometry (:data:`GEOMETRY_KEY`, not part of the observation space) past the
+        observation preprocessing to the extractor."""
+        if not (isinstance(obs, dict) and GEOMETRY_KEY in obs):
+            return super().extract_features(obs, features_extractor)
+        rest = {k: v for k, v in obs.items() if k != GEOMETRY_KEY}
+        pre = preprocess_obs(rest, self.observation_space, normalize_images=self.normalize_images)
+        pre[GEOMETRY_KEY] = obs[GEOMETRY_KEY]  # type: ignore[index]
+        if features_extractor is not None:
+            return features_extractor(pre)
+        if self.share_features_extractor:
+            return self.features_extractor(pre)
+        return self.pi_features_extractor(pre), self.vf_features_extractor(pre)
+
     def _build(self, lr_schedule: Any) -> None:
         super()._build(lr_schedule)
         self.action_net = nn.Identity()  # the head's scores are the logits (weights shared across actions)
@@ -419,6 +447,54 @@ class ActionScoringQPolicy(_HeadKwargs, DQNMultiInputPolicy):
     def make_q_net(self) -> QNetwork:
         args = self._update_features_extractor(self.net_args, features_extractor=None)
         return ActionScoringQNetwork(**args, head_kwargs=self.head_kwargs).to(self.device)
+
+
+class GeometryCachingBuffer(DictRolloutBuffer):
+    """PPO's rollout buffer, adding to every minibatch the observations' rollout geometry (:data:`GEOMETRY_KEY`),
+    computed once per rollout instead of once per epoch and minibatch (the geometry depends on the observation
+    alone). Without :meth:`attach` it is SB3's buffer. Results equal recomputation up to float rounding."""
+
+    geometry_fn: Any = None
+    _geometry: torch.Tensor | None = None
+    _CHUNK_ROWS: Final[int] = 512
+
+    def attach(self, geometry_fn: Any) -> None:
+        """Use ``geometry_fn`` (:meth:`ActionRolloutExtractor.geometry`: batch of observation tensors ->
+        ``(B, A * F)``)."""
+        self.geometry_fn = geometry_fn
+        self._geometry = None
+
+    def reset(self) -> None:
+        super().reset()
+        self._geometry = None
+
+    def _get_samples(self, batch_inds: Any, env: Any = None) -> Any:  # type: ignore[override]
+        samples = super()._get_samples(batch_inds, env)
+        if self.geometry_fn is None:
+            return samples
+        if self._geometry is None:  # first minibatch of this rollout: observations are flattened by now
+            n = self.buffer_size * self.n_envs
+            parts = []
+            for lo in range(0, n, self._CHUNK_ROWS):
+                chunk = {k: self.to_torch(v[lo : lo + self._CHUNK_ROWS]) for k, v in self.observations.items()}
+                parts.append(self.geometry_fn(chunk))
+            self._geometry = torch.cat(parts)
+        obs = dict(samples.observations)
+        obs[GEOMETRY_KEY] = self._geometry[torch.as_tensor(batch_inds, device=self._geometry.device)]
+        return samples._replace(observations=obs)
+
+
+def attach_geometry_cache(model: Any) -> bool:
+    """Let ``model``'s rollout buffer cache the scoring policy's geometry (:class:`GeometryCachingBuffer`); returns
+    whether it applies (a PPO model with that buffer and :class:`ActionScoringPolicy`)."""
+    buffer = getattr(model, "rollout_buffer", None)
+    policy = getattr(model, "policy", None)
+    if isinstance(buffer, GeometryCachingBuffer) and isinstance(policy, ActionScoringPolicy):
+        extractor = policy.features_extractor
+        assert isinstance(extractor, ActionRolloutExtractor)
+        buffer.attach(extractor.geometry)
+        return True
+    return False
 
 
 def is_scoring_policy(policy: Any) -> bool:

@@ -69,6 +69,7 @@ from stable_baselines3.common.logger import KVWriter, Logger, TensorBoardOutputF
 
 from agents.evaluate import SB3Policy, evaluation_seeds, parse_set, prepare_forecasts, run_episodes
 from agents.pretrain import PretrainConfig
+from agents.scoring import GeometryCachingBuffer, action_geometry_kwargs, attach_geometry_cache, is_scoring_policy
 from agents.stats import wilson_interval
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import SPLITS
@@ -435,12 +436,12 @@ def algorithm_kwargs(cfg: TrainConfig) -> dict[str, Any]:
     if isinstance(kwargs.get("train_freq"), list):
         kwargs["train_freq"] = tuple(kwargs["train_freq"])
     kwargs["policy_kwargs"] = copy.deepcopy(cfg.policy_kwargs)
-    from agents.scoring import action_geometry_kwargs, is_scoring_policy
-
     if is_scoring_policy(policy_class(cfg.policy)):  # the scoring policy rolls out the action set's velocities
         actions = cfg.action_set()
         if actions is None:
             raise ConfigError(f"policy {cfg.policy} scores discrete actions: set action kind 'discrete'")
+        if cfg.algo == "ppo":  # the geometry depends on the observation alone: computed once per rollout
+            kwargs.setdefault("rollout_buffer_class", GeometryCachingBuffer)
         extractor = kwargs["policy_kwargs"].setdefault("features_extractor_kwargs", {})
         for key, value in action_geometry_kwargs(actions).items():
             if extractor.setdefault(key, value) != value:
@@ -890,6 +891,7 @@ def train(
                 policy_class(cfg.policy), venv, seed=cfg.seed, verbose=0, device="cpu", **algorithm_kwargs(cfg)
             )
             model.set_logger(make_logger(run_dir, None))
+            attach_geometry_cache(model)
             if cfg.pretrain is not None and cfg.pretrain.episodes > 0:
                 from agents.pretrain import pretrain
 
@@ -963,6 +965,7 @@ def _resume_model(cfg: TrainConfig, ckpt: Path, venv: Any, validation: Any) -> A
             raise ConfigError(f"{ckpt} has VecNormalize statistics but the config does not normalise")
         venv.obs_rms, venv.ret_rms = saved.obs_rms, saved.ret_rms
     model = algo_cls.load(ckpt / "model.zip", env=venv, device="cpu")
+    attach_geometry_cache(model)
     if (ckpt / "replay_buffer.pkl").is_file() and hasattr(model, "load_replay_buffer"):
         model.load_replay_buffer(ckpt / "replay_buffer.pkl")
     state = json.loads((ckpt / "state.json").read_text())

@@ -235,3 +235,26 @@ def test_training_config_fills_in_the_action_geometry(tiny: Any, config_of: Any,
     bad = dict(over, **{"policy_kwargs.features_extractor_kwargs": {"dt_s": 0.25}})
     with pytest.raises(ConfigError, match="dt_s"):
         algorithm_kwargs(load_train_config(config_of("ppo"), None, bad))
+
+
+def test_rollout_buffer_caches_the_geometry_once_per_rollout() -> None:
+    from stable_baselines3 import PPO
+
+    from agents.scoring import GEOMETRY_KEY, GeometryCachingBuffer, attach_geometry_cache
+
+    model = PPO(ActionScoringPolicy, _env(True), n_steps=32, batch_size=16, n_epochs=1, policy_kwargs=_policy_kwargs(),
+                rollout_buffer_class=GeometryCachingBuffer, seed=0, device="cpu")  # fmt: skip
+    assert attach_geometry_cache(model)
+    calls = []
+    geometry = model.rollout_buffer.geometry_fn
+    model.rollout_buffer.attach(lambda obs: calls.append(len(obs["mask"])) or geometry(obs))
+    model.learn(32)  # one rollout, one epoch of two minibatches: the geometry of the 32 observations, once
+    assert calls == [32]
+    batch = next(model.rollout_buffer.get(8))
+    assert GEOMETRY_KEY in batch.observations
+    plain = {k: v for k, v in batch.observations.items() if k != GEOMETRY_KEY}
+    cached = model.policy.evaluate_actions(batch.observations, batch.actions.long().flatten())
+    fresh = model.policy.evaluate_actions(plain, batch.actions.long().flatten())
+    for a, b in zip(cached, fresh, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    assert calls == [32]  # get() after the rollout computed nothing new
