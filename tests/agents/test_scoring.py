@@ -258,3 +258,16 @@ def test_rollout_buffer_caches_the_geometry_once_per_rollout() -> None:
     for a, b in zip(cached, fresh, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
     assert calls == [32]  # get() after the rollout computed nothing new
+
+
+@pytest.mark.parametrize("predictor", ["none", "mesrnn"])
+def test_the_recipe_candidate_builds_for_every_arm(predictor: str) -> None:
+    from agents.scoring import GeometryCachingBuffer
+    from agents.train import algorithm_kwargs, load_train_config
+
+    cfg = load_train_config(Path(__file__).parents[2] / "configs" / "agent" / "ppo_scoring.yaml", None,
+                            {"predictor": predictor})  # fmt: skip
+    kwargs = algorithm_kwargs(cfg)
+    assert kwargs["rollout_buffer_class"] is GeometryCachingBuffer
+    assert kwargs["policy_kwargs"]["features_extractor_kwargs"]["horizon_steps"] == H
+    assert cfg.pretrain is not None and cfg.pretrain.teacher == "planner"
