@@ -117,7 +117,7 @@ UNSUPPORTED_ZOO_KEYS: Final[tuple[str, ...]] = (
 )
 #: Environment settings a run sets itself (per run and per phase).
 RUN_ENV_KEYS: Final[tuple[str, ...]] = ("predictor", "split", "part", "episode_time", "render_mode")
-VEC_ENVS: Final[tuple[str, ...]] = ("auto", "subproc", "dummy")
+VEC_ENVS: Final[tuple[str, ...]] = ("auto", "subproc", "dummy", "batched")
 DEFAULT_CONFIG: Final[Path] = Path(__file__).resolve().parent.parent / "configs" / "agent" / "ppo.yaml"
 
 
@@ -171,7 +171,9 @@ class TrainConfig:
     keep_checkpoints: int
     """How many checkpoints to keep (the latest ones)."""
     vec_env: str
-    """``auto`` (subprocesses for 2+ environments), ``subproc`` or ``dummy``."""
+    """``auto`` (subprocesses for 2+ environments), ``subproc``, ``dummy`` (SB3's ``DummyVecEnv`` over wrapped
+    environments) or ``batched`` (:class:`agents.vec_env.CrowdVecEnv`: the same in this process, the wrappers' work
+    batched)."""
     pretrain: PretrainConfig | None
     """Behaviour-cloning warm start, or None."""
     action: dict[str, Any] = dataclasses.field(default_factory=lambda: {"kind": "continuous"})
@@ -496,9 +498,16 @@ def make_vec_env(cfg: TrainConfig) -> Any:
     ``vec_env: auto``), wrapped in ``VecNormalize`` when configured."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    fns = [partial(make_env, cfg.env_kwargs("train"), cfg.action) for _ in range(cfg.n_envs)]
-    subproc = cfg.vec_env == "subproc" or (cfg.vec_env == "auto" and cfg.n_envs >= 2)
-    venv = SubprocVecEnv(fns, start_method="forkserver") if subproc else DummyVecEnv(fns)
+    if cfg.vec_env == "batched":
+        from agents.vec_env import CrowdVecEnv
+        from envs.crowd_nav import CrowdNavEnv
+
+        bare = [partial(CrowdNavEnv, **cfg.env_kwargs("train")) for _ in range(cfg.n_envs)]
+        venv: Any = CrowdVecEnv(bare, cfg.action_set())
+    else:
+        fns = [partial(make_env, cfg.env_kwargs("train"), cfg.action) for _ in range(cfg.n_envs)]
+        subproc = cfg.vec_env == "subproc" or (cfg.vec_env == "auto" and cfg.n_envs >= 2)
+        venv = SubprocVecEnv(fns, start_method="forkserver") if subproc else DummyVecEnv(fns)
     if cfg.normalize:
         from gymnasium import spaces
         from stable_baselines3.common.vec_env import VecNormalize
