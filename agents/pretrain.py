@@ -333,6 +333,8 @@ def fit_policy(
         obs_np = vecnormalize.normalize_obs(dict(obs_np))
     device = policy.device
     obs_all = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32, device=device) for k, v in obs_np.items()}
+    if callable(getattr(policy, "with_geometry", None)):  # inputs computed from the observation alone: once
+        obs_all = policy.with_geometry(obs_all)
     if actions is not None:
         labels = actions.nearest(data.actions, data.observations["robot"])
         act_all = torch.as_tensor(labels, dtype=torch.int64, device=device)

@@ -61,6 +61,8 @@ SOFTMIN_M: Final[float] = 0.5
 NO_FORECAST_FUTURES: Final[tuple[str, ...]] = ("constant_velocity", "static")
 #: Key under which a batch of observations may carry its precomputed geometry (:class:`GeometryCachingBuffer`).
 GEOMETRY_KEY: Final[str] = "_rollout_geometry"
+#: Largest geometry (bytes) :meth:`ActionScoringPolicy.with_geometry` keeps for a whole data set.
+MAX_CACHED_GEOMETRY_BYTES: Final[int] = 1 << 30
 #: Observations per chunk of the (chunk, K, H, A) squared-distance tensor (sized to stay in a CPU cache).
 _CHUNK: Final[int] = 16
 
@@ -415,6 +417,29 @@ class ActionScoringPolicy(_HeadKwargs, MultiInputActorCriticPolicy):
         if self.share_features_extractor:
             return self.features_extractor(pre)
         return self.pi_features_extractor(pre), self.vf_features_extractor(pre)
+
+    def get_distribution(self, obs: Any) -> Any:
+        """SB3's, through :meth:`extract_features` (SB3 calls the base class's, which rejects the geometry key)."""
+        features = self.extract_features(obs, self.pi_features_extractor)
+        return self._get_action_dist_from_latent(self.mlp_extractor.forward_actor(features))
+
+    def predict_values(self, obs: Any) -> torch.Tensor:
+        """SB3's, through :meth:`extract_features` (as :meth:`get_distribution`)."""
+        features = self.extract_features(obs, self.vf_features_extractor)
+        return self.value_net(self.mlp_extractor.forward_critic(features))
+
+    def with_geometry(self, observations: dict[str, torch.Tensor], chunk: int = 1024) -> dict[str, torch.Tensor]:
+        """``observations`` (a whole data set of tensors) plus their geometry under :data:`GEOMETRY_KEY`, computed
+        once, so that fitting over many epochs (the warm start) does not recompute it per minibatch; unchanged
+        when that would take more than :data:`MAX_CACHED_GEOMETRY_BYTES`."""
+        ext = self.features_extractor
+        assert isinstance(ext, ActionRolloutExtractor)
+        n = len(observations["mask"])
+        if n * ext.num_actions * ext.num_features * 4 > MAX_CACHED_GEOMETRY_BYTES:
+            return observations
+        geometry = torch.cat([ext.geometry({k: v[i : i + chunk] for k, v in observations.items()})
+                              for i in range(0, n, chunk)])  # fmt: skip
+        return {**observations, GEOMETRY_KEY: geometry}
 
     def _build(self, lr_schedule: Any) -> None:
         super()._build(lr_schedule)

@@ -271,3 +271,33 @@ def test_the_recipe_candidate_builds_for_every_arm(predictor: str) -> None:
     assert kwargs["rollout_buffer_class"] is GeometryCachingBuffer
     assert kwargs["policy_kwargs"]["features_extractor_kwargs"]["horizon_steps"] == H
     assert cfg.pretrain is not None and cfg.pretrain.teacher == "planner"
+
+
+def test_warm_start_fits_with_the_geometry_computed_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    from stable_baselines3 import PPO
+
+    from agents import scoring
+    from agents.pretrain import PretrainConfig, TeacherData, fit_policy
+
+    model = PPO(ActionScoringPolicy, _env(True), n_steps=32, batch_size=16, policy_kwargs=_policy_kwargs(), seed=0,
+                device="cpu")  # fmt: skip
+    space = model.observation_space
+    obs = [space.sample() for _ in range(40)]
+    data = TeacherData(
+        {k: np.stack([o[k] for o in obs]) for k in obs[0]},
+        np.tile(np.array([[1.0, 0.0]], dtype=np.float32), (40, 1)),
+        np.zeros(40),
+        ["success"],
+    )
+    ext = model.policy.features_extractor
+    calls = []
+    real = ext.rollout_features
+    monkeypatch.setattr(ext, "rollout_features", lambda o: calls.append(len(o["mask"])) or real(o))
+    robot = data.observations["robot"]
+    robot[:, :2] = np.abs(robot[:, :2]) + 1.0  # goals ahead, so every label is action 0
+    fit_policy(model, data, PretrainConfig(epochs=3, batch_size=16), seed=0, actions=ACTIONS)
+    assert calls == [40]  # once for the data set, not per epoch and minibatch
+    monkeypatch.setattr(scoring, "MAX_CACHED_GEOMETRY_BYTES", 0)
+    calls.clear()
+    fit_policy(model, data, PretrainConfig(epochs=3, batch_size=16), seed=0, actions=ACTIONS)
+    assert sum(calls) == 2 * 3 * 40  # too large to keep: per minibatch, for the action loss and the value loss
