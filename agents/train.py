@@ -83,6 +83,7 @@ PROJECT_KEYS: Final[tuple[str, ...]] = (
     "algo",
     "env",
     "train_env",
+    "val_env",
     "eval",
     "checkpoint_freq_steps",
     "keep_checkpoints",
@@ -185,12 +186,17 @@ class TrainConfig:
     """Environment settings of training episodes only (the warm start's too), on top of ``env``: e.g.
     ``crowd_overlays`` (denser training crowds from the training recordings). Validation and evaluation never get
     them."""
+    val_env: dict[str, Any] = dataclasses.field(default_factory=dict)
+    """Environment settings of validation episodes only, on top of ``env``: e.g. ``crowd_overlays`` to validate on
+    denser crowds made from the training scenes' validation period (never the held-out scene). Evaluation never
+    gets them."""
 
     def env_kwargs(self, episode_time: str = "train") -> dict[str, Any]:
-        """Keyword arguments of a training (``train``, with ``train_env``) or validation (``val``) environment."""
+        """Keyword arguments of a training (``train``, with ``train_env``) or validation (``val``, with ``val_env``)
+        environment."""
         return {
             **self.env,
-            **(self.train_env if episode_time == "train" else {}),
+            **(self.train_env if episode_time == "train" else self.val_env if episode_time == "val" else {}),
             "predictor": self.predictor,
             "split": self.split,
             "part": "train",
@@ -217,8 +223,9 @@ class TrainConfig:
             "pretrain": None if self.pretrain is None else dataclasses.asdict(self.pretrain),
             "action": copy.deepcopy(self.action),
         }
-        if self.train_env:  # written only when set (run folders from before the key compare equal on resume)
-            project["train_env"] = copy.deepcopy(self.train_env)
+        for key in ("train_env", "val_env"):  # written only when set (older run folders compare equal on resume)
+            if getattr(self, key):
+                project[key] = copy.deepcopy(getattr(self, key))
         return {self.env_id: entry, PROJECT_KEY: project}
 
     def action_set(self) -> Any:
@@ -343,10 +350,11 @@ def _build(
     env = project.get("env") or {}
     if not isinstance(env, dict):
         raise ConfigError(f"{source}: {PROJECT_KEY}.env must be a mapping")
-    train_env = project.get("train_env") or {}
-    if not isinstance(train_env, dict):
-        raise ConfigError(f"{source}: {PROJECT_KEY}.train_env must be a mapping")
-    for section, values in (("env", env), ("train_env", train_env)):
+    train_env, val_env = project.get("train_env") or {}, project.get("val_env") or {}
+    for section, values in (("train_env", train_env), ("val_env", val_env)):
+        if not isinstance(values, dict):
+            raise ConfigError(f"{source}: {PROJECT_KEY}.{section} must be a mapping")
+    for section, values in (("env", env), ("train_env", train_env), ("val_env", val_env)):
         for key in RUN_ENV_KEYS:
             if key in values:
                 raise ConfigError(
@@ -386,7 +394,9 @@ def _build(
         action=action,
         source=source,
         train_env=dict(train_env),
+        val_env=dict(val_env),
     )
+    config_from(cfg.env_kwargs("val"), {})  # a bad validation setting is named now, not at the first validation
     cfg.action_set()  # validates the environment settings and the action section now, naming the bad key
     return cfg
 
@@ -523,17 +533,19 @@ def make_vec_env(cfg: TrainConfig) -> Any:
 
 def prepare_training_forecasts(cfg: TrainConfig, progress: bool = False) -> None:
     """Fill the shared forecast cache for the run's training and validation episodes (the same recordings), and for
-    the overlaid training recordings when ``train_env`` densifies them (``crowd_overlays``: their forecasts differ
-    from the recordings' own and are computed here, once, rather than by the first environment that needs them)."""
+    the overlaid recordings when ``train_env`` or ``val_env`` densifies them (``crowd_overlays``: their forecasts
+    differ from the recordings' own and are computed here, once, rather than by the first environment needing them)."""
     prepare_forecasts(cfg.env_kwargs("train"), progress=progress)
-    if config_from(cfg.env_kwargs("train"), {}).crowd_overlays:
-        from envs.crowd_nav import CrowdNavEnv
+    for phase in ("train", "val"):
+        kwargs = cfg.env_kwargs(phase)
+        if config_from(kwargs, {}).crowd_overlays:
+            from envs.crowd_nav import CrowdNavEnv
 
-        env = CrowdNavEnv(**cfg.env_kwargs("train"))
-        try:
-            env.precompute_forecasts()
-        finally:
-            env.close()
+            env = CrowdNavEnv(**kwargs)
+            try:
+                env.precompute_forecasts()
+            finally:
+                env.close()
 
 
 def predictor_weights(cfg: TrainConfig) -> dict[str, str]:

@@ -113,3 +113,23 @@ def test_training_episodes_with_overlays_never_read_the_held_out_recordings(
     assert plain.crowd_kind == "replay"
     plain_densities = [plain_env.reset(seed=seed)[1]["crowd_density"] for seed in range(12)]
     assert np.mean(densities) > 1.5 * np.mean(plain_densities)
+
+
+def test_validation_may_be_denser_but_evaluation_never_is(tmp_path: Path) -> None:
+    from agents.train import load_train_config, train
+
+    over = {
+        "predictor": "none", "n_envs": 1, "n_timesteps": 64, "n_steps": 64, "batch_size": 32, "n_epochs": 1,
+        "pretrain": None, "eval.episodes": 2, "eval.n_envs": 1, "checkpoint_freq_steps": 0, "env.crowd": "synthetic",
+        "policy_kwargs.net_arch": [8], "policy_kwargs.features_extractor_kwargs.hidden_dim": 4,
+        "train_env.crowd_overlays": 1, "val_env.crowd_overlays": 2,
+    }  # fmt: skip
+    cfg = load_train_config(REPO / "configs" / "agent" / "ppo.yaml", None, over)
+    assert cfg.env_kwargs("val")["crowd_overlays"] == 2 and cfg.env_kwargs("train")["crowd_overlays"] == 1
+    assert CrowdNavEnv(**cfg.env_kwargs("val")).crowd_kind == "synthetic+2 overlays"
+    run = train(cfg, tmp_path / "dense", progress=False)
+    from agents.evaluate import evaluation_env_kwargs
+
+    assert "crowd_overlays" not in evaluation_env_kwargs(run, "none", "zara1")
+    with pytest.raises(ConfigError, match="val_env must be a mapping"):
+        load_train_config(REPO / "configs" / "agent" / "ppo.yaml", None, {"val_env": 3})
