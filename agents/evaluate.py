@@ -350,6 +350,7 @@ def run_episodes(
         one row per episode, in seed order (see :func:`episode_row`).
     """
     n = len(seeds)
+    bind = getattr(policy, "bind_envs", None)
     rows: list[dict[str, Any] | None] = [None] * n
     active: dict[int, list[Any]] = {}  # env index -> [episode, obs, return, reset info]
     next_k = 0
@@ -372,6 +373,8 @@ def run_episodes(
         idx = list(active)
         first = active[idx[0]][1]
         batch = {key: np.stack([active[i][1][key] for i in idx]) for key in first}
+        if bind is not None:
+            bind([envs[i] for i in idx])
         actions, _ = policy.predict(batch, deterministic=deterministic)
         for j, i in enumerate(idx):
             k, obs, ret, rinfo = active[i]

@@ -21,7 +21,7 @@ from __future__ import annotations
 import importlib
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final
 
@@ -46,8 +46,9 @@ class PretrainConfig:
     """A policy of :mod:`agents.planners` by name (:data:`agents.planners.PLANNERS`: ``planner``, the sampling
     planner; ``straight``; the search and privileged planners where that module offers them), or any class with
     SB3's batched ``predict`` as ``"package.module:Class"``, built as ``Class(env_config, **teacher_kwargs)``.
-    A teacher with a ``bind(envs)`` method (one that reads the environments, e.g. a privileged planner) is bound to
-    the environments it labels and asked for its action at every step, before the environments move on."""
+    A teacher with a ``bind_envs(envs)`` method (one that reads the environments, e.g. the privileged planner) is
+    given the environment of each row before every batched ``predict`` (as :func:`agents.evaluate.run_episodes`
+    does) and asked for its action at every step, before the environments move on."""
     teacher_kwargs: dict[str, Any] = field(default_factory=dict)
     """Options of the teacher (e.g. ``headings_deg``, ``margin_m`` of the sampling planner)."""
     episodes: int = 200
@@ -147,6 +148,13 @@ class _Labelling:
         self.driver, self.teacher = driver, teacher
         self.pending: list[np.ndarray] = []
 
+    def bind_envs(self, envs: Sequence[Any]) -> None:
+        """The environments of the next batch's rows, for the teacher (and a driver that reads them too)."""
+        for policy in {id(p): p for p in (self.teacher, self.driver)}.values():
+            bind = getattr(policy, "bind_envs", None)
+            if callable(bind):
+                bind(envs)
+
     def predict(
         self, obs: Mapping[str, np.ndarray], state: Any = None, episode_start: Any = None, deterministic: bool = True
     ) -> tuple[np.ndarray, Any]:
@@ -209,9 +217,7 @@ def collect_teacher(
     teacher = make_teacher(cfg, env_cfg)
     episodes = cfg.episodes if round_ == 0 else (cfg.dagger_episodes or cfg.episodes)
     envs = [CrowdNavEnv(**dict(env_kwargs)) for _ in range(max(1, min(cfg.n_envs, episodes)))]
-    online = callable(getattr(teacher, "bind", None))  # reads the environments: label before they move on
-    if online:
-        teacher.bind(envs)
+    online = callable(getattr(teacher, "bind_envs", None))  # reads the environments: label before they move on
     labelling = _Labelling(teacher if driver is None else driver, teacher) if online else None
     per_episode: dict[int, tuple[list[dict[str, np.ndarray]], list[np.ndarray], list[float]]] = {}
 

@@ -129,20 +129,24 @@ def test_an_unavailable_teacher_is_named(teacher: str, message: str) -> None:
 
 
 class _CountingTeacher:
-    """A teacher that reads its environments (``bind``) and whose answer depends on how often it was asked, so
-    labels computed after the episodes would differ from the ones it gave at each step."""
+    """A teacher that reads its environments (``bind_envs``: one per row of the next batch) and whose answer depends
+    on how often it was asked, so labels computed after the episodes would differ from the ones it gave."""
 
     def __init__(self) -> None:
         self.envs: list[Any] = []
         self.calls = 0
 
-    def bind(self, envs: list[Any]) -> None:
+    def bind_envs(self, envs: list[Any]) -> None:
         self.envs = list(envs)
 
     def predict(self, obs: dict, state: Any = None, episode_start: Any = None, deterministic: bool = True) -> Any:
         self.calls += 1
         n = len(obs["mask"])
-        assert self.envs, "used before bind"
+        assert len(self.envs) == n, "each row's environment is bound before predict"
+        for env, robot in zip(self.envs, obs["robot"], strict=True):  # row i is envs[i]
+            goal_offset = env.episode.goal - env.robot_position
+            np.testing.assert_allclose(robot[:2], goal_offset, atol=1e-4)
+        self.envs = []
         return np.tile(np.array([[0.5, 0.0]], dtype=np.float32) * (1 + self.calls % 2), (n, 1)), None
 
 
@@ -155,7 +159,7 @@ def test_a_teacher_that_reads_the_environments_labels_at_every_step(monkeypatch:
     monkeypatch.setattr(pretrain_module, "make_teacher", lambda cfg, env_cfg: teacher)
     pre = PretrainConfig(episodes=2, n_envs=2, dagger_episodes=2)
     own = collect_teacher(pre, ENV, seed=0, gamma=0.99)  # the teacher drives: it is asked once per step
-    assert teacher.calls > 0 and len(teacher.envs) == 2
+    assert teacher.calls > 0
     assert set(np.round(own.actions[:, 0], 3)) == {0.5, 1.0}
     calls = teacher.calls
     driver = StraightToGoal(config_from(ENV, {}))
