@@ -128,11 +128,15 @@ def plot_curves(curves: Sequence[Curve], out: str | Path, title: str | None = No
     fig, axes = plt.subplots(1, len(splits), figsize=(5.5 * len(splits), 4.0), squeeze=False, sharey=True)
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     others: dict[str, str] = {}
+    styles = ("-", "--", ":", "-.")
     for ax, split in zip(axes[0], splits, strict=True):
+        seen: dict[str, int] = {}  # runs of one arm in this panel: the same colour, another line style each
         for c in (c for c in curves if c.split == split):
             colour = ARM_COLOURS.get(c.predictor) or others.setdefault(c.predictor, cycle[len(others) % len(cycle)])
+            style = styles[seen.get(c.predictor, 0) % len(styles)]
+            seen[c.predictor] = seen.get(c.predictor, 0) + 1
             steps = [p["step"] for p in c.points]
-            ax.plot(steps, [p["success_rate"] for p in c.points], marker="o", ms=3, color=colour, label=c.label)
+            ax.plot(steps, [p["success_rate"] for p in c.points], style, marker="o", ms=3, color=colour, label=c.label)
             if all("success_lo" in p for p in c.points):
                 lo = [p["success_lo"] for p in c.points]
                 hi = [p["success_hi"] for p in c.points]
