@@ -190,6 +190,16 @@ def add_agent(sub: Any) -> None:
     x.add_argument("dest", help="destination .zip (e.g. agents/pretrained/ppo_mesrnn_zara1.zip)")
     x.add_argument("--model", default="best", choices=RUN_MODELS, help="best or final model (default: best)")
     x.set_defaults(func=_export)
+    from agents.curves import add_curves_arguments
+    from agents.curves import run_from_args as curves_from_args
+
+    c = asub.add_parser(
+        "curves",
+        help="plot validation success against environment steps of run folders (same as python -m agents.curves)",
+        description="Learning curves: validation success (95 %% Wilson band) against PPO environment steps.",
+    )
+    add_curves_arguments(c)
+    c.set_defaults(func=curves_from_args)
 
 
 def add_ablation(sub: Any) -> None:

@@ -18,9 +18,10 @@ deterministic given the seed.
 
 from __future__ import annotations
 
+import importlib
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final
 
@@ -42,7 +43,12 @@ class PretrainConfig:
     """The ``pretrain:`` section of a training config (None there = no warm start)."""
 
     teacher: str = "planner"
-    """``planner`` (the sampling planner) or ``straight``."""
+    """A policy of :mod:`agents.planners` by name (:data:`agents.planners.PLANNERS`: ``planner``, the sampling
+    planner; ``straight``; the search and privileged planners where that module offers them), or any class with
+    SB3's batched ``predict`` as ``"package.module:Class"``, built as ``Class(env_config, **teacher_kwargs)``.
+    A teacher with a ``bind_envs(envs)`` method (one that reads the environments, e.g. the privileged planner) is
+    given the environment of each row before every batched ``predict`` (as :func:`agents.evaluate.run_episodes`
+    does) and asked for its action at every step, before the environments move on."""
     teacher_kwargs: dict[str, Any] = field(default_factory=dict)
     """Options of the teacher (e.g. ``headings_deg``, ``margin_m`` of the sampling planner)."""
     episodes: int = 200
@@ -75,8 +81,7 @@ class PretrainConfig:
     def validate(self) -> PretrainConfig:
         from crowdnav_mesrnn.config import ConfigError
 
-        if self.teacher not in PLANNERS:
-            raise ConfigError(f"unknown pretrain teacher {self.teacher!r}; valid: {', '.join(PLANNERS)}")
+        teacher_class(self.teacher)  # a clear error now rather than after the environments are built
         if self.loss not in ACTION_LOSSES:
             raise ConfigError(f"unknown pretrain loss {self.loss!r}; valid: {', '.join(ACTION_LOSSES)}")
         for key in ("dagger_rounds", "dagger_episodes", "dagger_epochs"):
@@ -96,6 +101,68 @@ class PretrainConfig:
         if not isinstance(self.teacher_kwargs, Mapping):
             raise ConfigError(f"pretrain key 'teacher_kwargs' must be a mapping, got {self.teacher_kwargs!r}")
         return self
+
+
+def teacher_class(name: str) -> Any:
+    """The teacher a ``pretrain.teacher`` value names: None for a planner of :mod:`agents.planners` (built by
+    :func:`agents.planners.make_planner`), else the class of a ``"package.module:Class"`` path.
+
+    Raises:
+        ConfigError: an unknown name (listing the planners this version offers) or a path that does not import.
+    """
+    from crowdnav_mesrnn.config import ConfigError
+
+    if not isinstance(name, str):
+        raise ConfigError(f"pretrain key 'teacher' must be a planner name or 'package.module:Class', got {name!r}")
+    if name in PLANNERS:
+        return None
+    module, sep, attr = name.partition(":")
+    if not sep:
+        raise ConfigError(
+            f"pretrain teacher {name!r} is not a planner of agents.planners in this version (available: "
+            f"{', '.join(PLANNERS)}; the search and privileged planners are named 'search' and 'privileged' where "
+            "agents.planners offers them) nor a 'package.module:Class' path"
+        )
+    try:
+        cls = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"pretrain teacher {name!r} cannot be imported: {exc}") from None
+    if not callable(getattr(cls, "predict", None)):
+        raise ConfigError(f"pretrain teacher {name!r} has no predict method (SB3's batched predict is needed)")
+    return cls
+
+
+def make_teacher(cfg: PretrainConfig, env_config: Any) -> Any:
+    """The teacher of a warm start for an environment configuration (see :attr:`PretrainConfig.teacher`)."""
+    cls = teacher_class(cfg.teacher)
+    if cls is None:
+        return make_planner(cfg.teacher, env_config, **dict(cfg.teacher_kwargs))
+    return cls(env_config, **dict(cfg.teacher_kwargs))
+
+
+class _Labelling:
+    """A driver policy whose every batched ``predict`` also asks the teacher for its actions on the same observations
+    (kept in order, for :func:`collect_teacher`'s step hook, which sees the rows in the same order)."""
+
+    def __init__(self, driver: Any, teacher: Any) -> None:
+        self.driver, self.teacher = driver, teacher
+        self.pending: list[np.ndarray] = []
+
+    def bind_envs(self, envs: Sequence[Any]) -> None:
+        """The environments of the next batch's rows, for the teacher (and a driver that reads them too)."""
+        for policy in {id(p): p for p in (self.teacher, self.driver)}.values():
+            bind = getattr(policy, "bind_envs", None)
+            if callable(bind):
+                bind(envs)
+
+    def predict(
+        self, obs: Mapping[str, np.ndarray], state: Any = None, episode_start: Any = None, deterministic: bool = True
+    ) -> tuple[np.ndarray, Any]:
+        labels = np.asarray(self.teacher.predict(obs)[0], dtype=np.float32)
+        self.pending.extend(labels)
+        if self.driver is self.teacher:
+            return labels, None
+        return self.driver.predict(obs, state, episode_start, deterministic)
 
 
 def teacher_seeds(seed: int, episodes: int, round_: int = 0) -> list[int]:
@@ -147,20 +214,23 @@ def collect_teacher(
     from envs.crowd_nav import CrowdNavEnv
 
     env_cfg = config_from(dict(env_kwargs), {})
-    teacher = make_planner(cfg.teacher, env_cfg, **dict(cfg.teacher_kwargs))
+    teacher = make_teacher(cfg, env_cfg)
     episodes = cfg.episodes if round_ == 0 else (cfg.dagger_episodes or cfg.episodes)
     envs = [CrowdNavEnv(**dict(env_kwargs)) for _ in range(max(1, min(cfg.n_envs, episodes)))]
+    online = callable(getattr(teacher, "bind_envs", None))  # reads the environments: label before they move on
+    labelling = _Labelling(teacher if driver is None else driver, teacher) if online else None
     per_episode: dict[int, tuple[list[dict[str, np.ndarray]], list[np.ndarray], list[float]]] = {}
 
     def record(k: int, obs: Mapping[str, np.ndarray], action: np.ndarray, reward: float, *_: bool) -> None:
         obs_list, act_list, rew_list = per_episode.setdefault(k, ([], [], []))
         obs_list.append(dict(obs))
-        act_list.append(np.asarray(action, dtype=np.float32))
+        label = labelling.pending.pop(0) if labelling is not None else action
+        act_list.append(np.asarray(label, dtype=np.float32))
         rew_list.append(reward)
 
     try:
         rows = run_episodes(
-            teacher if driver is None else driver,
+            labelling if labelling is not None else (teacher if driver is None else driver),
             envs,
             teacher_seeds(seed, episodes, round_),
             on_step=record,
@@ -183,7 +253,7 @@ def collect_teacher(
     if not actions:
         raise ValueError("the teacher produced no transitions (pretrain.episodes = 0?)")
     stacked = {key: np.stack([o[key] for o in observations]) for key in observations[0]}
-    if driver is None:
+    if driver is None or online:
         labels = np.stack(actions)
     else:  # the teacher's action for every observation the driver met, in chunks (its scoring is (B, C, K, L) wide)
         n = len(actions)
@@ -272,6 +342,8 @@ def fit_policy(
         obs_np = vecnormalize.normalize_obs(dict(obs_np))
     device = policy.device
     obs_all = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32, device=device) for k, v in obs_np.items()}
+    if callable(getattr(policy, "with_geometry", None)):  # inputs computed from the observation alone: once
+        obs_all = policy.with_geometry(obs_all)
     if actions is not None:
         labels = actions.nearest(data.actions, data.observations["robot"])
         act_all = torch.as_tensor(labels, dtype=torch.int64, device=device)

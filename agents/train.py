@@ -70,6 +70,8 @@ from stable_baselines3.common.logger import KVWriter, Logger, TensorBoardOutputF
 
 from agents.evaluate import SB3Policy, evaluation_seeds, parse_set, prepare_forecasts, run_episodes
 from agents.pretrain import PretrainConfig
+from agents.scoring import GeometryCachingBuffer, action_geometry_kwargs, attach_geometry_cache, is_scoring_policy
+from agents.stats import wilson_interval
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
@@ -89,6 +91,8 @@ PROJECT_KEY: Final[str] = "crowdnav_mesrnn"
 PROJECT_KEYS: Final[tuple[str, ...]] = (
     "algo",
     "env",
+    "train_env",
+    "val_env",
     "eval",
     "checkpoint_freq_steps",
     "keep_checkpoints",
@@ -123,7 +127,7 @@ UNSUPPORTED_ZOO_KEYS: Final[tuple[str, ...]] = (
 )
 #: Environment settings a run sets itself (per run and per phase).
 RUN_ENV_KEYS: Final[tuple[str, ...]] = ("predictor", "split", "part", "episode_time", "render_mode")
-VEC_ENVS: Final[tuple[str, ...]] = ("auto", "subproc", "dummy")
+VEC_ENVS: Final[tuple[str, ...]] = ("auto", "subproc", "dummy", "batched")
 DEFAULT_CONFIG: Final[Path] = Path(__file__).resolve().parent.parent / "configs" / "agent" / "ppo.yaml"
 
 
@@ -177,7 +181,9 @@ class TrainConfig:
     keep_checkpoints: int
     """How many checkpoints to keep (the latest ones)."""
     vec_env: str
-    """``auto`` (subprocesses for 2+ environments), ``subproc`` or ``dummy``."""
+    """``auto`` (subprocesses for 2+ environments), ``subproc``, ``dummy`` (SB3's ``DummyVecEnv`` over wrapped
+    environments) or ``batched`` (:class:`agents.vec_env.CrowdVecEnv`: the same in this process, the wrappers' work
+    batched)."""
     pretrain: PretrainConfig | None
     """Behaviour-cloning warm start, or None."""
     action: dict[str, Any] = dataclasses.field(default_factory=lambda: {"kind": "continuous"})
@@ -185,11 +191,21 @@ class TrainConfig:
     goal-relative velocities of :mod:`agents.actions`, PPO only) and the discrete set's options."""
     source: str = ""
     """The file it was read from."""
+    train_env: dict[str, Any] = dataclasses.field(default_factory=dict)
+    """Environment settings of training episodes only (the warm start's too), on top of ``env``: e.g.
+    ``crowd_overlays`` (denser training crowds from the training recordings). Validation and evaluation never get
+    them."""
+    val_env: dict[str, Any] = dataclasses.field(default_factory=dict)
+    """Environment settings of validation episodes only, on top of ``env``: e.g. ``crowd_overlays`` to validate on
+    denser crowds made from the training scenes' validation period (never the held-out scene). Evaluation never
+    gets them."""
 
     def env_kwargs(self, episode_time: str = "train") -> dict[str, Any]:
-        """Keyword arguments of a training (``train``) or validation (``val``) environment."""
+        """Keyword arguments of a training (``train``, with ``train_env``) or validation (``val``, with ``val_env``)
+        environment."""
         return {
             **self.env,
+            **(self.train_env if episode_time == "train" else self.val_env if episode_time == "val" else {}),
             "predictor": self.predictor,
             "split": self.split,
             "part": "train",
@@ -216,6 +232,9 @@ class TrainConfig:
             "pretrain": None if self.pretrain is None else dataclasses.asdict(self.pretrain),
             "action": copy.deepcopy(self.action),
         }
+        for key in ("train_env", "val_env"):  # written only when set (older run folders compare equal on resume)
+            if getattr(self, key):
+                project[key] = copy.deepcopy(getattr(self, key))
         return {self.env_id: entry, PROJECT_KEY: project}
 
     def action_set(self) -> Any:
@@ -340,9 +359,16 @@ def _build(
     env = project.get("env") or {}
     if not isinstance(env, dict):
         raise ConfigError(f"{source}: {PROJECT_KEY}.env must be a mapping")
-    for key in RUN_ENV_KEYS:
-        if key in env:
-            raise ConfigError(f"{PROJECT_KEY}.env.{key} is set by the run (use --predictor/--split), not the config")
+    train_env, val_env = project.get("train_env") or {}, project.get("val_env") or {}
+    for section, values in (("train_env", train_env), ("val_env", val_env)):
+        if not isinstance(values, dict):
+            raise ConfigError(f"{source}: {PROJECT_KEY}.{section} must be a mapping")
+    for section, values in (("env", env), ("train_env", train_env), ("val_env", val_env)):
+        for key in RUN_ENV_KEYS:
+            if key in values:
+                raise ConfigError(
+                    f"{PROJECT_KEY}.{section}.{key} is set by the run (use --predictor/--split), not the config"
+                )
     eval_section = project.get("eval") or {}
     eval_cfg = replace_checked(EvalConfig(), eval_section, where=f"{PROJECT_KEY}.eval")
     pre = project.get("pretrain")
@@ -376,7 +402,10 @@ def _build(
         pretrain=pretrain,
         action=action,
         source=source,
+        train_env=dict(train_env),
+        val_env=dict(val_env),
     )
+    config_from(cfg.env_kwargs("val"), {})  # a bad validation setting is named now, not at the first validation
     cfg.action_set()  # validates the environment settings and the action section now, naming the bad key
     return cfg
 
@@ -428,6 +457,19 @@ def algorithm_kwargs(cfg: TrainConfig) -> dict[str, Any]:
     if isinstance(kwargs.get("train_freq"), list):
         kwargs["train_freq"] = tuple(kwargs["train_freq"])
     kwargs["policy_kwargs"] = copy.deepcopy(cfg.policy_kwargs)
+    if is_scoring_policy(policy_class(cfg.policy)):  # the scoring policy rolls out the action set's velocities
+        actions = cfg.action_set()
+        if actions is None:
+            raise ConfigError(f"policy {cfg.policy} scores discrete actions: set action kind 'discrete'")
+        if cfg.algo == "ppo":  # the geometry depends on the observation alone: computed once per rollout
+            kwargs.setdefault("rollout_buffer_class", GeometryCachingBuffer)
+        extractor = kwargs["policy_kwargs"].setdefault("features_extractor_kwargs", {})
+        for key, value in action_geometry_kwargs(actions).items():
+            if extractor.setdefault(key, value) != value:
+                raise ConfigError(
+                    f"policy_kwargs.features_extractor_kwargs.{key} = {extractor[key]!r} disagrees with the action set "
+                    f"and environment ({value!r}); leave it out, it is filled in from them"
+                )
     return kwargs
 
 
@@ -475,9 +517,16 @@ def make_vec_env(cfg: TrainConfig) -> Any:
     ``vec_env: auto``), wrapped in ``VecNormalize`` when configured."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    fns = [partial(make_env, cfg.env_kwargs("train"), cfg.action) for _ in range(cfg.n_envs)]
-    subproc = cfg.vec_env == "subproc" or (cfg.vec_env == "auto" and cfg.n_envs >= 2)
-    venv = SubprocVecEnv(fns, start_method="forkserver") if subproc else DummyVecEnv(fns)
+    if cfg.vec_env == "batched":
+        from agents.vec_env import CrowdVecEnv
+        from envs.crowd_nav import CrowdNavEnv
+
+        bare = [partial(CrowdNavEnv, **cfg.env_kwargs("train")) for _ in range(cfg.n_envs)]
+        venv: Any = CrowdVecEnv(bare, cfg.action_set())
+    else:
+        fns = [partial(make_env, cfg.env_kwargs("train"), cfg.action) for _ in range(cfg.n_envs)]
+        subproc = cfg.vec_env == "subproc" or (cfg.vec_env == "auto" and cfg.n_envs >= 2)
+        venv = SubprocVecEnv(fns, start_method="forkserver") if subproc else DummyVecEnv(fns)
     if cfg.normalize:
         from gymnasium import spaces
         from stable_baselines3.common.vec_env import VecNormalize
@@ -489,6 +538,23 @@ def make_vec_env(cfg: TrainConfig) -> Any:
         nkw.setdefault("gamma", cfg.hyperparams.get("gamma", 0.99))
         venv = VecNormalize(venv, **nkw)
     return venv
+
+
+def prepare_training_forecasts(cfg: TrainConfig, progress: bool = False) -> None:
+    """Fill the shared forecast cache for the run's training and validation episodes (the same recordings), and for
+    the overlaid recordings when ``train_env`` or ``val_env`` densifies them (``crowd_overlays``: their forecasts
+    differ from the recordings' own and are computed here, once, rather than by the first environment needing them)."""
+    prepare_forecasts(cfg.env_kwargs("train"), progress=progress)
+    for phase in ("train", "val"):
+        kwargs = cfg.env_kwargs(phase)
+        if config_from(kwargs, {}).crowd_overlays:
+            from envs.crowd_nav import CrowdNavEnv
+
+            env = CrowdNavEnv(**kwargs)
+            try:
+                env.precompute_forecasts()
+            finally:
+                env.close()
 
 
 def predictor_weights(cfg: TrainConfig) -> dict[str, str]:
@@ -649,9 +715,14 @@ class Validation(BaseCallback):
             policy = DiscretePolicy(policy, self.actions)
         rows = run_episodes(policy, self.envs, self.seeds)
         n = len(rows)
+        successes = sum(r["outcome"] == "success" for r in rows)
+        lo, hi = wilson_interval(successes, n)
         result = {
             "step": int(self.num_timesteps),
-            "success_rate": sum(r["outcome"] == "success" for r in rows) / n,
+            "episodes": n,
+            "success_rate": successes / n,
+            "success_lo": lo,
+            "success_hi": hi,
             "collision_rate": sum(r["outcome"] == "collision" for r in rows) / n,
             "timeout_rate": sum(r["outcome"] == "timeout" for r in rows) / n,
             "mean_return": float(np.mean([r["return"] for r in rows])),
@@ -916,7 +987,7 @@ def train(
     atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(resolved, sort_keys=False))
 
     started = time.perf_counter()
-    prepare_forecasts(cfg.env_kwargs("train"), progress=progress)  # training and validation: the same recordings
+    prepare_training_forecasts(cfg, progress)
     venv = make_vec_env(cfg)
     validation = Validation(cfg, run_dir)
     algo_cls = _algo_class(cfg.algo)
@@ -926,6 +997,7 @@ def train(
                 policy_class(cfg.policy), venv, seed=cfg.seed, verbose=0, device="cpu", **algorithm_kwargs(cfg)
             )
             model.set_logger(make_logger(run_dir, None))
+            attach_geometry_cache(model)
             if cfg.pretrain is not None and cfg.pretrain.episodes > 0:
                 from agents.pretrain import pretrain
 
@@ -1015,6 +1087,7 @@ def _resume_model(cfg: TrainConfig, ckpt: Path, venv: Any, validation: Any) -> A
             raise ConfigError(f"{ckpt} has VecNormalize statistics but the config does not normalise")
         venv.obs_rms, venv.ret_rms = saved.obs_rms, saved.ret_rms
     model = algo_cls.load(ckpt / "model.zip", env=venv, device="cpu")
+    attach_geometry_cache(model)
     if (ckpt / "replay_buffer.pkl").is_file() and hasattr(model, "load_replay_buffer"):
         model.load_replay_buffer(ckpt / "replay_buffer.pkl")
     state = json.loads((ckpt / "state.json").read_text())

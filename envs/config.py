@@ -126,6 +126,10 @@ class CrowdNavConfig:
     ``val_fraction``) or ``val`` (wholly inside the last ``val_fraction``), for validating agents on unseen times."""
     val_fraction: float = 0.2
     """Share of each recording's duration (its end) reserved for ``episode_time="val"`` episodes, in (0, 1)."""
+    crowd_overlays: int = 0
+    """Denser training crowds: this many time-shifted copies of each replayed recording are overlaid on it
+    (:func:`envs.recordings.overlay_recording`; shifts evenly spaced within the ``episode_time`` window, so the
+    training and validation periods never mix). Only with ``part="train"``: the held-out scene is never used."""
 
     # ----------------------------------------------------------------- observation
     num_pedestrians: int = 10
@@ -232,6 +236,11 @@ class CrowdNavConfig:
                 f"config key 'start_goal_distance_m' = {self.start_goal_distance_m!r} must start above "
                 f"'goal_tolerance_m' = {self.goal_tolerance_m!r} (else the robot starts at its goal)"
             )
+        if self.crowd_overlays and self.part != "train":
+            raise ConfigError(
+                f"config key 'crowd_overlays' = {self.crowd_overlays!r} densifies training crowds only: it needs "
+                f"part 'train', got {self.part!r} (the held-out scene is replayed as recorded)"
+            )
         substeps = self.dt_s / self.physics_dt_s
         if substeps > MAX_SUBSTEPS + 1e-9:
             raise ConfigError(
@@ -321,6 +330,7 @@ _INTEGERS: Final[dict[str, tuple[int, int | None]]] = {
     "horizon_steps": (1, 1000),
     "render_trail_steps": (1, 10_000),
     "synthetic_seed": (0, None),
+    "crowd_overlays": (0, 100),
 }
 #: Real keys -> (low, high, low open, high open); None = unbounded. Every one must also be finite.
 _NUMBERS: Final[dict[str, tuple[float | None, float | None, bool, bool]]] = {

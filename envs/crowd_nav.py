@@ -30,7 +30,7 @@ from envs.config import (
     names_scene,
     resolve_scenes,
 )
-from envs.episodes import Episode, EpisodeSampler
+from envs.episodes import Episode, EpisodeSampler, episode_time_window
 from envs.forecast_cache import ForecastStore, cache_root
 from envs.forecasts import (
     ForecastModel,
@@ -42,7 +42,7 @@ from envs.forecasts import (
 )
 from envs.observation import ObservationBuilder, nearest_visible, observation_space
 from envs.popin import POPIN_MARGIN_M, PopInRule
-from envs.recordings import empty_recording, synthetic_recording
+from envs.recordings import empty_recording, overlay_recording, synthetic_recording
 from envs.rendering import HUMAN_NEEDS_PYGAME
 from envs.replay import Replay
 from envs.rewards import EpisodeMetrics, reward_components, total_reward
@@ -380,7 +380,19 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     # ------------------------------------------------------------------ construction helpers
 
     def _recordings(self, crowd_obj: Recording | None) -> list[Recording]:
-        """The recordings episodes replay, from :attr:`crowd_source` (the embedded default says so)."""
+        """The recordings episodes replay, from :attr:`crowd_source` (the embedded default says so), each with
+        ``crowd_overlays`` time-shifted copies of itself overlaid when that is set (denser training crowds)."""
+        recordings = self._crowd_recordings(crowd_obj)
+        cfg = self.config
+        if cfg.crowd_overlays and self.crowd_source.kind != "empty":  # config: part "train"/"val" only
+            recordings = [
+                overlay_recording(r, cfg.crowd_overlays, episode_time_window(r, cfg.episode_time, cfg.val_fraction))
+                for r in recordings
+            ]
+        return recordings
+
+    def _crowd_recordings(self, crowd_obj: Recording | None) -> list[Recording]:
+        """The recordings of :attr:`crowd_source`, as recorded."""
         cfg = self.config
         kind = self.crowd_source.kind
         if crowd_obj is not None:
@@ -402,8 +414,11 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 
     @property
     def crowd_kind(self) -> str:
-        """``replay``, ``synthetic``, ``empty`` or ``custom`` (:attr:`crowd_source`'s kind)."""
-        return self.crowd_source.kind
+        """``replay``, ``synthetic``, ``empty`` or ``custom`` (:attr:`crowd_source`'s kind), with ``+N overlays``
+        when ``crowd_overlays`` makes the crowd denser."""
+        kind = self.crowd_source.kind
+        overlays = self.config.crowd_overlays
+        return f"{kind}+{overlays} overlays" if overlays and kind != "empty" else kind
 
     def _synthetic(self) -> Recording:
         cfg = self.config

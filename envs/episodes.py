@@ -82,6 +82,18 @@ def recording_extent(recording: Recording, margin_m: float = 0.5) -> tuple[np.nd
     return p.min(axis=0) - margin_m, p.max(axis=0) + margin_m
 
 
+def episode_time_window(rec: Recording, episode_time: str, val_fraction: float) -> tuple[float, float]:
+    """``(earliest, latest)`` seconds (since the recording's first frame) an episode of ``rec`` may cover under
+    ``episode_time`` (``all``, ``train``: before the last ``val_fraction`` of the duration, ``val``: inside it)."""
+    end = float(rec.times_s()[-1])
+    cut = (1.0 - val_fraction) * end
+    if episode_time == "train":
+        return 0.0, cut
+    if episode_time == "val":
+        return cut, end
+    return 0.0, end
+
+
 class EpisodeSampler:
     """Draws episodes from recordings with the environment's random generator.
 
@@ -143,13 +155,7 @@ class EpisodeSampler:
 
     def time_window(self, rec: Recording) -> tuple[float, float]:
         """``(earliest, latest)`` seconds an episode of ``rec`` may cover under ``episode_time``."""
-        end = float(rec.times_s()[-1])
-        cut = (1.0 - self.val_fraction) * end
-        if self.episode_time == "train":
-            return 0.0, cut
-        if self.episode_time == "val":
-            return cut, end
-        return 0.0, end
+        return episode_time_window(rec, self.episode_time, self.val_fraction)
 
     def sample(
         self,

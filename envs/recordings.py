@@ -178,3 +178,66 @@ def synthetic_recording(
             positions[f, cols] = p
             present[f, cols] = True
     return make_recording(SYNTHETIC_NAME, positions, present, step_s, ped_ids=ids + 1)
+
+
+def overlay_recording(recording: Recording, copies: int, window_s: tuple[float, float] | None = None) -> Recording:
+    """A denser crowd from one recording alone: ``copies`` time-shifted copies of it overlaid on the original.
+
+    Within the frames whose time lies in ``window_s`` (default: the whole recording; the environment passes its
+    ``episode_time`` window, so training-period pedestrians never appear in validation episodes or the reverse),
+    copy ``j`` (1..copies) shows at frame ``i`` what the recording shows at frame ``i - s_j`` (cyclically within the
+    window), ``s_j = round(j W / (copies + 1))`` of the window's ``W`` frames: evenly spaced shifts. The cyclic wrap
+    cuts a copy's tracks there (the part before and the part after the wrap are different pedestrians), so nobody
+    jumps across the scene. Outside the window only the original pedestrians are present. Copies' pedestrians get
+    new ids above the recording's; like every replayed pedestrian they ignore everyone (copies pass through each
+    other and through the originals, which real crowds would not).
+
+    Args:
+        recording: the recording (positions, presence, frames and ``step_s`` kept; the name is kept too, so the
+            forecasts come from the same out-of-sample predictor).
+        copies: how many copies (0 returns ``recording`` itself).
+        window_s: ``(earliest, latest)`` seconds since the first frame; frames with ``earliest <= t < latest``
+            (the last frame too when ``latest`` is the recording's end) are overlaid.
+
+    Returns:
+        a recording with the same frames and ``(F, P', 2)`` pedestrians, ``P' >= P``.
+    """
+    if copies < 0:
+        raise ValueError(f"copies must be >= 0, got {copies!r}")
+    if copies == 0:
+        return recording
+    times = recording.times_s()
+    lo, hi = (0.0, float(times[-1])) if window_s is None else window_s
+    inside = (times >= lo - 1e-9) & ((times < hi - 1e-9) | (np.isclose(hi, times[-1]) & (times <= hi + 1e-9)))
+    idx = np.flatnonzero(inside)
+    if len(idx) < copies + 1:
+        raise ValueError(
+            f"overlaying {copies} copies of {recording.name!r} needs at least {copies + 1} frames in the window "
+            f"{lo:.1f}..{hi:.1f} s, got {len(idx)}"
+        )
+    i0, width = int(idx[0]), len(idx)  # the window's frames are consecutive (times increase with the index)
+    num_frames = len(times)
+    blocks_pos, blocks_present = [recording.positions], [recording.present]
+    for j in range(1, copies + 1):
+        shift = round(j * width / (copies + 1))
+        # (source frames, target frames) of the part that does not wrap and of the part that does
+        for src, dst in ((slice(i0, i0 + width - shift), slice(i0 + shift, i0 + width)),
+                         (slice(i0 + width - shift, i0 + width), slice(i0, i0 + shift))):  # fmt: skip
+            present = np.zeros((num_frames, recording.present.shape[1]), dtype=bool)
+            present[dst] = recording.present[src]
+            cols = np.flatnonzero(present.any(axis=0))
+            positions = np.zeros((num_frames, len(cols), 2))
+            positions[dst] = recording.positions[src][:, cols]
+            blocks_pos.append(positions)
+            blocks_present.append(present[:, cols])
+    added = sum(p.shape[1] for p in blocks_present[1:])
+    first_id = int(recording.ped_ids.max(initial=0)) + 1
+    return Recording(
+        recording.name,
+        recording.path,
+        recording.step_s,
+        recording.frames,
+        np.concatenate([recording.ped_ids, first_id + np.arange(added, dtype=np.int64)]),
+        np.concatenate(blocks_pos, axis=1),
+        np.concatenate(blocks_present, axis=1),
+    )

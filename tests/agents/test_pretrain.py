@@ -114,3 +114,69 @@ def test_the_warm_start_progress_bars_say_what_they_count(capsys: pytest.Capture
     student = SamplingPlanner(config_from(ENV, {}))  # any driver
     collect_teacher(cfg, ENV, seed=0, gamma=0.99, progress=True, driver=student, round_=2)
     assert "DAgger round 2/3: student's episodes, labelled by planner: 100%" in capsys.readouterr().err
+
+
+def test_teacher_by_class_path_gives_the_named_planners_data() -> None:
+    named = collect_teacher(PretrainConfig(teacher="straight", episodes=2), ENV, seed=3, gamma=0.99)
+    by_path = collect_teacher(
+        PretrainConfig(teacher="agents.planners:StraightToGoal", episodes=2), ENV, seed=3, gamma=0.99
+    )
+    np.testing.assert_array_equal(by_path.actions, named.actions)
+    assert by_path.outcomes == named.outcomes
+
+
+@pytest.mark.parametrize(
+    ("teacher", "message"),
+    [
+        ("oracle_search", "not a planner of agents.planners.*available: straight, planner"),
+        ("agents.planners:NoSuchPlanner", "cannot be imported"),
+        ("agents.planners:PLANNERS", "no predict method"),
+    ],
+)
+def test_an_unavailable_teacher_is_named(teacher: str, message: str) -> None:
+    from crowdnav_mesrnn.config import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        PretrainConfig(teacher=teacher).validate()
+
+
+class _CountingTeacher:
+    """A teacher that reads its environments (``bind_envs``: one per row of the next batch) and whose answer depends
+    on how often it was asked, so labels computed after the episodes would differ from the ones it gave."""
+
+    def __init__(self) -> None:
+        self.envs: list[Any] = []
+        self.calls = 0
+
+    def bind_envs(self, envs: list[Any]) -> None:
+        self.envs = list(envs)
+
+    def predict(self, obs: dict, state: Any = None, episode_start: Any = None, deterministic: bool = True) -> Any:
+        self.calls += 1
+        n = len(obs["mask"])
+        assert len(self.envs) == n, "each row's environment is bound before predict"
+        for env, robot in zip(self.envs, obs["robot"], strict=True):  # row i is envs[i]
+            goal_offset = env.episode.goal - env.robot_position
+            np.testing.assert_allclose(robot[:2], goal_offset, atol=1e-4)
+        self.envs = []
+        return np.tile(np.array([[0.5, 0.0]], dtype=np.float32) * (1 + self.calls % 2), (n, 1)), None
+
+
+def test_a_teacher_that_reads_the_environments_labels_at_every_step(monkeypatch: pytest.MonkeyPatch) -> None:
+    from agents import pretrain as pretrain_module
+    from agents.planners import StraightToGoal
+    from envs.config import config_from
+
+    teacher = _CountingTeacher()
+    monkeypatch.setattr(pretrain_module, "make_teacher", lambda cfg, env_cfg: teacher)
+    pre = PretrainConfig(episodes=2, n_envs=2, dagger_episodes=2)
+    own = collect_teacher(pre, ENV, seed=0, gamma=0.99)  # the teacher drives: it is asked once per step
+    assert teacher.calls > 0
+    assert set(np.round(own.actions[:, 0], 3)) == {0.5, 1.0}
+    calls = teacher.calls
+    driver = StraightToGoal(config_from(ENV, {}))
+    data = collect_teacher(pre, ENV, seed=0, gamma=0.99, driver=driver, round_=1)
+    # the straight policy drove (every label is the teacher's, none the driver's) and labels came online
+    assert teacher.calls > calls
+    assert not np.allclose(data.actions, driver.predict(data.observations)[0])
+    assert set(np.round(data.actions[:, 0], 3)) == {0.5, 1.0}

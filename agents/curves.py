@@ -1,0 +1,188 @@
+"""Learning curves: validation success against environment steps, from training run folders.
+
+``python -m agents.curves RUN_DIR [RUN_DIR ...] --out curves.png [--csv curves.csv] [--title TEXT]``
+
+Every run of :mod:`agents.train` validates on the training scenes' validation episodes (``episode_time="val"``;
+never the held-out scene) at step 0 (the warm start) and every ``eval.freq_steps`` PPO steps, and writes the
+history to ``evaluations.csv`` (step, episodes, success rate and its 95 % Wilson interval, collision and timeout
+rates, mean return). :func:`read_curve` reads one run's history with its arm, split and seed (from
+``config.yaml``); :func:`plot_curves` draws one line per run (colour by forecast arm, the Wilson band shaded),
+one panel per split; :func:`curves_csv` writes every run's points in one table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+import yaml
+
+from agents.stats import wilson_interval
+from crowdnav_mesrnn.utils import atomic_write, atomic_write_text
+
+#: Columns of :func:`curves_csv`.
+CURVE_COLUMNS: Final[tuple[str, ...]] = (
+    "run", "label", "predictor", "split", "seed", "step", "episodes", "success_rate", "success_lo", "success_hi",
+    "collision_rate", "timeout_rate", "mean_return",
+)  # fmt: skip
+#: Line colours per forecast arm (others cycle through matplotlib's defaults).
+ARM_COLOURS: Final[dict[str, str]] = {"none": "#7f7f7f", "cv": "#1f77b4", "mesrnn": "#d62728", "oracle": "#2ca02c"}
+
+
+@dataclass(frozen=True)
+class Curve:
+    """One run's validation history.
+
+    Attributes:
+        run: the run folder.
+        label: what the plot calls it (default: ``<predictor> s<seed>``, plus the folder name when two runs of the
+            same arm and seed are drawn together).
+        predictor, split, seed: from the run's ``config.yaml``.
+        points: one dict per validation, in step order (the columns of ``evaluations.csv``, numbers parsed; a
+            history written before the interval columns existed gets them from ``episodes``).
+    """
+
+    run: Path
+    label: str
+    predictor: str
+    split: str
+    seed: int
+    points: list[dict[str, float]]
+
+
+def _number(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        return float("nan")
+
+
+def read_curve(run_dir: str | Path, label: str | None = None, episodes: int | None = None) -> Curve:
+    """The validation history of a run folder (``evaluations.csv`` and ``config.yaml``).
+
+    Args:
+        run_dir: a folder of :mod:`agents.train`.
+        label: its name in plots (default: ``<predictor> s<seed>``).
+        episodes: validation episodes per point, for histories without an ``episodes`` column (default: the
+            config's ``eval.episodes``).
+
+    Raises:
+        FileNotFoundError: the folder has no ``evaluations.csv`` (validation off, or not started).
+    """
+    run = Path(run_dir)
+    path = run / "evaluations.csv"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} does not exist: the run has not validated yet (or eval.episodes is 0)")
+    settings: dict[str, Any] = {}
+    config = run / "config.yaml"
+    if config.is_file():
+        doc = yaml.safe_load(config.read_text()) or {}
+        settings = doc.get("crowdnav_mesrnn") or {}
+    run_info = settings.get("run") or {}
+    default_n = episodes if episodes is not None else int((settings.get("eval") or {}).get("episodes") or 0)
+    with open(path, newline="", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    points = []
+    for row in rows:
+        point = {k: _number(v) for k, v in row.items() if k != "new_best" and v not in (None, "")}
+        n = int(point.get("episodes", default_n))
+        if "success_lo" not in point and n > 0:
+            lo, hi = wilson_interval(round(point["success_rate"] * n), n)
+            point.update(episodes=n, success_lo=lo, success_hi=hi)
+        points.append(point)
+    points.sort(key=lambda p: p["step"])
+    predictor = str(run_info.get("predictor", "?"))
+    seed = int(run_info.get("seed", 0))
+    return Curve(run, label or f"{predictor} s{seed}", predictor, str(run_info.get("split", "?")), seed, points)
+
+
+def curves_csv(curves: Sequence[Curve]) -> str:
+    """Every point of every curve as CSV text (columns :data:`CURVE_COLUMNS`)."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(CURVE_COLUMNS), extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for c in curves:
+        for p in c.points:
+            writer.writerow({"run": str(c.run), "label": c.label, "predictor": c.predictor, "split": c.split,
+                             "seed": c.seed, **p})  # fmt: skip
+    return buf.getvalue()
+
+
+def plot_curves(curves: Sequence[Curve], out: str | Path, title: str | None = None) -> Path:
+    """Validation success (with its Wilson band) against PPO environment steps, one panel per split, one line per
+    run coloured by arm; written atomically to ``out`` (format from the suffix)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not curves:
+        raise ValueError("no runs to plot")
+    splits = sorted({c.split for c in curves})
+    fig, axes = plt.subplots(1, len(splits), figsize=(5.5 * len(splits), 4.0), squeeze=False, sharey=True)
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    others: dict[str, str] = {}
+    styles = ("-", "--", ":", "-.")
+    for ax, split in zip(axes[0], splits, strict=True):
+        seen: dict[str, int] = {}  # runs of one arm in this panel: the same colour, another line style each
+        for c in (c for c in curves if c.split == split):
+            colour = ARM_COLOURS.get(c.predictor) or others.setdefault(c.predictor, cycle[len(others) % len(cycle)])
+            style = styles[seen.get(c.predictor, 0) % len(styles)]
+            seen[c.predictor] = seen.get(c.predictor, 0) + 1
+            steps = [p["step"] for p in c.points]
+            ax.plot(steps, [p["success_rate"] for p in c.points], style, marker="o", ms=3, color=colour, label=c.label)
+            if all("success_lo" in p for p in c.points):
+                lo = [p["success_lo"] for p in c.points]
+                hi = [p["success_hi"] for p in c.points]
+                ax.fill_between(steps, lo, hi, color=colour, alpha=0.12, linewidth=0)
+        ax.set_title(f"{split} split: validation on its training scenes")
+        ax.set_xlabel("PPO environment steps after the warm start")
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    axes[0][0].set_ylabel("validation success rate (95 % Wilson)")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    out = Path(out)
+    fmt = out.suffix.lstrip(".") or "png"
+    atomic_write(out, lambda fh: fig.savefig(fh, format=fmt, dpi=120))
+    plt.close(fig)
+    return out
+
+
+def add_curves_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("runs", nargs="+", help="run folders of agents.train")
+    p.add_argument("--out", required=True, help="the plot (PNG, SVG or PDF by its suffix)")
+    p.add_argument("--csv", default=None, help="also write every point of every run to this CSV")
+    p.add_argument("--labels", nargs="+", default=None, help="one label per run (default: '<predictor> s<seed>')")
+    p.add_argument("--title", default=None, help="a title over the panels")
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    if args.labels is not None and len(args.labels) != len(args.runs):
+        raise ValueError(f"--labels needs one label per run: {len(args.runs)} runs, {len(args.labels)} labels")
+    labels = args.labels or [None] * len(args.runs)
+    curves = [read_curve(r, label) for r, label in zip(args.runs, labels, strict=True)]
+    out = plot_curves(curves, args.out, args.title)
+    print(f"wrote {out}")
+    if args.csv:
+        atomic_write_text(Path(args.csv), curves_csv(curves))
+        print(f"wrote {args.csv}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from agents.cli import module_main
+
+    return module_main("python -m agents.curves", __doc__, add_curves_arguments, run_from_args, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
