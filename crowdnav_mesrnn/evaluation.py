@@ -292,7 +292,8 @@ def evaluate_model(
         sampling: how samples are drawn (:data:`SAMPLINGS`).
         seed: seeds the samples (one stream per split).
         head: which shipped weights to load when ``checkpoint_for`` is None (``point`` or ``gaussian``).
-        block_len, n_resamples: of the block bootstrap (:mod:`crowdnav_mesrnn.stats`).
+        block_len: block length of the block bootstrap, in windows (:mod:`crowdnav_mesrnn.stats`).
+        n_resamples: resamples of the block bootstrap.
 
     A model with a distribution head also gets ``nll_m``: the negative log-likelihood of the true positions under
     its Gaussians (nats per position, densities per m²), with its interval. Intervals of ``splits.average`` resample
