@@ -109,7 +109,7 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from agents.cli import module_main
+    from agents.entry import module_main
 
     return module_main("python -m agents.compare", __doc__, add_compare_arguments, run_from_args, argv)
 

@@ -179,7 +179,7 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from agents.cli import module_main
+    from agents.entry import module_main
 
     return module_main("python -m agents.curves", __doc__, add_curves_arguments, run_from_args, argv)
 
