@@ -651,6 +651,25 @@ def test_success_is_reported_as_a_fraction_of_the_privileged_ceiling(tmp_path: P
     assert ab.summarize(ab.config_from_mapping(raw), out=lambda s: None, plots=False, force=True)["ceiling"] is None
 
 
+def test_popin_events_are_archived_and_counted_per_cell(tmp_path: Path, fakes: Fakes) -> None:
+    raw = _raw(tmp_path, arms=["none", "oracle"], comparisons=[["oracle", "none"]], seeds=[0])
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    del raw["policy_comparisons"]
+    cfg = ab.config_from_mapping(raw)
+    for arm, events in (("none", [0, 2, 0, 1]), ("oracle", [0, 0, 0, 0])):
+        rows = _episode_rows("SCCS", [1.0] * 4, [1.0, 2.0, 3.0, 4.0])
+        for row, n in zip(rows, events, strict=True):
+            row["popin_events"] = n
+        _fake_done_cell(cfg, f"eval/zara1/planner/{arm}", rows)
+    summary = ab.summarize(cfg, out=lambda s: None, plots=False)
+    none = summary["policies"]["planner"]["arms"]["none"]
+    assert (none["popin_episodes"], none["popin_events"]) == (2, 3)
+    assert none["by_split"]["zara1"]["popin_episodes"] == 2
+    assert summary["policies"]["planner"]["arms"]["oracle"]["popin_episodes"] == 0
+    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:
+        assert next(csv.reader(fh))[-1] == "popin_events"
+
+
 def test_json_has_no_nan(tmp_path: Path, fakes: Fakes) -> None:
     raw = _raw(tmp_path, arms=["none"], comparisons=[])
     raw["policies"] = {"planner": {"kind": "planner"}}
