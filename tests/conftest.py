@@ -35,6 +35,15 @@ def data_dir() -> Path:
     return find_data_dir()
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Give SIGINT Python's default handler when the run inherited it ignored: a non-interactive shell starts
+    background jobs with SIGINT ignored, and the Ctrl-C tests (like Ctrl-C in a terminal) need the default."""
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Any:
     """Every skip for missing data is reported at this fixture, so pytest's summary (``-ra``) folds them into one
