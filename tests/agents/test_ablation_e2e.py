@@ -146,7 +146,9 @@ def test_ctrl_c_on_the_local_pool_waits_then_stops_training_at_a_round_boundary(
     assert json.loads((train / ab.TRAIN_RUN / "DONE").read_text())["steps"] == 256
 
     # twice: the training run stops now, at its last round boundary, and the next run ends at exactly its budget
-    cfg = _config(tmp_path / "twice", timesteps=512)
+    # (a budget the run cannot finish between the two presses, 0.5 s apart, on a fast idle machine)
+    budget = 8192
+    cfg = _config(tmp_path / "twice", timesteps=budget)
     train = ab.cell_dir(cfg, CELLS[0])
     _press_ctrl_c(2, lambda: (train / ab.TRAIN_RUN / "checkpoints" / "latest.json").is_file())
     with pytest.raises(KeyboardInterrupt):
@@ -154,11 +156,11 @@ def test_ctrl_c_on_the_local_pool_waits_then_stops_training_at_a_round_boundary(
     meta = json.loads((train / ab.CELL_JSON).read_text())
     assert meta["status"] == "interrupted"
     steps = json.loads((train / ab.TRAIN_RUN / "checkpoints" / "latest.json").read_text())["steps"]
-    assert 0 < steps < 512 and steps % 64 == 0  # a round boundary (rounds of n_steps = 64)
+    assert 0 < steps < budget and steps % 64 == 0  # a round boundary (rounds of n_steps = 64)
     assert not (train / ab.TRAIN_RUN / "DONE").exists()
     result = ab.run_grid(cfg, backend="local", workers=2, out=lambda s: None)
     assert not result["failed"]
-    assert json.loads((train / ab.TRAIN_RUN / "DONE").read_text())["steps"] == 512
+    assert json.loads((train / ab.TRAIN_RUN / "DONE").read_text())["steps"] == budget
     assert f"# resumed from step_{steps:010d}" in (train / ab.TRAIN_RUN / "command.txt").read_text()
 
 
