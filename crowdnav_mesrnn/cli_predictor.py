@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -101,11 +102,16 @@ def _eval(args: argparse.Namespace) -> int:
         block_len=args.block_len,
         n_resamples=args.resamples,
     )
+    return _emit(args, result, format_result)
+
+
+def _emit(args: argparse.Namespace, result: dict[str, Any], fmt: Callable[[dict[str, Any]], str]) -> int:
+    """Write ``result`` to ``--out`` (atomically) when given, and print it as JSON (``--json``) or as ``fmt``'s table."""
     if args.out:
         from crowdnav_mesrnn.utils import atomic_write_json
 
         atomic_write_json(args.out, result)
-    print(json.dumps(result, indent=2) if args.json else format_result(result))
+    print(json.dumps(result, indent=2) if args.json else fmt(result))
     return 0
 
 
@@ -127,12 +133,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         block_len=args.block_len,
         n_resamples=args.resamples,
     )
-    if args.out:
-        from crowdnav_mesrnn.utils import atomic_write_json
-
-        atomic_write_json(args.out, result)
-    print(json.dumps(result, indent=2) if args.json else format_calibration(result))
-    return 0
+    return _emit(args, result, format_calibration)
 
 
 def _export(args: argparse.Namespace) -> int:
