@@ -101,6 +101,37 @@ def go_to_goal(obs: Mapping[str, np.ndarray], cfg: CrowdNavConfig) -> np.ndarray
     return StraightToGoal(cfg).predict(obs)[0]
 
 
+def region_radii(obs: Mapping[str, np.ndarray], cfg: CrowdNavConfig, steps: int, uncertainty: bool) -> np.ndarray:
+    """Radii of the regions a planner keeps clear of around the forecast positions of the first ``steps`` steps.
+
+    The planners' ``uncertainty`` option (:class:`SamplingPlanner`, :class:`SearchPlanner`): with it, the radius of
+    each forecast step's uncertainty region -- the observation key ``forecast_uncertainty`` of an environment made
+    with ``forecast_uncertainty=True`` (a calibrated disc, :mod:`envs.uncertainty`) --; without it, 0 (points).
+
+    Args:
+        obs: a batched observation (flat or structured).
+        cfg: the environment's configuration.
+        steps: forecast steps wanted (at most H).
+        uncertainty: the planner's option.
+
+    Returns:
+        ``(B, K, steps)`` float64 metres.
+
+    Raises:
+        ValueError: ``uncertainty`` without the observation key.
+    """
+    b = np.shape(obs["mask"])[0]
+    if not uncertainty:
+        return np.zeros((b, cfg.num_pedestrians, steps))
+    if "forecast_uncertainty" not in obs:
+        raise ValueError(
+            "the planner's uncertainty option needs the observation key 'forecast_uncertainty' (make the "
+            f"environment with forecast_uncertainty=True and forecasts); got keys {sorted(obs)}"
+        )
+    o = structured(dict(obs), cfg.num_pedestrians, cfg.horizon_steps)
+    return o["forecast_uncertainty"][:, :, :steps].astype(np.float64)
+
+
 class _Planner:
     """Shared ``predict`` plumbing: batch a single observation, call :meth:`act`, unbatch."""
 
@@ -228,17 +259,7 @@ class SamplingPlanner(_Planner):
     def future_radii(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         """``(B, K, L)`` radii (m) of the regions the robot must stay clear of around the future positions of
         :meth:`futures`: the observation's ``forecast_uncertainty`` with ``uncertainty=True``, else 0 (points)."""
-        cfg = self.cfg
-        b = np.shape(obs["mask"])[0]
-        if not self.uncertainty:
-            return np.zeros((b, cfg.num_pedestrians, self.lookahead))
-        if "forecast_uncertainty" not in obs:
-            raise ValueError(
-                "the planner's uncertainty option needs the observation key 'forecast_uncertainty' (make the "
-                f"environment with forecast_uncertainty=True and forecasts); got keys {sorted(obs)}"
-            )
-        o = structured(dict(obs), cfg.num_pedestrians, cfg.horizon_steps)
-        return o["forecast_uncertainty"][:, :, : self.lookahead].astype(np.float64)
+        return region_radii(obs, self.cfg, self.lookahead, self.uncertainty)
 
     def act(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         cfg = self.cfg
@@ -391,7 +412,10 @@ class SearchPlanner(_Planner):
     clear, the one with the largest gap over the first step is taken.
 
     The futures are the observation's forecasts (``(K, H, 2)``) or, without them (the ``none`` arm),
-    constant-velocity extrapolations of the observed velocities; only the observation is used. Motions are
+    constant-velocity extrapolations of the observed velocities; only the observation is used. With
+    ``uncertainty=True`` a pedestrian is a region, not a point: during each step its disk grows by the larger
+    radius of the step's two ends of ``forecast_uncertainty`` (0 at the present, observed position), so every gap,
+    clearance and the escape are measured from the edge of the region (as :class:`SamplingPlanner` does). Motions are
     holonomic; with unicycle kinematics the first velocity is turned into an action by
     :func:`velocities_to_actions`. Every environment of a batch is searched at once (numpy over ``(B, M, A, K)``)
     and independently: a batched ``predict`` equals one ``predict`` per observation.
@@ -409,6 +433,9 @@ class SearchPlanner(_Planner):
         max_states: states kept per layer and environment.
         clearance_pref_m: gaps below this count against a plan that does not reach the goal, metres.
         clearance_weight: metres of distance a metre of clearance shortfall is worth.
+        uncertainty: require clearance of each forecast step's uncertainty region instead of its point (the
+            observation key ``forecast_uncertainty`` of ``forecast_uncertainty=True``; see :func:`region_radii`).
+            Needs that key.
     """
 
     def __init__(
@@ -424,9 +451,11 @@ class SearchPlanner(_Planner):
         max_states: int = 150,
         clearance_pref_m: float = 0.3,
         clearance_weight: float = 1.0,
+        uncertainty: bool = False,
     ) -> None:
         super().__init__(env_config)
         cfg = self.cfg
+        self.uncertainty = bool(uncertainty)
         if lookahead_steps < 1:
             raise ValueError(f"lookahead_steps must be >= 1, got {lookahead_steps!r}")
         for name, value in (
@@ -475,6 +504,14 @@ class SearchPlanner(_Planner):
         ped_vel = peds[..., 2:4] + o["robot"][:, None, 2:4].astype(np.float64)  # (B, K, 2) world velocity
         return now[:, :, None, :] + ped_vel[:, :, None, :] * self._steps[None, None, :, None], mask
 
+    def step_inflation(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
+        """``(B, K, L)`` metres each pedestrian's disk grows by during look-ahead step ``h`` (from ``t + h dt_s`` to
+        ``t + (h + 1) dt_s``) for its uncertainty region: the larger radius of the step's two ends (the region at
+        the present, observed position is 0), with ``uncertainty=True``; 0 without."""
+        ahead = region_radii(obs, self.cfg, self.lookahead, self.uncertainty)  # (B, K, L) at t + (h + 1) dt_s
+        before = np.concatenate([np.zeros_like(ahead[:, :, :1]), ahead[:, :, :-1]], axis=2)
+        return np.maximum(before, ahead)
+
     def _gaps(
         self,
         x: np.ndarray,
@@ -521,16 +558,18 @@ class SearchPlanner(_Planner):
         b_all = len(robot)
         goal, dist, cap = _goal_velocity(robot, cfg)  # goal relative to the robot
         fut, mask = self.futures(obs)
+        grow = self.step_inflation(obs)
         scale = np.divide(cap, dist, out=np.zeros_like(dist), where=dist >= 1e-9)
         chosen = goal * scale[:, None]  # no pedestrian observed: straight at the goal
         todo = np.flatnonzero(mask.any(axis=1) & (dist >= 1e-9))
         for lo in range(0, len(todo), _SEARCH_CHUNK):  # bounded memory for large batches (DAgger labels thousands)
             rows = todo[lo : lo + _SEARCH_CHUNK]
-            chosen[rows] = self._search(goal[rows], fut[rows], mask[rows])
+            chosen[rows] = self._search(goal[rows], fut[rows], mask[rows], grow[rows])
         return velocities_to_actions(chosen, robot.reshape(b_all, -1), cfg)
 
-    def _search(self, goal: np.ndarray, fut: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        """First velocities ``(B, 2)`` of the best plans (goal ``(B, 2)`` and futures relative to the robot)."""
+    def _search(self, goal: np.ndarray, fut: np.ndarray, mask: np.ndarray, grow: np.ndarray) -> np.ndarray:
+        """First velocities ``(B, 2)`` of the best plans (goal ``(B, 2)`` and futures relative to the robot; ``grow``
+        ``(B, K, L)``: :meth:`step_inflation`)."""
         cfg = self.cfg
         b = len(goal)
         dt, v, tol = cfg.dt_s, cfg.robot_pref_speed_mps, cfg.goal_tolerance_m - 1e-6
@@ -546,7 +585,8 @@ class SearchPlanner(_Planner):
             vel = motion_candidates(x, goal[:, None], base[:, None], v, dt, self.headings, self.fractions)
             move = vel * dt
             travelled = np.hypot(*(fut[:, :, h + 1] - fut[:, :, 0]).transpose(2, 0, 1))  # (B, K) metres
-            gap = self._gaps(x, valid, move, fut[:, :, h], fut[:, :, h + 1], mask, self.margin_per_m * travelled)
+            inflate = self.margin_per_m * travelled + grow[:, :, h]
+            gap = self._gaps(x, valid, move, fut[:, :, h], fut[:, :, h + 1], mask, inflate)
             if h == 0:  # the first velocity of every plan; the escape (largest gap) when none is clear
                 first = vel[:, 0][:, None].copy()  # (B, 1, A, 2) -> per child below
                 result = vel[rows, 0, np.argmax(gap[:, 0], axis=1)]
