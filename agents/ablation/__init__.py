@@ -6,8 +6,9 @@
 
 The grid
     A YAML config (see ``configs/ablation/planning_aid.yaml``) names forecast arms (``none``, ``cv``,
-    ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, and ``noisy_oracle`` expanded into one arm per target
-    ADE), policies (learned ``ppo``/``sac`` with an agent config and a training budget; non-learned
+    ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, ``noisy_oracle`` expanded into one arm per target
+    ADE, and uncertainty arms ``cv_unc``, ``mesrnn_unc``, ``srnn_unc``, ``vlstm_unc``: the source's forecasts plus
+    their calibrated regions, which the ``planner``/``search`` policies keep clear of), policies (learned ``ppo``/``sac`` with an agent config and a training budget; non-learned
     ``planner``/``straight``), training seeds, held-out splits and the fixed evaluation episode list.
     It expands into *cells*:
 
@@ -105,6 +106,9 @@ from agents.ablation.config import (
     OUTCOMES,
     POLICY_KINDS,
     TRAIN_RUN,
+    UNCERTAINTY_KINDS,
+    UNCERTAINTY_SOURCES,
+    UNCERTAINTY_SUFFIX,
     AblationConfig,
     Arm,
     PolicySpec,
@@ -134,6 +138,9 @@ __all__ = [
     "OUTCOMES",
     "POLICY_KINDS",
     "TRAIN_RUN",
+    "UNCERTAINTY_KINDS",
+    "UNCERTAINTY_SOURCES",
+    "UNCERTAINTY_SUFFIX",
     "AblationConfig",
     "Arm",
     "Cell",

@@ -96,6 +96,7 @@ def _run_eval(task: CellTask, folder: Path) -> dict[str, Any]:
 
     cell = task.cell
     spec = task.model if cell.policy.learned else cell.policy.kind
+    options = {**dict(cell.policy.options), **cell.arm.planner_options()}  # an uncertainty arm: uncertainty=True
     result = evaluate(
         spec,
         cell.arm.predictor,
@@ -104,7 +105,7 @@ def _run_eval(task: CellTask, folder: Path) -> dict[str, Any]:
         seed=task.eval_seed,
         out_dir=folder,
         env_overrides={**task.env, **cell.arm.env_overrides()} or None,
-        **({"planner_kwargs": dict(cell.policy.options)} if cell.policy.options else {}),
+        **({"planner_kwargs": options} if options else {}),
     )
     rows = read_episodes(folder / "episodes.csv")
     steps = sum(int(float(r.get("steps", 0) or 0)) for r in rows) if rows and "steps" in rows[0] else None
@@ -323,7 +324,8 @@ def _task(cfg: AblationConfig, cell: Cell) -> CellTask:
 def build_forecast_caches(
     cfg: AblationConfig, cells: Iterable[Cell], out: Callable[[str], None] = print
 ) -> list[tuple[str, str]]:
-    """Build the shared on-disk forecast cache once for every (learned source, split) the cells need.
+    """Build the shared on-disk forecast cache once for every (learned source, split) the cells need (an
+    uncertainty arm uses its source's forecasts, so ``mesrnn`` and ``mesrnn_unc`` share one cache).
 
     Uses ``envs.forecasts.build_forecast_cache`` when the environment provides it (otherwise each process
     computes the forecasts it needs). Returns the pairs built.

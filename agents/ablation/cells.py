@@ -96,6 +96,8 @@ def cell_spec(cfg: AblationConfig, cell: Cell) -> dict[str, Any]:
         "env": dict(sorted(cfg.env.items())),
         "env_revision": _env_revision(),
     }
+    if cell.arm.uncertainty:  # only then: the specs of every other arm stay as they were (their cells stay done)
+        spec["uncertainty"] = True
     if cell.kind == "train":
         spec.update(
             agent_config=cell.policy.config,

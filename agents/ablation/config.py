@@ -21,6 +21,21 @@ ARM_SOURCES: Final[tuple[str, ...]] = ("none", "cv", "mesrnn", "srnn", "vlstm", 
 LEARNED_SOURCES: Final[tuple[str, ...]] = ("mesrnn", "srnn", "vlstm")
 
 
+#: Suffix of an uncertainty arm: ``<source>_unc`` plans with the source's forecasts and their calibrated uncertainty
+#: regions (the environment's ``forecast_uncertainty=True``, the planner's ``uncertainty=True``).
+UNCERTAINTY_SUFFIX: Final[str] = "_unc"
+
+
+#: Sources with an uncertainty arm: those whose regions are calibrated (:mod:`envs.uncertainty`). Not ``none`` (no
+#: forecast), ``oracle`` (its regions are 0: the arm would be the oracle arm again), ``noisy_oracle`` (its regions
+#: are the known noise, not a calibration) or plug-ins (no calibration).
+UNCERTAINTY_SOURCES: Final[tuple[str, ...]] = ("cv", "mesrnn", "srnn", "vlstm")
+
+
+#: Policy kinds with the ``uncertainty`` option (:mod:`agents.planners`), the only ones uncertainty arms run.
+UNCERTAINTY_KINDS: Final[tuple[str, ...]] = ("planner", "search")
+
+
 #: Policy kinds: learned ones are trained per arm and seed, the others only evaluated.
 POLICY_KINDS: Final[tuple[str, ...]] = ("ppo", "sac", "planner", "search", "privileged", "straight")
 
@@ -109,18 +124,30 @@ _GRID_OVERRIDES: Final[dict[str, str]] = {
 
 @dataclass(frozen=True)
 class Arm:
-    """One forecast arm: a forecast source, and for ``noisy_oracle`` its target ADE."""
+    """One forecast arm: a forecast source, for ``noisy_oracle`` its target ADE, and whether it plans with the
+    forecasts' uncertainty regions."""
 
     label: str
-    """Name in cell paths and the summary (``mesrnn``, ``noisy_oracle-0.25``)."""
+    """Name in cell paths and the summary (``mesrnn``, ``noisy_oracle-0.25``, ``mesrnn_unc``)."""
     predictor: str
     """Forecast source passed to the environment (one of :data:`ARM_SOURCES`, or a predictor plug-in)."""
     noisy_oracle_ade_m: float | None = None
     """Target ADE of ``noisy_oracle`` arms, metres."""
+    uncertainty: bool = False
+    """An uncertainty arm (``<source>_unc``, source in :data:`UNCERTAINTY_SOURCES`): the environment adds the
+    forecasts' calibrated uncertainty radii (``forecast_uncertainty=True``) and the planner keeps clear of the
+    regions (``uncertainty=True``)."""
 
     def env_overrides(self) -> dict[str, Any]:
         """Environment keys this arm sets besides ``predictor``."""
-        return {} if self.noisy_oracle_ade_m is None else {"noisy_oracle_ade_m": self.noisy_oracle_ade_m}
+        out: dict[str, Any] = {} if self.noisy_oracle_ade_m is None else {"noisy_oracle_ade_m": self.noisy_oracle_ade_m}
+        if self.uncertainty:
+            out["forecast_uncertainty"] = True
+        return out
+
+    def planner_options(self) -> dict[str, Any]:
+        """Planner options this arm sets (on top of the policy's ``options``)."""
+        return {"uncertainty": True} if self.uncertainty else {}
 
 
 @dataclass(frozen=True)
@@ -303,6 +330,12 @@ def _policies(value: Any) -> tuple[PolicySpec, ...]:
             options = spec.get("options") or {}
             if not isinstance(options, dict) or not all(isinstance(k, str) for k in options):
                 raise _bad(f"{where}.options", options, "a mapping of the planner's option names to values")
+            if "uncertainty" in options:
+                raise _bad(
+                    f"{where}.options.uncertainty",
+                    options["uncertainty"],
+                    f"nothing: an uncertainty arm sets it ({', '.join(s + UNCERTAINTY_SUFFIX for s in UNCERTAINTY_SOURCES)})",
+                )
             out.append(PolicySpec(str(name), kind, options=dict(options)))
     return tuple(out)
 
@@ -313,15 +346,43 @@ def _policy_arms(policy: PolicySpec, raw: Mapping[str, Any], arms: Sequence[Arm]
     if value is None:
         return policy
     key = f"policies.{policy.name}.arms"
-    names = [a.label for a in arms] + sorted({a.predictor for a in arms} - {a.label for a in arms})
+    labels = [a.label for a in arms]
+    # a source that is not itself an arm's label names every arm of that source (the noisy-oracle sweep); never
+    # an uncertainty arm, which is named by its label only
+    names = labels + sorted({a.predictor for a in arms if not a.uncertainty} - set(labels))
     if not isinstance(value, list) or not value:
         raise _bad(key, value, "a non-empty list of " + ", ".join(names))
     chosen: list[str] = []
     for v in value:
         if v not in names:
             raise _bad(key, v, ", ".join(names))
-        chosen += [a.label for a in arms if v in (a.label, a.predictor) and a.label not in chosen]
+        chosen += [
+            a.label
+            for a in arms
+            if (v == a.label or (v not in labels and v == a.predictor and not a.uncertainty)) and a.label not in chosen
+        ]
     return dataclasses.replace(policy, arms=tuple(chosen))
+
+
+def _check_uncertainty_arms(policies: Sequence[PolicySpec], arms: Sequence[Arm]) -> None:
+    """Uncertainty arms run only policies with the planners' ``uncertainty`` option (:data:`UNCERTAINTY_KINDS`):
+    learned policies are not trained on the regions (out of scope), and straight-to-goal and the privileged
+    ceiling do not read forecasts. Raises :class:`ConfigError` naming ``policies.<name>.arms``."""
+    for policy in policies:
+        unc = [a.label for a in arms if a.uncertainty and policy.uses(a)]
+        if unc and policy.kind not in UNCERTAINTY_KINDS:
+            plain = [a.label for a in arms if not a.uncertainty]
+            why = (
+                f"a learned {policy.kind!r} policy is not trained with uncertainty regions (out of scope)"
+                if policy.learned
+                else f"a {policy.kind!r} policy does not plan with uncertainty regions"
+            )
+            raise _bad(
+                f"policies.{policy.name}.arms",
+                list(policy.arms) or "every arm",
+                f"arms without the uncertainty arms {', '.join(unc)}: {why}; only the {' and '.join(UNCERTAINTY_KINDS)} "
+                f"kinds run them. List this policy's arms, e.g. arms: [{', '.join(plain)}]",
+            )
 
 
 def training_overrides(
@@ -395,13 +456,30 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
     sources = _str_list(raw, "arms")
     from envs.config import is_plugin_source
 
-    for src in sources:  # a forecast source, or an installed predictor plug-in (crowdnav-mesrnn bench's arm)
-        if src not in ARM_SOURCES and not is_plugin_source(src):
+    unc_names = ", ".join(s + UNCERTAINTY_SUFFIX for s in UNCERTAINTY_SOURCES)
+    for src in sources:  # a forecast source, an uncertainty arm, or a predictor plug-in (crowdnav-mesrnn bench's arm)
+        if src in ARM_SOURCES or is_plugin_source(src):
+            continue
+        base = src.removesuffix(UNCERTAINTY_SUFFIX)
+        if base != src and base not in UNCERTAINTY_SOURCES:
+            why = {
+                "none": "none has no forecast to be uncertain about",
+                "oracle": "the oracle's regions are 0, so oracle_unc would be the oracle arm again",
+                "noisy_oracle": "the noisy oracle's regions are its known noise, not a calibration",
+            }.get(base, f"{base!r} has no calibrated regions")
+            raise _bad("arms", src, f"uncertainty arms {unc_names} ({why})")
+        if base == src:
             raise _bad(
-                "arms", src, ", ".join(ARM_SOURCES) + ", an installed predictor plug-in or package.module:Factory"
+                "arms",
+                src,
+                ", ".join(ARM_SOURCES)
+                + f", an uncertainty arm ({unc_names}), an installed predictor plug-in or package.module:Factory",
             )
     arms: list[Arm] = []
     for src in sources:
+        if src.endswith(UNCERTAINTY_SUFFIX) and src.removesuffix(UNCERTAINTY_SUFFIX) in UNCERTAINTY_SOURCES:
+            arms.append(Arm(src, src.removesuffix(UNCERTAINTY_SUFFIX), uncertainty=True))
+            continue
         if src != "noisy_oracle":
             arms.append(Arm(src, src))
             continue
@@ -428,6 +506,7 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
     policies = _policies(raw.get("policies"))
     labels = [a.label for a in arms]
     policies = tuple(_policy_arms(p, raw["policies"][p.name], arms) for p in policies)
+    _check_uncertainty_arms(policies, arms)
     evaluation = raw.get("evaluation")
     if not isinstance(evaluation, dict):
         raise _bad("evaluation", evaluation, "a mapping {episodes: N, seed: S}")

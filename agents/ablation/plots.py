@@ -15,7 +15,14 @@ from crowdnav_mesrnn.utils import atomic_write
 
 #: Arms drawn in the density plot, each in its own fixed colour (the sweep and the other predictors are in
 #: ``rates_vs_ade.png``; ten lines in one panel cannot be told apart).
-DENSITY_ARMS: dict[str, str] = {"none": "tab:grey", "cv": "tab:blue", "mesrnn": "tab:orange", "oracle": "tab:green"}
+DENSITY_ARMS: dict[str, str] = {
+    "none": "tab:grey",
+    "cv": "tab:blue",
+    "mesrnn": "tab:orange",
+    "oracle": "tab:green",
+    "cv_unc": "tab:cyan",
+    "mesrnn_unc": "tab:brown",
+}
 
 
 def _edge(value: float) -> str:
