@@ -11,6 +11,8 @@ import csv
 import gzip
 import json
 import math
+import os
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -415,6 +417,60 @@ def test_a_first_ctrl_c_waits_for_the_running_cells_and_a_second_stops_them(
     presses.clear()
     ab.run_grid(cfg, workers=1, only="train/zara1/ppo/none/seed1", summarize_after=False, out=lambda s: None)
     assert fakes.train_calls == [("train/zara1/ppo/none/seed1", True)]
+
+
+class _QueueBackend(ab.backends._Backend):
+    """A backend that runs a cell only when the grid waits for it (as a process pool does), of ``capacity`` 2."""
+
+    capacity = 2
+
+    def __init__(self) -> None:
+        self.tasks: dict[int, ab.CellTask] = {}
+        self.submitted = 0
+        self.most_outstanding = 0
+
+    def submit(self, task: ab.CellTask) -> Any:
+        self.submitted += 1
+        self.tasks[self.submitted] = task
+        self.most_outstanding = max(self.most_outstanding, len(self.tasks))
+        return self.submitted
+
+    def wait_one(self, handles: Any) -> tuple[Any, dict[str, Any]]:
+        handle = next(iter(handles))
+        return handle, ab.backends.execute_cell(self.tasks.pop(handle))
+
+
+def test_a_pool_is_handed_no_more_cells_than_it_runs_so_a_first_ctrl_c_starts_no_other(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    backend = _QueueBackend()
+    monkeypatch.setattr(ab.backends, "_runner", lambda *a, **k: backend)
+    original = fakes.train
+
+    def train(task: ab.CellTask, folder: Path) -> dict[str, Any]:
+        if task.cell.name == "train/zara1/ppo/none/seed0":
+            os.kill(os.getpid(), signal.SIGINT)  # the first Ctrl-C, while two cells are with the backend
+        return original(task, folder)
+
+    monkeypatch.setattr(ab.backends, "_run_train", train)
+    lines: list[str] = []
+    result = ab.run_grid(cfg, workers=2, out=lines.append)
+    assert backend.most_outstanding == 2  # before the fix every ready cell (here 6) was queued at once
+    text = "\n".join(lines)
+    assert "waiting for the 2 running cell(s) to finish" in text
+    assert sorted(result["ran"]) == ["train/zara1/ppo/none/seed0", "train/zara1/ppo/none/seed1"]
+    assert len(result["interrupted"]) == len(ab.expand(cfg)) - 2
+
+
+def test_pool_workers_are_fresh_processes_for_every_cell() -> None:
+    pool = ab.backends._Pool(1)
+    try:
+        assert pool.capacity == 1
+        pids = [pool._pool.submit(os.getpid).result(timeout=120) for _ in range(2)]
+    finally:
+        pool.close()
+    assert pids[0] != pids[1]  # a reused worker kept what every earlier cell left in memory
 
 
 def test_dry_run_lists_states_and_uses_measured_rates(tmp_path: Path, fakes: Fakes) -> None:
