@@ -19,12 +19,16 @@ before the next begins (:func:`window_clock`).
 **The update** of step ``h`` at level ``c`` for a revealed window ``j`` with ``n_j`` scored pedestrians of which
 ``m_j`` fell outside their region (score above the threshold used)::
 
-    q_h <- max(0, q_h + γ q_h^0 (m_j − (1 − c) n_j) / n̄)
+    q_h <- max(0, q_h + γ q_h^0 (m_j − (1 − c) n_j) / (h n̄))
 
 ``q_h^0`` is the offline (split-conformal, validation) threshold the tracker starts from, so ``γ`` is free of the
 score's units; ``n̄`` is the mean number of scored pedestrians of the windows revealed so far (known online), so
-``γ`` is the step per typical window in sparse and in dense scenes alike. The pooled miss fraction over the
-positions then tends to ``1 − c`` on any stream where ``q_h`` stays bounded.
+``γ`` is the step per typical window in sparse and in dense scenes alike. The division by the delay ``h`` keeps the
+feedback loop of every step equally damped: ``h`` updates are already under way when the first of them shows in
+an outcome, and a fixed step large enough for step 1 makes step 12's threshold oscillate and the regions swell
+(with the division, a stationary stream's thresholds stay near the true quantile at every step:
+``tests/models/test_online_conformal.py``). The pooled miss fraction over the positions tends to ``1 − c`` on any
+stream where ``q_h`` stays bounded (the ``P`` controller's guarantee; a delay changes only the constant).
 
 **Choosing γ** (fixed before any test coverage was measured; the test scene is never read): per split and level,
 on the split's validation windows, leave one validation scene out: start from the split-conformal thresholds of
