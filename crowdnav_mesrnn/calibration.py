@@ -34,7 +34,7 @@ import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
 import numpy as np
 from scipy.optimize import nnls
@@ -44,6 +44,9 @@ from crowdnav_mesrnn.data.windows import Window, split_windows
 from crowdnav_mesrnn.evaluation import ScoredForecasts, collect_forecasts, cv_predict_batch, resolve_splits
 from crowdnav_mesrnn.models import gaussian
 from crowdnav_mesrnn.stats import DEFAULT_BLOCK_LEN, DEFAULT_RESAMPLES, PairedErrors, average_ci, block_bootstrap_ci
+
+if TYPE_CHECKING:
+    from crowdnav_mesrnn.online_conformal import OnlineResult
 
 #: Coverage levels of the regions.
 LEVELS: Final[tuple[float, ...]] = (0.5, 0.9, 0.95)
@@ -241,6 +244,33 @@ def forecaster_for(model: str, split: str, head: str = "point", predictor: Any =
     return Forecaster(model, "point", point=predictor.predict_batch, info=info)
 
 
+def calibration_scores(
+    forecaster: Forecaster,
+    split: str,
+    score: str = "scaled",
+    data_dir: str | os.PathLike[str] | None = None,
+    min_scored: int = 2,
+    batch_size: int = 64,
+) -> tuple[ErrorModel | None, list[Window], ScoredForecasts, np.ndarray]:
+    """The error model (``scaled`` point forecasts: fitted on the split's training windows), the split's validation
+    windows, their forecasts and their ``(M, P)`` conformal scores. The test windows are never read."""
+    check_split(split)
+    if score not in SCORES:
+        raise ValueError(f"unknown score {score!r}; valid: {', '.join(SCORES)}")
+    error_model = None
+    if score == "scaled" and forecaster.distribution is None:
+        train = split_windows(split, "train", min_scored, data_dir)
+        error_model = ErrorModel.fit(forecaster.collect(train, batch_size))
+    windows = split_windows(split, "val", min_scored, data_dir)
+    val = forecaster.collect(windows, batch_size)
+    return error_model, windows, val, region_scores(val, score, error_model)
+
+
+def conformal_thresholds(scores: np.ndarray, levels: Sequence[float]) -> dict[str, tuple[float, ...]]:
+    """Level key -> ``(P,)`` split-conformal thresholds of ``(M, P)`` scores, one per horizon step."""
+    return {level_key(c): tuple(conformal_quantile(scores[:, h], c) for h in range(scores.shape[1])) for c in levels}
+
+
 def fit_calibration(
     forecaster: Forecaster,
     split: str,
@@ -252,20 +282,29 @@ def fit_calibration(
 ) -> Calibration:
     """Fit the error model (``scaled`` point forecasts: on the split's training windows) and the conformal
     thresholds (on its validation windows). The test windows are never read."""
-    check_split(split)
-    if score not in SCORES:
-        raise ValueError(f"unknown score {score!r}; valid: {', '.join(SCORES)}")
-    error_model = None
-    if score == "scaled" and forecaster.distribution is None:
-        train = split_windows(split, "train", min_scored, data_dir)
-        error_model = ErrorModel.fit(forecaster.collect(train, batch_size))
-    val = forecaster.collect(split_windows(split, "val", min_scored, data_dir), batch_size)
-    scores = region_scores(val, score, error_model)
-    thresholds = {
-        level_key(c): tuple(conformal_quantile(scores[:, h], c) for h in range(scores.shape[1])) for c in levels
-    }
+    error_model, _, val, scores = calibration_scores(forecaster, split, score, data_dir, min_scored, batch_size)
+    return calibration_from_scores(forecaster, split, score, levels, error_model, val, scores)
+
+
+def calibration_from_scores(
+    forecaster: Forecaster,
+    split: str,
+    score: str,
+    levels: Sequence[float],
+    error_model: ErrorModel | None,
+    val: ScoredForecasts,
+    scores: np.ndarray,
+) -> Calibration:
+    """The :class:`Calibration` of :func:`calibration_scores`' output."""
     return Calibration(
-        forecaster.model, forecaster.head, split, score, thresholds, error_model, val.num_windows, len(val.speed)
+        forecaster.model,
+        forecaster.head,
+        split,
+        score,
+        conformal_thresholds(scores, levels),
+        error_model,
+        val.num_windows,
+        len(val.speed),
     )
 
 
@@ -318,6 +357,47 @@ def measure_coverage(calibration: Calibration, scored: ScoredForecasts, levels: 
     return Coverage(covered, raw, scored.counts[keep], radius, nll)
 
 
+def coverage_fields(
+    cov: Coverage, levels: Sequence[float], block_len: int = DEFAULT_BLOCK_LEN, n_resamples: int = DEFAULT_RESAMPLES
+) -> dict[str, Any]:
+    """``coverage``, ``coverage_ci``, ``coverage_per_step`` (and the raw ones) of a split's row."""
+    row: dict[str, Any] = {"coverage": {}, "coverage_ci": {}, "coverage_per_step": {}}
+    for c in levels:
+        key = level_key(c)
+        pooled = cov.pooled(key)
+        row["coverage"][key] = pooled.estimate
+        row["coverage_ci"][key] = list(block_bootstrap_ci(pooled, block_len, n_resamples))
+        row["coverage_per_step"][key] = (cov.covered[key].sum(0) / cov.counts.sum()).tolist()
+    if cov.raw:
+        row["raw_coverage"] = {k: cov.pooled(k, raw=True).estimate for k in cov.raw}
+        row["raw_coverage_per_step"] = {k: (v.sum(0) / cov.counts.sum()).tolist() for k, v in cov.raw.items()}
+    return row
+
+
+def average_fields(
+    covs: Sequence[Coverage],
+    rows: Sequence[dict[str, Any]],
+    levels: Sequence[float],
+    block_len: int = DEFAULT_BLOCK_LEN,
+    n_resamples: int = DEFAULT_RESAMPLES,
+) -> dict[str, Any]:
+    """The unweighted mean over splits of :func:`coverage_fields` (intervals resample each split independently)."""
+    avg: dict[str, Any] = {"coverage": {}, "coverage_ci": {}, "coverage_per_step": {}}
+    for c in levels:
+        key = level_key(c)
+        est, ci = average_ci([cov.pooled(key) for cov in covs], block_len, n_resamples)
+        avg["coverage"][key] = est
+        avg["coverage_ci"][key] = list(ci)
+        avg["coverage_per_step"][key] = np.mean([r["coverage_per_step"][key] for r in rows], axis=0).tolist()
+    if all("raw_coverage" in r for r in rows):
+        avg["raw_coverage"] = {k: float(np.mean([r["raw_coverage"][k] for r in rows])) for k in rows[0]["raw_coverage"]}
+    return avg
+
+
+def _mean_of(rows: Sequence[dict[str, Any]], field: str) -> dict[str, float]:
+    return {k: float(np.mean([r[field][k] for r in rows])) for k in rows[0][field]}
+
+
 def calibrate_model(
     model: str,
     splits: Sequence[str] | str = "all",
@@ -328,6 +408,7 @@ def calibrate_model(
     predictor_for: Callable[[str], Any] | None = None,
     block_len: int = DEFAULT_BLOCK_LEN,
     n_resamples: int = DEFAULT_RESAMPLES,
+    method: str = "split",
 ) -> dict[str, Any]:
     """Calibrate on each split's validation windows, measure coverage on its test windows, and average.
 
@@ -338,39 +419,57 @@ def calibrate_model(
     ``mean_radius_m``, ``nll_m`` (``scaled`` only), ``windows``, ``pedestrians``, ``calibration_windows`` and
     ``calibration_pedestrians``. ``average`` is the unweighted mean over the splits (intervals resample each
     split independently).
+
+    ``method="online"`` (:mod:`crowdnav_mesrnn.online_conformal`) tracks each step's threshold over the test scene
+    in time order from the split-conformal one, with delayed feedback; the coverage fields are then the tracker's,
+    ``thresholds`` are its starting ones, and each split also holds ``method``-specific fields: ``gamma`` and
+    ``gamma_validation_deviation`` (the step size chosen on validation and every candidate's deviation),
+    ``coverage_min_step``, ``coverage_second_half``, ``thresholds_end``, ``mean_radius_diff_m`` with
+    ``mean_radius_diff_ci`` (online minus split conformal, paired by window) and ``split_conformal`` (its
+    coverage, per-step coverage and mean radius on the same windows).
     """
+    if method not in ("split", "online"):
+        raise ValueError(f"unknown calibration method {method!r}; valid: split, online")
     splits = resolve_splits(splits)
     levels = tuple(float(c) for c in levels)
     for c in levels:
         gaussian.chi2_radius(c)  # validates the level
+    description = (
+        "split conformal on the split's validation windows, per horizon step; coverage on its test windows"
+        if method == "split"
+        else "online conformal (a quantile tracker per horizon step and level, delayed feedback) over the test "
+        "scene in time order, from split conformal's thresholds on the split's validation windows, step size "
+        "chosen on the validation scenes; coverage on its test windows"
+    )
     out: dict[str, Any] = {
         "model": model,
         "head": head,
         "score": score,
         "levels": list(levels),
-        "calibration": "split conformal on the split's validation windows, per horizon step; coverage on its test "
-        "windows" + ("; point forecasts: an error model fitted on its training windows" if score == "scaled" else ""),
+        "calibration": description
+        + ("; point forecasts: an error model fitted on its training windows" if score == "scaled" else ""),
         "splits": {},
     }
+    if method == "online":
+        from crowdnav_mesrnn.online_conformal import GAMMA_GRID, GAMMA_TOLERANCE, online_for_split
+
+        out = {"method": "online", **out, "gamma_grid": list(GAMMA_GRID), "gamma_tolerance": GAMMA_TOLERANCE}
     per_split: dict[str, Coverage] = {}
     for split in splits:
         predictor = predictor_for(split) if predictor_for is not None else None
         forecaster = forecaster_for(model, split, head, predictor)
         out["head"] = forecaster.head
-        cal = fit_calibration(forecaster, split, score, levels, data_dir)
-        test = forecaster.collect(split_windows(split, "test", 2, data_dir))
+        error_model, val_windows, val, val_scores = calibration_scores(forecaster, split, score, data_dir)
+        cal = calibration_from_scores(forecaster, split, score, levels, error_model, val, val_scores)
+        test_windows = split_windows(split, "test", 2, data_dir)
+        test = forecaster.collect(test_windows)
         cov = measure_coverage(cal, test, levels)
+        online = None
+        if method == "online":
+            online = online_for_split(cal, val_windows, val, val_scores, test_windows, test, cov, levels, data_dir)
+            split_cov, cov = cov, online.coverage
         per_split[split] = cov
-        row: dict[str, Any] = {"coverage": {}, "coverage_ci": {}, "coverage_per_step": {}}
-        for c in levels:
-            key = level_key(c)
-            pooled = cov.pooled(key)
-            row["coverage"][key] = pooled.estimate
-            row["coverage_ci"][key] = list(block_bootstrap_ci(pooled, block_len, n_resamples))
-            row["coverage_per_step"][key] = (cov.covered[key].sum(0) / cov.counts.sum()).tolist()
-        if cov.raw:
-            row["raw_coverage"] = {k: cov.pooled(k, raw=True).estimate for k in cov.raw}
-            row["raw_coverage_per_step"] = {k: (v.sum(0) / cov.counts.sum()).tolist() for k, v in cov.raw.items()}
+        row = coverage_fields(cov, levels, block_len, n_resamples)
         row["thresholds"] = {k: list(v) for k, v in cal.thresholds.items()}
         row["mean_radius_m"] = cov.mean_radius_m
         if cov.nll_m is not None:
@@ -383,31 +482,64 @@ def calibrate_model(
             "calibration_windows": cal.windows,
             "calibration_pedestrians": cal.pedestrians,
         }
+        if online is not None:
+            row |= _online_fields(online, split_cov, levels, block_len, n_resamples)
         if forecaster.info:
             out.setdefault("checkpoints", {})[split] = forecaster.info
         out["splits"][split] = row
     if len(splits) > 1:
         rows = [out["splits"][s] for s in splits]
-        avg: dict[str, Any] = {"coverage": {}, "coverage_ci": {}, "coverage_per_step": {}}
-        for c in levels:
-            key = level_key(c)
-            est, ci = average_ci([per_split[s].pooled(key) for s in splits], block_len, n_resamples)
-            avg["coverage"][key] = est
-            avg["coverage_ci"][key] = list(ci)
-            avg["coverage_per_step"][key] = np.mean([r["coverage_per_step"][key] for r in rows], axis=0).tolist()
-        if all("raw_coverage" in r for r in rows):
-            avg["raw_coverage"] = {
-                k: float(np.mean([r["raw_coverage"][k] for r in rows])) for k in rows[0]["raw_coverage"]
-            }
-        avg["mean_radius_m"] = {
-            k: float(np.mean([r["mean_radius_m"][k] for r in rows])) for k in rows[0]["mean_radius_m"]
-        }
+        avg = average_fields([per_split[s] for s in splits], rows, levels, block_len, n_resamples)
+        avg["mean_radius_m"] = _mean_of(rows, "mean_radius_m")
         if all("nll_m" in r for r in rows):
             avg["nll_m"] = float(np.mean([r["nll_m"] for r in rows]))
         avg["windows"] = sum(r["windows"] for r in rows)
         avg["pedestrians"] = sum(r["pedestrians"] for r in rows)
+        if method == "online":
+            avg["coverage_min_step"] = {k: min(v) for k, v in avg["coverage_per_step"].items()}
+            avg["worst_split_min_step"] = {k: min(r["coverage_min_step"][k] for r in rows) for k in avg["coverage"]}
+            avg["coverage_second_half"] = _mean_of(rows, "coverage_second_half")
+            avg["mean_radius_diff_m"] = _mean_of(rows, "mean_radius_diff_m")
+            split_rows = [r["split_conformal"] for r in rows]
+            split_steps = {k: np.mean([r["coverage_per_step"][k] for r in split_rows], axis=0) for k in avg["coverage"]}
+            avg["split_conformal"] = {
+                "coverage": _mean_of(split_rows, "coverage"),
+                "coverage_per_step": {k: v.tolist() for k, v in split_steps.items()},
+                "coverage_min_step": {k: float(v.min()) for k, v in split_steps.items()},
+                "worst_split_min_step": {
+                    k: min(r["coverage_min_step"][k] for r in split_rows) for k in avg["coverage"]
+                },
+                "mean_radius_m": _mean_of(split_rows, "mean_radius_m"),
+            }
         out["splits"]["average"] = avg
     return out
+
+
+def _online_fields(
+    online: OnlineResult, split_cov: Coverage, levels: Sequence[float], block_len: int, n_resamples: int
+) -> dict[str, Any]:
+    """The fields only ``method="online"`` rows have (:func:`calibrate_model`)."""
+    keys = [level_key(c) for c in levels]
+    split_row = coverage_fields(split_cov, levels, block_len, n_resamples)
+    cov = online.coverage
+    per_step = {k: cov.covered[k].sum(0) / cov.counts.sum() for k in keys}
+    diffs = {k: PairedErrors(online.radius_diff[k], cov.counts * cov.covered[k].shape[1]) for k in keys}
+    return {
+        "gamma": online.gamma,
+        "gamma_validation_deviation": online.gamma_deviation,
+        "coverage_min_step": {k: float(per_step[k].min()) for k in keys},
+        "coverage_second_half": online.second_half,
+        "thresholds_end": online.thresholds_end,
+        "mean_radius_diff_m": {k: diffs[k].estimate for k in keys},
+        "mean_radius_diff_ci": {k: list(block_bootstrap_ci(diffs[k], block_len, n_resamples)) for k in keys},
+        "split_conformal": {
+            "coverage": split_row["coverage"],
+            "coverage_ci": split_row["coverage_ci"],
+            "coverage_per_step": split_row["coverage_per_step"],
+            "coverage_min_step": {k: min(v) for k, v in split_row["coverage_per_step"].items()},
+            "mean_radius_m": split_cov.mean_radius_m,
+        },
+    }
 
 
 def format_calibration(result: dict[str, Any]) -> str:
@@ -433,4 +565,17 @@ def format_calibration(result: dict[str, Any]) -> str:
             f"{s} " + "/".join(f"{r['mean_radius_m'][k]:.2f}" for k in keys) for s, r in result["splits"].items()
         )
     )
+    if result.get("method") == "online":
+        lines.append(
+            "split conformal on the same windows, coverage (lowest step) and mean radius (m) per level; the online "
+            "step size gamma per level:"
+        )
+        for split, r in result["splits"].items():
+            sc = r["split_conformal"]
+            cells = [
+                f"{k}: {sc['coverage'][k]:.3f} ({sc['coverage_min_step'][k]:.2f}) {sc['mean_radius_m'][k]:.2f} m"
+                for k in keys
+            ]
+            gam = " gamma " + "/".join(f"{r['gamma'][k]:g}" for k in keys) if "gamma" in r else ""
+            lines.append(f"{split:<9}" + "; ".join(cells) + gam)
     return "\n".join(lines)

@@ -132,6 +132,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         predictor_for=predictor_for,
         block_len=args.block_len,
         n_resamples=args.resamples,
+        method=args.method,
     )
     return _emit(args, result, format_calibration)
 
@@ -328,6 +329,14 @@ def add_parser(sub: Any) -> None:
         default="scaled",
         choices=("scaled", "radius"),
         help="scaled: a per-step scale on the forecast's Gaussian (default); radius: a per-step disc in metres",
+    )
+    c.add_argument(
+        "--method",
+        default="split",
+        choices=("split", "online"),
+        help="split: split conformal thresholds from the validation windows (default); online: from them, a quantile "
+        "tracker per step and level over the test scene in time order, fed each outcome once revealed "
+        "(crowdnav_mesrnn.online_conformal)",
     )
     c.add_argument("--head", default="point", choices=("point", "gaussian"), help="which shipped weights")
     c.add_argument("--checkpoint", default=None, help="checkpoint path instead; may contain {split} and {model}")

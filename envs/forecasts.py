@@ -26,6 +26,7 @@ import math
 import multiprocessing
 import os
 import sys
+from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Final, Protocol
@@ -35,6 +36,7 @@ import numpy as np
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, SPLIT_TEST_RECORDINGS
 from crowdnav_mesrnn.data.recordings import Recording
+from crowdnav_mesrnn.models.base import ConstantVelocity
 from envs.config import FORECAST_MEMORIES, FORECAST_SOURCES, LEARNED_SOURCES, check_predictor_name, is_plugin_source
 from envs.forecast_cache import (
     CHUNK_FRAMES,
@@ -134,6 +136,42 @@ def resample_weights(
     return j0, j1, w
 
 
+#: Recordings whose forecasts by a predictor without weights (:func:`definition_key`) this process keeps, shared by
+#: every source (the environments of a vectorised env, a grid cell's warm start, training and validation).
+SHARED_RECORDINGS: Final[int] = 64
+_SHARED_TABLES: OrderedDict[tuple[Any, ...], dict[int, FrameTable]] = OrderedDict()
+
+
+def definition_key(model: Any) -> tuple[Any, ...] | None:
+    """What determines the forecasts of a predictor defined by its code alone, or None for any other.
+
+    Only :class:`~crowdnav_mesrnn.models.ConstantVelocity` itself (not a subclass, which may forecast otherwise)
+    qualifies: it has no weights and forecasts each pedestrian from its own history alone, so its forecasts of a
+    recording depend on ``(obs_len, pred_len)`` and the recording's content. :class:`PredictorForecast` then computes
+    a recording's whole table at once, each chunk in one call (:meth:`PredictorForecast._independent_chunk`), and
+    shares it with every other source of the process instead of each environment computing its own. They are
+    not written to the disk cache, whose key would then have to hash this code rather than weights; a process
+    computes a recording's table once.
+    """
+    if type(model) is ConstantVelocity:
+        return ("ConstantVelocity", int(model.obs_len), int(model.pred_len))
+    return None
+
+
+def _share(key: tuple[Any, ...], tables: dict[int, FrameTable]) -> None:
+    """Keep ``tables`` for the process under ``key`` (the least recently used recording beyond
+    :data:`SHARED_RECORDINGS` is forgotten)."""
+    _SHARED_TABLES[key] = {**_SHARED_TABLES.get(key, {}), **tables}
+    _SHARED_TABLES.move_to_end(key)
+    while len(_SHARED_TABLES) > SHARED_RECORDINGS:
+        _SHARED_TABLES.popitem(last=False)
+
+
+def clear_shared_tables() -> None:
+    """Forget the forecasts shared by this process's sources (:func:`definition_key`)."""
+    _SHARED_TABLES.clear()
+
+
 class ForecastSource:
     """Base class: forecasts of some pedestrians of a replay at time ``t``.
 
@@ -229,7 +267,8 @@ class PredictorForecast(ForecastSource):
         horizon: H, environment steps.
         cache: keep the forecasts (per chunk of frames, and resampled per time).
         store: the shared disk cache (None: memory only). Predictors without weights to hash
-            (:func:`~envs.forecast_cache.predictor_fingerprint`) are kept in memory only.
+            (:func:`~envs.forecast_cache.predictor_fingerprint`) are kept in memory only; constant velocity's
+            tables are shared by every source of the process (:func:`definition_key`).
 
     Computing runs torch on :attr:`threads` threads, one by default (:func:`torch_threads`; the caller's setting
     is restored after): a frame's batched operations are small, and more threads contend for the cores (on the
@@ -241,6 +280,8 @@ class PredictorForecast(ForecastSource):
         calls: frames forecast by the predictor in this process (each once when caching).
         chunks_loaded: chunks read from the disk cache.
         chunks_computed: chunks computed here.
+        chunks_shared: chunks taken from another source of this process (constant velocity:
+            :func:`definition_key`).
         progress: show a progress bar over a chunk's frames when computing it takes over a second.
         threads: torch threads while computing (None: the caller's setting).
     """
@@ -267,12 +308,14 @@ class PredictorForecast(ForecastSource):
         self._cache: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
         self._chunks: dict[tuple[str, int], FrameTable] = {}
         self._keys: dict[str, tuple[Recording, TableKey | None]] = {}
+        self._shared_keys: dict[str, tuple[Recording, tuple[Any, ...] | None]] = {}
         self._full: dict[str, Replay] = {}
         self._times: dict[str, tuple[Recording, list[float]]] = {}
         self._weights: dict[tuple[float, int, int], np.ndarray] = {}
         self.calls = 0
         self.chunks_loaded = 0
         self.chunks_computed = 0
+        self.chunks_shared = 0
         self.progress = True
         self.threads: int | None = 1
 
@@ -287,6 +330,7 @@ class PredictorForecast(ForecastSource):
         self._cache.clear()
         self._chunks.clear()
         self._keys.clear()
+        self._shared_keys.clear()
 
     @property
     def cache_size(self) -> int:
@@ -305,15 +349,21 @@ class PredictorForecast(ForecastSource):
             full = self._full[recording.name] = Replay(recording)
         return full
 
+    def _history_grid(self, recording: Recording, frames: range, obs_len: int) -> tuple[Replay, np.ndarray, np.ndarray]:
+        """``(full replay, positions (F * obs_len, N, 2), presence (F * obs_len, N))`` at the ``obs_len`` annotation
+        steps up to each frame's time (frame-major, oldest first) for every pedestrian of the recording."""
+        full = self._full_replay(recording)
+        back = recording.step_s * np.arange(obs_len - 1, -1, -1)
+        times = (full.times[frames.start : frames.stop, None] - back[None, :]).reshape(-1)
+        pos, present = full.positions_at(times)
+        return full, pos, present
+
     def _histories(
         self, recording: Recording, frames: range, obs_len: int
     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """Per frame: ``(seen columns, history (obs_len, n, 2) float32, mask (obs_len, n), present now (n,))``
         from the ``obs_len`` annotation steps up to the frame's time (absent entries are 0)."""
-        full = self._full_replay(recording)
-        back = recording.step_s * np.arange(obs_len - 1, -1, -1)
-        times = (full.times[frames.start : frames.stop, None] - back[None, :]).reshape(-1)
-        pos, present = full.positions_at(times)
+        full, pos, present = self._history_grid(recording, frames, obs_len)
         out = []
         for k in range(len(frames)):
             rows = slice(k * obs_len, (k + 1) * obs_len)
@@ -343,14 +393,20 @@ class PredictorForecast(ForecastSource):
         return cols[now], np.ascontiguousarray(pred[now], dtype=np.float32)
 
     def compute_chunks(self, recording: Recording, chunk: int) -> dict[int, FrameTable]:
-        """Compute chunk ``chunk`` of ``recording`` (a window source needs no other): ``{chunk: table}``.
+        """Compute chunk ``chunk`` of ``recording`` (a window source needs no other): ``{chunk: table}``; constant
+        velocity (:func:`definition_key`): every chunk of the recording, ``{c: table}`` for all ``c``.
 
         One predictor call per frame, exactly as :meth:`compute_frame`: batching frames together (padded to the
         widest, or even unpadded) changes forecasts in the last float32 bit with the batch's make-up, which would
         let later frames of the chunk change an earlier frame's forecasts (data after t entering the observation
-        at t) and make cached forecasts differ from online ones.
+        at t) and make cached forecasts differ from online ones. Constant velocity forecasts each pedestrian from
+        its own history alone, so it gets one call per chunk (:meth:`_independent_chunk`), with the same result.
         """
         model, obs_len, pred_len = self._model_sizes(recording)
+        if definition_key(model) is not None:  # each pedestrian forecast alone: every chunk, one call each
+            return {
+                c: self._independent_chunk(model, recording, c, obs_len, pred_len) for c in range(num_chunks(recording))
+            }
         parts = []
         frames = chunk_frames(recording, chunk)
         for cols, history, mask, now in self._progress(self._histories(recording, frames, obs_len), recording, frames):
@@ -361,6 +417,31 @@ class PredictorForecast(ForecastSource):
             pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(cols), pred_len)
             parts.append((cols[now], np.ascontiguousarray(pred[now], dtype=np.float32)))
         return {chunk: FrameTable.from_frames(parts, pred_len)}
+
+    def _independent_chunk(
+        self, model: ForecastModel, recording: Recording, chunk: int, obs_len: int, pred_len: int
+    ) -> FrameTable:
+        """Chunk ``chunk`` in one predictor call for a predictor that forecasts each pedestrian from its own history
+        alone (:func:`definition_key`): the histories of the pedestrians present at every frame of the chunk, side by
+        side. Each pedestrian's row of the batch is what its frame's own call (:meth:`compute_frame`) gives it, so
+        the forecasts are identical, bit for bit (``tests/envs/test_forecast_cache.py``)."""
+        frames = chunk_frames(recording, chunk)
+        full, pos, present = self._history_grid(recording, frames, obs_len)
+        n = present.shape[1]
+        pos = pos.reshape(len(frames), obs_len, n, 2)
+        present = present.reshape(len(frames), obs_len, n)
+        frame_of, rows = np.nonzero(present[:, -1])  # frame by frame, columns ascending within a frame
+        counts = np.bincount(frame_of, minlength=len(frames))
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        columns = np.asarray(full.columns[rows], dtype=np.int64)
+        if len(rows) == 0:
+            return FrameTable(offsets, columns, np.zeros((0, pred_len, 2), np.float32))
+        mask = present[frame_of, :, rows].T  # (obs_len, M)
+        history = pos[frame_of, :, rows].astype(np.float32).transpose(1, 0, 2)  # (obs_len, M, 2)
+        history[~mask] = 0.0
+        self.calls += int(np.count_nonzero(counts))
+        pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(rows), pred_len)
+        return FrameTable(offsets, columns, np.ascontiguousarray(pred, dtype=np.float32))
 
     def _progress(self, items: Any, recording: Recording, frames: range) -> Any:
         """``items`` (one per frame of ``frames``), behind a labelled progress bar shown if they take over a second
@@ -399,6 +480,18 @@ class PredictorForecast(ForecastSource):
         self._keys[recording.name] = (recording, key)
         return key
 
+    def _shared_key(self, recording: Recording) -> tuple[Any, ...] | None:
+        """The process-wide key of ``recording``'s forecasts by a predictor without weights
+        (:func:`definition_key`): ``(definition, recording name, recording fingerprint)``; None for other
+        predictors."""
+        held = self._shared_keys.get(recording.name)
+        if held is not None and held[0] is recording:
+            return held[1]
+        definition = definition_key(self.predictor_for(recording.name))
+        key = None if definition is None else (definition, recording.name, recording_fingerprint(recording))
+        self._shared_keys[recording.name] = (recording, key)
+        return key
+
     def chunk(self, recording: Recording, chunk: int) -> FrameTable:
         """Chunk ``chunk`` of the recording's forecasts: from memory, else from the disk cache, else computed (and
         written to the disk cache; other processes wait for it rather than computing it too)."""
@@ -408,7 +501,15 @@ class PredictorForecast(ForecastSource):
         if hit is not None:
             return hit
         if key is None or self.store is None:
-            tables = self._compute_chunks(recording, chunk)
+            shared = self._shared_key(recording)
+            tables = _SHARED_TABLES.get(shared) if shared is not None else None
+            if tables is not None and chunk in tables:
+                _SHARED_TABLES.move_to_end(shared)
+                self.chunks_shared += len(tables)
+            else:
+                tables = self._compute_chunks(recording, chunk)
+                if shared is not None:
+                    _share(shared, tables)
         else:
             loaded = self.store.load(key, chunk, recording, quiet=True)  # files appear atomically: read unlocked
             if loaded is None:

@@ -18,9 +18,11 @@ import pytest
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data import load_recording
 from crowdnav_mesrnn.data.recordings import Recording
+from crowdnav_mesrnn.models import ConstantVelocity
+from envs import forecasts
 from envs.crowd_nav import CrowdNavEnv
 from envs.forecast_cache import CACHE_ENV_VAR, CacheWarning, num_chunks
-from envs.forecasts import PredictorForecast
+from envs.forecasts import PredictorForecast, clear_shared_tables
 
 REPO = Path(__file__).resolve().parents[2]
 EPISODES = [{"t0_s": t0, "start": (1.0, 1.0), "goal": (7.0, 3.0), "time_limit_s": 6.0} for t0 in (14.0, 40.0)]
@@ -229,10 +231,62 @@ def test_disk_cache_can_be_switched_off(data_dir: Path, tmp_path: Path, tiny_lea
     )
     env.precompute_forecasts()
     assert source(env).chunks_computed == 2 and not files(tmp_path)
-    # predictors without weights to hash (constant velocity) are never written either
+    # predictors without weights to hash (constant velocity) are never written either (kept in the process's memory)
     cv = CrowdNavEnv(predictor="cv", crowd=rec, forecast_cache_dir=str(tmp_path))
     cv.precompute_forecasts()
-    assert source(cv).chunks_computed == 2 and not files(tmp_path)
+    assert source(cv).chunks_computed + source(cv).chunks_shared == 2 and not files(tmp_path)
+
+
+@pytest.mark.parametrize("name", ["biwi_eth", "students003"])  # annotation steps of 0.667 s and 0.4 s
+def test_constant_velocity_tables_equal_the_forecasts_of_each_frame_alone(
+    data_dir: Path, name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    rec = load_recording(name, data_dir=data_dir)
+    clear_shared_tables()
+    batched = PredictorForecast("cv", {}, ConstantVelocity(), 0.4, 12)
+    alone = PredictorForecast("cv", {}, ConstantVelocity(), 0.4, 12, cache=False)  # one call per frame, as before
+    calls = []
+    forecast = ConstantVelocity.forecast
+    monkeypatch.setattr(ConstantVelocity, "forecast", lambda self, h, m: calls.append(h.shape) or forecast(self, h, m))
+    assert batched.table(rec) == len(rec.frames)
+    assert len(calls) == batched.chunks_computed == num_chunks(rec)  # a whole recording, one call per chunk
+    assert batched.calls == np.count_nonzero(rec.present.any(axis=1))
+    entries = 0
+    for i in range(len(rec.frames)):
+        cols_a, fc_a = batched.frame_forecasts(rec, i)
+        cols_b, fc_b = alone.frame_forecasts(rec, i)
+        assert (cols_a.dtype, fc_a.dtype, fc_a.shape) == (cols_b.dtype, fc_b.dtype, fc_b.shape)
+        np.testing.assert_array_equal(cols_a, cols_b)
+        np.testing.assert_array_equal(fc_a, fc_b)  # bit for bit
+        entries += len(cols_a)
+    assert entries == rec.present.sum() > 1000
+    assert len(calls) == num_chunks(rec) + alone.calls
+
+
+def test_constant_velocity_forecasts_are_computed_once_per_process(
+    data_dir: Path, tmp_path: Path, lockstep: Callable, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    clear_shared_tables()
+    rec = prefix(data_dir, "students003", 150)
+    envs = [CrowdNavEnv(predictor="cv", crowd=rec, forecast_cache_dir=str(tmp_path)) for _ in range(3)]
+    envs[0].precompute_forecasts()
+    assert source(envs[0]).chunks_computed == 3 and source(envs[0]).chunks_shared == 0
+    for env in envs[1:]:  # the other environments of the process take the first one's tables
+        env.precompute_forecasts()
+        assert source(env).chunks_computed == 0 and source(env).chunks_shared == 3 and source(env).calls == 0
+    assert source(envs[1]).chunk(rec, 2) is source(envs[0]).chunk(rec, 2)
+    assert lockstep(envs[2], CrowdNavEnv(predictor="cv", crowd=rec, cache_forecasts=False), EPISODES) > 20
+    assert not files(tmp_path)  # never written to disk
+    # another recording under the same name is another table; beyond SHARED_RECORDINGS the oldest is forgotten
+    monkeypatch.setattr(forecasts, "SHARED_RECORDINGS", 1)
+    positions = rec.positions.copy()
+    positions[100] += 0.1
+    moved = CrowdNavEnv(predictor="cv", crowd=replace(rec, positions=positions))
+    moved.precompute_forecasts()
+    assert source(moved).chunks_computed == 3
+    again = CrowdNavEnv(predictor="cv", crowd=rec)
+    again.precompute_forecasts()
+    assert source(again).chunks_computed == 3 and source(again).chunks_shared == 0
 
 
 def test_a_cache_folder_that_cannot_be_written_falls_back_to_memory_with_a_warning(

@@ -1,0 +1,309 @@
+"""Online conformal calibration with delayed feedback: a quantile tracker per horizon step and level.
+
+Split conformal (:mod:`crowdnav_mesrnn.calibration`) fixes each step's threshold ``q_h(c)`` on the validation
+windows of the other scenes; a held-out scene is not exchangeable with them, and coverage misses the level on
+some scenes. Adaptive conformal inference (Gibbs & Candès 2021) instead moves the threshold while the scene is
+watched, from the coverage it has realised; its guarantee on the long-run miss rate holds for any sequence of
+scores, exchangeable or not. This module implements its form on the score scale, the quantile tracker (online
+subgradient descent on the pinball loss; Angelopoulos, Candès & Tibshirani 2023, "Conformal PID control", the
+``P`` term alone). ACI's own update of the miss level ``alpha_t`` reads thresholds off a fixed calibration set and
+gives an infinite region once ``alpha_t < 0``; the tracker's regions stay finite, which a planner needs.
+
+**Delayed feedback.** The windows of a test scene are taken in the scene's time order. A window's forecast time
+``t`` is the annotation index of its last observed frame; the truth of its step ``h`` (1 to 12) is at ``t + h``
+and is revealed only then. The threshold ``q_h`` used for the window at ``t`` has been updated with, and only
+with, the outcomes of step ``h`` of the windows at ``t' ≤ t − h``, each judged against the threshold that was
+used for it. A scene's recordings are one stream, in the split's order, all outcomes of one recording revealed
+before the next begins (:func:`window_clock`).
+
+**The update** of step ``h`` at level ``c`` for a revealed window ``j`` with ``n_j`` scored pedestrians of which
+``m_j`` fell outside their region (score above the threshold used)::
+
+    q_h <- max(0, q_h + γ q_h^0 (m_j − (1 − c) n_j) / (h n̄))
+
+``q_h^0`` is the offline (split-conformal, validation) threshold the tracker starts from, so ``γ`` is free of the
+score's units; ``n̄`` is the mean number of scored pedestrians of the windows revealed so far (known online), so
+``γ`` is the step per typical window in sparse and in dense scenes alike. The division by the delay ``h`` keeps the
+feedback loop of every step equally damped: ``h`` updates are already under way when the first of them shows in
+an outcome, and a fixed step large enough for step 1 makes step 12's threshold oscillate and the regions swell
+(with the division, a stationary stream's thresholds stay near the true quantile at every step:
+``tests/models/test_online_conformal.py``). The pooled miss fraction over the positions tends to ``1 − c`` on any
+stream where ``q_h`` stays bounded (the ``P`` controller's guarantee; a delay changes only the constant).
+
+**Choosing γ** (fixed before any test coverage was measured; the test scene is never read): per split and level,
+on the split's validation windows, leave one validation scene out: start from the split-conformal thresholds of
+the other validation scenes, track over the left-out scene's validation windows (its own stream), and take its
+mean over the 12 steps of ``|coverage_h − c|``; ``γ``'s validation deviation is the worst over the left-out
+scenes. The chosen ``γ`` is the smallest of :data:`GAMMA_GRID` whose deviation is at most
+:data:`GAMMA_TOLERANCE` (the goal's ±0.03: the steadiest tracker that holds the level on the validation scenes),
+or, when none is, the one with the smallest deviation.
+
+No maintained library fits this as it stands (checked): scipy has no conformal prediction; MAPIE's time-series
+regressor implements ACI around a scikit-learn regressor of a scalar target, updated one observation at a time,
+with no per-horizon delay and no external scores. The tracker is a few lines of numpy.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+
+from crowdnav_mesrnn.calibration import (
+    Calibration,
+    Coverage,
+    conformal_thresholds,
+    gaussians_of,
+    level_key,
+    region_scores,
+)
+from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, RECORDINGS
+from crowdnav_mesrnn.data.recordings import Recording, load_split
+from crowdnav_mesrnn.data.windows import Window
+from crowdnav_mesrnn.evaluation import ScoredForecasts
+from crowdnav_mesrnn.models import gaussian
+
+#: Step sizes ``γ`` the validation rule chooses from (module docstring).
+GAMMA_GRID: Final[tuple[float, ...]] = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
+#: Largest validation deviation (worst left-out scene's mean over steps of ``|coverage_h − c|``) a ``γ`` may have to
+#: be chosen: the goal's ±0.03.
+GAMMA_TOLERANCE: Final[float] = 0.03
+#: Methods of ``predictor calibrate``.
+METHODS: Final[tuple[str, ...]] = ("split", "online")
+
+
+def window_clock(windows: Sequence[Window], recordings: Sequence[Recording]) -> np.ndarray:
+    """``(W,)`` int64 forecast times of ``windows`` on one clock: the annotation index of each window's last observed
+    frame in its recording, the recordings (in ``recordings``' order, which ``windows`` must follow) placed one
+    after another with ``PRED_LEN + 1`` annotations between them, so every outcome of a recording is revealed before
+    the next one's first forecast."""
+    offset, start = {}, 0
+    for rec in recordings:
+        offset[rec.name] = (start, rec)
+        start += len(rec.frames) + PRED_LEN + 1
+    out = np.empty(len(windows), dtype=np.int64)
+    for i, w in enumerate(windows):
+        if w.recording not in offset:
+            raise ValueError(f"window {i} is from recording {w.recording!r}, not one of {', '.join(offset)}")
+        base, rec = offset[w.recording]
+        idx = int(np.searchsorted(rec.frames, w.start_frame))
+        if idx >= len(rec.frames) or rec.frames[idx] != w.start_frame:
+            raise ValueError(f"window {i} starts at frame {w.start_frame}, which recording {rec.name!r} does not have")
+        out[i] = base + idx + OBS_LEN - 1
+    if np.any(np.diff(out) < 0):
+        raise ValueError("windows must be in time order (recording by recording, as split_windows gives them)")
+    return out
+
+
+def track_thresholds(
+    scores: np.ndarray, window: np.ndarray, time: np.ndarray, start: np.ndarray, level: float, gamma: float
+) -> np.ndarray:
+    """The quantile tracker with delayed feedback (module docstring) over one stream.
+
+    Args:
+        scores: ``(M, P)`` conformal scores of the scored pedestrians, rows grouped by window (``window`` sorted).
+        window: ``(M,)`` window index of each row, in ``[0, W)``, non-decreasing.
+        time: ``(W,)`` forecast time of each window (annotation steps), non-decreasing; step ``h`` (0-based ``j``
+            in ``[0, P)``, ``h = j + 1`` annotations ahead) of a window at ``t`` is revealed at ``t + h``.
+        start: ``(P,)`` starting thresholds (the offline ones); an infinite one stays infinite.
+        level: coverage level ``c`` in (0, 1).
+        gamma: step size (per typical window, relative to ``start``), > 0.
+
+    Returns:
+        ``(W, P)`` the threshold used for each window and step.
+    """
+    scores = np.asarray(scores, dtype=np.float64)
+    window = np.asarray(window, dtype=np.int64)
+    time = np.asarray(time, dtype=np.int64)
+    start = np.asarray(start, dtype=np.float64)
+    n_windows, n_steps = len(time), scores.shape[1]
+    if not 0.0 < level < 1.0 or not gamma > 0.0:
+        raise ValueError(f"need 0 < level < 1 and gamma > 0, got level {level!r}, gamma {gamma!r}")
+    if start.shape != (n_steps,) or window.shape != (len(scores),):
+        raise ValueError(f"start {start.shape} and window {window.shape} must match scores {scores.shape}")
+    if np.any(np.diff(window) < 0) or np.any(np.diff(time) < 0):
+        raise ValueError("rows must be grouped by window and windows in time order")
+    if len(window) and (window[0] < 0 or window[-1] >= n_windows):
+        raise ValueError(f"window indices must lie in [0, {n_windows})")
+    bounds = np.searchsorted(window, np.arange(n_windows + 1))
+    counts = np.diff(bounds)
+    miss_rate = 1.0 - level
+    out = np.empty((n_windows, n_steps))
+    for j in range(n_steps):
+        q, q0, delay = start[j], start[j], j + 1
+        if not np.isfinite(q0):
+            out[:, j] = q0
+            continue
+        nxt, revealed_rows, revealed_windows = 0, 0, 0
+        for k in range(n_windows):
+            while nxt < k and time[nxt] + delay <= time[k]:  # outcomes revealed by time[k], oldest first
+                n = counts[nxt]
+                if n:
+                    revealed_rows += n
+                    revealed_windows += 1
+                    missed = np.count_nonzero(scores[bounds[nxt] : bounds[nxt + 1], j] > out[nxt, j])
+                    mean_n = revealed_rows / revealed_windows
+                    q = max(0.0, q + gamma * q0 * (missed - miss_rate * n) / (delay * mean_n))
+                nxt += 1
+            out[k, j] = q
+    return out
+
+
+@dataclass(frozen=True)
+class Stream:
+    """The forecasts of one stream (a scene's windows in time order) and their conformal scores.
+
+    Attributes:
+        scored: the forecasts (:func:`crowdnav_mesrnn.evaluation.collect_forecasts` order).
+        scores: ``(M, P)`` conformal scores.
+        time: ``(W,)`` forecast times (:func:`window_clock`).
+    """
+
+    scored: ScoredForecasts
+    scores: np.ndarray
+    time: np.ndarray
+
+    def thresholds(self, start: np.ndarray, level: float, gamma: float) -> np.ndarray:
+        """``(W, P)`` thresholds the tracker uses (:func:`track_thresholds`)."""
+        return track_thresholds(self.scores, self.scored.window, self.time, start, level, gamma)
+
+    def covered(self, thresholds: np.ndarray) -> np.ndarray:
+        """``(M, P)`` bool: each true position inside its window's region."""
+        return self.scores <= thresholds[self.scored.window]
+
+    def subset(self, rows: np.ndarray) -> Stream:
+        """The stream of the windows holding ``rows`` (a boolean ``(M,)`` mask that keeps whole windows)."""
+        keep = np.unique(self.scored.window[rows])
+        remap = np.full(self.scored.num_windows, -1, np.int64)
+        remap[keep] = np.arange(len(keep))
+        s = self.scored
+        scored = ScoredForecasts(
+            s.error[rows],
+            s.speed[rows],
+            remap[s.window[rows]],
+            len(keep),
+            None if s.sigma is None else s.sigma[rows],
+            None if s.rho is None else s.rho[rows],
+        )
+        return Stream(scored, self.scores[rows], self.time[keep])
+
+
+def scene_streams(
+    windows: Sequence[Window], scored: ScoredForecasts, scores: np.ndarray, recordings: Sequence[Recording]
+) -> dict[str, Stream]:
+    """Scene label (``RECORDINGS``) -> the stream of that scene's windows (its recordings in ``recordings`` order)."""
+    whole = Stream(scored, scores, window_clock(windows, recordings))
+    base = {rec.name: rec.base_name for rec in recordings}
+    scene_of_window = np.array([RECORDINGS[base[w.recording]] for w in windows])
+    row_scene = scene_of_window[scored.window]
+    return {scene: whole.subset(row_scene == scene) for scene in dict.fromkeys(row_scene.tolist())}
+
+
+def validation_deviation(streams: dict[str, Stream], level: float, gamma: float) -> float:
+    """The worst over left-out validation scenes of the mean over steps of ``|coverage_h − level|``, each scene
+    tracked from the split-conformal thresholds of the others (module docstring)."""
+    key = level_key(level)
+    worst = 0.0
+    for scene, stream in streams.items():
+        others = np.concatenate([s.scores for name, s in streams.items() if name != scene])
+        start = np.asarray(conformal_thresholds(others, (level,))[key])
+        per_step = stream.covered(stream.thresholds(start, level, gamma)).mean(0)
+        worst = max(worst, float(np.mean(np.abs(per_step - level))))
+    return worst
+
+
+def choose_gamma(
+    streams: dict[str, Stream], level: float, grid: Sequence[float] = GAMMA_GRID, tolerance: float = GAMMA_TOLERANCE
+) -> tuple[float, list[float]]:
+    """The rule of the module docstring: ``(γ, the validation deviation of every γ of grid)``."""
+    if len(streams) < 2:
+        raise ValueError(f"choosing gamma needs at least two validation scenes, got {list(streams)}")
+    deviations = [validation_deviation(streams, level, g) for g in grid]
+    within = [g for g, d in zip(grid, deviations, strict=True) if d <= tolerance]
+    return (min(within) if within else grid[int(np.argmin(deviations))]), deviations
+
+
+@dataclass(frozen=True)
+class OnlineResult:
+    """The tracker's regions on one test stream.
+
+    Attributes:
+        coverage: the online regions' coverage (the same shape as split conformal's, for the same rows).
+        gamma: level key -> the chosen step size.
+        gamma_deviation: level key -> the validation deviation of each ``γ`` of :data:`GAMMA_GRID`.
+        thresholds_end: level key -> ``(P,)`` the thresholds after the last window.
+        second_half: level key -> pooled coverage over the later half of the windows (time order).
+        radius_diff: level key -> per-window sums over positions and steps of the online minus the split-conformal
+            equivalent radius, metres (``(W,)``, for a paired interval).
+    """
+
+    coverage: Coverage
+    gamma: dict[str, float]
+    gamma_deviation: dict[str, list[float]]
+    thresholds_end: dict[str, list[float]]
+    second_half: dict[str, float]
+    radius_diff: dict[str, np.ndarray]
+
+
+def online_coverage(
+    calibration: Calibration,
+    val_streams: dict[str, Stream],
+    test: Stream,
+    split_coverage: Coverage,
+    levels: Sequence[float],
+) -> OnlineResult:
+    """Choose ``γ`` on the validation streams, track over the test stream from ``calibration``'s (split-conformal)
+    thresholds, and measure the coverage and the size of the regions. ``split_coverage`` is split conformal's
+    on the same test rows; its raw coverage and NLL (the model's own regions, which tracking does not change)
+    are carried over."""
+    scored = test.scored
+    keep = scored.counts > 0
+    late = np.arange(int(keep.sum())) >= int(keep.sum()) // 2  # the later half of the (time-ordered) windows
+    unit = unit_radius(scored, calibration)
+    covered, radius, gammas, devs, ends, half, diff = {}, {}, {}, {}, {}, {}, {}
+    for c in levels:
+        key = level_key(c)
+        gammas[key], devs[key] = choose_gamma(val_streams, c)
+        start = calibration.threshold(c)
+        thr = test.thresholds(start, c, gammas[key])
+        ends[key] = thr[-1].tolist()
+        inside = test.covered(thr)
+        covered[key] = scored.window_sums(inside)[keep]
+        size = thr[scored.window] * unit
+        radius[key] = float(np.mean(size))
+        diff[key] = scored.window_sums(size - start[None, :] * unit).sum(1)[keep]
+        half[key] = float(covered[key][late].sum() / (split_coverage.counts[late].sum() * inside.shape[1]))
+    coverage = Coverage(covered, split_coverage.raw, split_coverage.counts, radius, split_coverage.nll_m)
+    return OnlineResult(coverage, gammas, devs, ends, half, diff)
+
+
+def unit_radius(scored: ScoredForecasts, calibration: Calibration) -> np.ndarray:
+    """``(M, P)`` equivalent radius in metres (the disc of equal area) of the region of threshold 1: 1 m for the
+    ``radius`` score, the Gaussian's (the forecast's own or the error model's) for ``scaled``."""
+    if calibration.score == "radius":
+        return np.ones(scored.error.shape[:2])
+    sigma, rho = gaussians_of(scored, calibration.error_model)
+    return gaussian.equivalent_radius(sigma, rho)
+
+
+def online_for_split(
+    calibration: Calibration,
+    val_windows: Sequence[Window],
+    val: ScoredForecasts,
+    val_scores: np.ndarray,
+    test_windows: Sequence[Window],
+    test: ScoredForecasts,
+    split_coverage: Coverage,
+    levels: Sequence[float],
+    data_dir: str | os.PathLike[str] | None = None,
+) -> OnlineResult:
+    """:func:`online_coverage` on ``calibration.split``: its validation scenes choose ``γ``, its test scene (one
+    stream, its recordings in order) is tracked."""
+    split = calibration.split
+    val_streams = scene_streams(val_windows, val, val_scores, load_split(split, "val", data_dir))
+    scores = region_scores(test, calibration.score, calibration.error_model)
+    stream = Stream(test, scores, window_clock(test_windows, load_split(split, "test", data_dir)))
+    return online_coverage(calibration, val_streams, stream, split_coverage, levels)

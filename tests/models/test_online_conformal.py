@@ -1,0 +1,182 @@
+"""Online conformal calibration (``predictor calibrate --method online``): delayed feedback, convergence under a
+shifted error scale where split conformal fails, the window clock, the step-size rule, and the default output."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crowdnav_mesrnn.calibration import conformal_quantile
+from crowdnav_mesrnn.cli import main
+from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
+from crowdnav_mesrnn.data.recordings import Recording
+from crowdnav_mesrnn.data.windows import Window
+from crowdnav_mesrnn.evaluation import ScoredForecasts
+from crowdnav_mesrnn.online_conformal import (
+    GAMMA_GRID,
+    Stream,
+    choose_gamma,
+    track_thresholds,
+    window_clock,
+)
+
+REPO = Path(__file__).resolve().parents[2]
+#: The 0.9 quantile of a Rayleigh(1) score (the Mahalanobis radius of a standard bivariate Gaussian).
+RAYLEIGH_Q90 = float(np.sqrt(-2 * np.log(0.1)))
+
+
+def rayleigh_stream(windows: int, per_window: int, steps: int, scale: float, seed: int) -> tuple[np.ndarray, ...]:
+    """``(scores (M, P), window (M,), time (W,))``: Rayleigh(scale) scores, one window per annotation step."""
+    rng = np.random.default_rng(seed)
+    scores = scale * np.sqrt(-2 * np.log(rng.uniform(size=(windows * per_window, steps))))
+    return scores, np.repeat(np.arange(windows), per_window), np.arange(windows)
+
+
+def test_a_threshold_never_depends_on_an_outcome_revealed_after_it_is_used() -> None:
+    """Change the outcome of one window at t_k: the threshold of step h may change only from t_k + h on, and does
+    change there. An update without delay (or off by one) changes it earlier and fails."""
+    scores, window, time = rayleigh_stream(80, 2, 12, 1.0, seed=0)
+    time = time * 2  # gaps between forecast times: the delay is in annotations, not in windows
+    start = np.full(12, RAYLEIGH_Q90)
+    base = track_thresholds(scores, window, time, start, 0.9, 0.5)
+    for k in (5, 30, 61):
+        changed = scores.copy()
+        changed[window == k] = 100.0  # both pedestrians of window k miss every step
+        thr = track_thresholds(changed, window, time, start, 0.9, 0.5)
+        for j in range(12):
+            revealed = time[k] + j + 1
+            before = time < revealed
+            np.testing.assert_array_equal(thr[before, j], base[before, j])
+            first_after = np.flatnonzero(~before)
+            if len(first_after):
+                assert thr[first_after[0], j] > base[first_after[0], j]  # the miss raised it as soon as revealed
+
+
+def test_the_first_windows_use_the_starting_threshold_until_an_outcome_is_revealed() -> None:
+    scores, window, time = rayleigh_stream(30, 3, 12, 2.0, seed=1)
+    start = np.linspace(1.0, 2.0, 12)
+    thr = track_thresholds(scores, window, time, start, 0.9, 0.2)
+    for j in range(12):
+        # step h = j + 1 of the window at t = 0 is revealed at t = h: the windows before it have nothing revealed
+        np.testing.assert_array_equal(thr[: j + 1, j], start[j])
+        assert thr[j + 1, j] != start[j]
+
+
+def test_on_a_shifted_error_scale_online_coverage_converges_and_split_conformal_does_not() -> None:
+    """Calibrated on scale-1 scores, tested on scale-1.6: split conformal's coverage is far below 0.9 at every
+    step; the tracker's reaches 0.9 at every step, with thresholds near the shifted scores' true quantile (it does
+    not cover by making the regions huge)."""
+    cal, _, _ = rayleigh_stream(2000, 1, 3, 1.0, seed=2)
+    start = np.array([conformal_quantile(cal[:, j], 0.9) for j in range(3)])
+    scores, window, time = rayleigh_stream(4000, 5, 3, 1.6, seed=3)
+    split_cov = (scores <= start[None, :]).mean(0)
+    assert np.all(split_cov < 0.7)
+    thr = track_thresholds(scores, window, time, start, 0.9, 0.2)
+    online_cov = (scores <= thr[window]).mean(0)
+    np.testing.assert_allclose(online_cov, 0.9, atol=0.01)
+    late = thr[len(thr) // 2 :]
+    np.testing.assert_allclose(late.mean(0), 1.6 * RAYLEIGH_Q90, rtol=0.05)
+
+
+def test_a_stationary_stream_keeps_every_step_near_the_true_quantile() -> None:
+    """The division of the step by the delay: even a large step leaves step 12 steady (a fixed step oscillates)."""
+    scores, window, time = rayleigh_stream(1500, 3, 12, 1.0, seed=4)
+    thr = track_thresholds(scores, window, time, np.full(12, RAYLEIGH_Q90), 0.9, 1.0)
+    np.testing.assert_allclose(thr.mean(0), RAYLEIGH_Q90, rtol=0.08)
+    np.testing.assert_allclose((scores <= thr[window]).mean(0), 0.9, atol=0.015)
+
+
+def test_tracker_rejects_out_of_order_input() -> None:
+    scores, window, time = rayleigh_stream(5, 1, 2, 1.0, seed=0)
+    with pytest.raises(ValueError, match="time order"):
+        track_thresholds(scores, window, time[::-1], np.ones(2), 0.9, 0.1)
+    with pytest.raises(ValueError, match="gamma"):
+        track_thresholds(scores, window, time, np.ones(2), 0.9, 0.0)
+
+
+def test_window_clock_follows_recordings_and_separates_them() -> None:
+    def rec(name: str, frames: list[int]) -> Recording:
+        n = len(frames)
+        zeros, ones = np.zeros((n, 1, 2)), np.ones((n, 1), bool)
+        return Recording(name, Path(name), 0.4, np.asarray(frames), np.zeros(1, np.int64), zeros, ones)
+
+    a, b = rec("crowds_zara01", [0, 10, 20, 40, 50]), rec("students001", [100, 110])
+
+    def win(name: str, start: int) -> Window:
+        return Window(
+            np.zeros((20, 1, 2), np.float32),
+            np.ones((20, 1), bool),
+            np.ones(1, bool),
+            name,
+            start,
+            np.zeros(1, np.int64),
+        )
+
+    clock = window_clock([win("crowds_zara01", 0), win("crowds_zara01", 40), win("students001", 110)], [a, b])
+    assert clock.tolist() == [OBS_LEN - 1, 3 + OBS_LEN - 1, 5 + PRED_LEN + 1 + 1 + OBS_LEN - 1]
+    # every outcome of the first recording (last forecast time + PRED_LEN) is revealed before the second's first
+    assert clock[2] > clock[1] + PRED_LEN
+    with pytest.raises(ValueError, match="does not have"):
+        window_clock([win("crowds_zara01", 30)], [a, b])
+    with pytest.raises(ValueError, match="time order"):
+        window_clock([win("students001", 100), win("crowds_zara01", 0)], [a, b])
+
+
+def stream_of(scores: np.ndarray, window: np.ndarray, time: np.ndarray) -> Stream:
+    m, p = scores.shape
+    scored = ScoredForecasts(np.zeros((m, p, 2)), np.zeros(m), window, len(time))
+    return Stream(scored, scores, time)
+
+
+def test_gamma_rule_picks_the_smallest_step_within_tolerance() -> None:
+    """Exchangeable validation scenes need no adaptation: the smallest step of the grid. One scene with errors
+    twice as large needs a fast tracker over a short stream: a larger step."""
+    same = {f"s{i}": stream_of(*rayleigh_stream(400, 3, 2, 1.0, seed=10 + i)) for i in range(3)}
+    gamma, devs = choose_gamma(same, 0.9)
+    assert gamma == GAMMA_GRID[0] and len(devs) == len(GAMMA_GRID)
+    shifted = dict(same, s2=stream_of(*rayleigh_stream(150, 3, 2, 2.0, seed=20)))
+    gamma_shifted, devs_shifted = choose_gamma(shifted, 0.9)
+    assert gamma_shifted > GAMMA_GRID[1]
+    assert devs_shifted[0] > 0.1  # split conformal's start is far off on the shifted scene
+    with pytest.raises(ValueError, match="two validation scenes"):
+        choose_gamma({"s0": same["s0"]}, 0.9)
+
+
+def test_default_method_output_is_unchanged(data_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The default (split conformal) row equals the committed result of the command before the online method."""
+    assert main(["predictor", "calibrate", "--model", "cv", "--split", "zara1", "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)["splits"]["zara1"]
+    committed = json.loads((REPO / "docs/results/calibration_cv_scaled.json").read_text())["splits"]["zara1"]
+    assert row == committed
+
+
+def test_online_cli_reports_coverage_sizes_and_split_conformal_beside(
+    data_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["predictor", "calibrate", "--model", "cv", "--split", "zara1", "--json", "--resamples", "200"]
+    assert main([*args, "--method", "online"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["method"] == "online"
+    row = res["splits"]["zara1"]
+    assert main(args) == 0
+    split_row = json.loads(capsys.readouterr().out)["splits"]["zara1"]
+    # split conformal's figures beside it are the default method's own
+    assert row["split_conformal"]["coverage"] == split_row["coverage"]
+    assert row["split_conformal"]["mean_radius_m"] == split_row["mean_radius_m"]
+    assert row["thresholds"] == split_row["thresholds"]  # the tracker starts from them
+    assert row["raw_coverage"] == split_row["raw_coverage"]
+    for key in ("0.5", "0.9", "0.95"):
+        assert row["gamma"][key] in GAMMA_GRID
+        assert len(row["gamma_validation_deviation"][key]) == len(GAMMA_GRID)
+        steps = row["coverage_per_step"][key]
+        assert np.mean(steps) == pytest.approx(row["coverage"][key])
+        assert row["coverage_min_step"][key] == min(steps)
+        lo, hi = row["mean_radius_diff_ci"][key]
+        assert lo <= row["mean_radius_diff_m"][key] <= hi
+        assert row["mean_radius_diff_m"][key] == pytest.approx(
+            row["mean_radius_m"][key] - split_row["mean_radius_m"][key]
+        )
+        assert row["thresholds_end"][key] != row["thresholds"][key]
