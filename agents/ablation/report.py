@@ -10,6 +10,14 @@ from typing import Any
 from agents.ablation.cells import _hms
 from agents.ablation.config import AblationConfig
 
+#: Small counts as running text writes them.
+_NUMBER_WORDS = ("zero", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")
+
+
+def _count(n: int) -> str:
+    """``n`` in words up to ten (as running text writes it), in digits beyond."""
+    return _NUMBER_WORDS[n] if 0 <= n < len(_NUMBER_WORDS) else str(n)
+
 
 def _pct(rate: Any, ci: Any) -> str:
     if rate is None:
@@ -191,8 +199,9 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
             "count the variance between training seeds. Here each training seed's success rate over the same paired "
             "episodes is one observation: Welch's t-test and 95 % t-interval on the difference of mean per-seed "
             "rates (a policy without seeds is one fixed rate, which makes it a one-sample test), Holm-corrected over "
-            f"the {fam.get('success_seed_level', 0)} seed-level tests. With three seeds per arm these intervals are "
-            "wide: a difference can be clear episode by episode and still undetermined across training seeds.",
+            f"the {fam.get('success_seed_level', 0)} seed-level tests. With {_count(len(summary['seeds']))} seeds "
+            "per arm these intervals are wide: a difference can be clear episode by episode and still undetermined "
+            "across training seeds.",
             "",
             "| split | a | b | per-seed rates a | per-seed rates b | diff a-b [95 % CI] | df | p | p Holm |",
             "|---|---|---|---|---|---|---|---|---|",

@@ -684,6 +684,9 @@ def test_summary_pairs_ppo_seeds_with_the_planner_and_counts_missing(tmp_path: P
         ("ppo", "mesrnn", "planner", "mesrnn"),
     }
     assert summary["multiple_comparisons"]["family_sizes"]["success"] == 2
+    # the seed-level note counts this grid's seeds (it said "three" whatever the grid: learned.yaml has five)
+    md = (cfg.out_path() / "summary.md").read_text()
+    assert "With two seeds per arm these intervals are wide" in md and "three seeds" not in md
 
 
 def test_success_is_reported_as_a_fraction_of_the_privileged_ceiling(tmp_path: Path, fakes: Fakes) -> None:
