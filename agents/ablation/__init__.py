@@ -8,8 +8,9 @@ The grid
     A YAML config (see ``configs/ablation/planning_aid.yaml``) names forecast arms (``none``, ``cv``,
     ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, ``noisy_oracle`` expanded into one arm per target
     ADE, and uncertainty arms ``cv_unc``, ``mesrnn_unc``, ``srnn_unc``, ``vlstm_unc``: the source's forecasts plus
-    their calibrated regions, which the ``planner``/``search`` policies keep clear of), policies (learned ``ppo``/``sac`` with an agent config and a training budget; non-learned
-    ``planner``/``straight``), training seeds, held-out splits and the fixed evaluation episode list.
+    their calibrated regions, which the ``planner``/``search`` policies keep clear of), policies (learned
+    ``ppo``/``sac`` with an agent config and a training budget; non-learned ``planner``/``search``/``straight``/
+    ``privileged``), training seeds, held-out splits and the fixed evaluation episode list.
     It expands into *cells*:
 
     - ``train/<split>/<policy>/<arm>/seed<k>``: one training run (``agents.train.train``) of a learned
