@@ -160,7 +160,12 @@ def definition_key(model: Any) -> tuple[Any, ...] | None:
 
 def _share(key: tuple[Any, ...], tables: dict[int, FrameTable]) -> None:
     """Keep ``tables`` for the process under ``key`` (the least recently used recording beyond
-    :data:`SHARED_RECORDINGS` is forgotten)."""
+    :data:`SHARED_RECORDINGS` is forgotten). Their arrays are made read-only: every source of the process hands out
+    views of them (:meth:`PredictorForecast.frame_forecasts`), so a caller writing into one would change the
+    forecasts of every other environment."""
+    for table in tables.values():
+        for array in (table.offsets, table.columns, table.forecasts):
+            array.setflags(write=False)
     _SHARED_TABLES[key] = {**_SHARED_TABLES.get(key, {}), **tables}
     _SHARED_TABLES.move_to_end(key)
     while len(_SHARED_TABLES) > SHARED_RECORDINGS:

@@ -289,6 +289,26 @@ def test_constant_velocity_forecasts_are_computed_once_per_process(
     assert source(again).chunks_computed == 3 and source(again).chunks_shared == 0
 
 
+def test_a_shared_constant_velocity_table_cannot_be_written_through_one_source(data_dir: Path) -> None:
+    """The tables are shared by every source of the process: a caller writing into the arrays one source hands out
+    (``frame_forecasts`` and ``chunk`` return views) would change every other environment's forecasts."""
+    clear_shared_tables()
+    rec = prefix(data_dir, "students003", 150)
+    first = PredictorForecast("cv", {}, ConstantVelocity(), 0.4, 12)
+    other = PredictorForecast("cv", {}, ConstantVelocity(), 0.4, 12)
+    i = int(np.flatnonzero(rec.present.any(axis=1))[0])
+    cols, fc = first.frame_forecasts(rec, i)
+    kept = other.frame_forecasts(rec, i)[1].copy()
+    assert len(cols) and other.chunks_shared
+    for array in (fc, cols, first.chunk(rec, 0).offsets):
+        with pytest.raises(ValueError, match="read-only"):
+            array[...] = 0
+    np.testing.assert_array_equal(other.frame_forecasts(rec, i)[1], kept)
+    # what a source computes for itself alone (no sharing) stays writable, as before
+    alone = PredictorForecast("cv", {}, ConstantVelocity(), 0.4, 12, cache=False).frame_forecasts(rec, i)[1]
+    alone[...] = 0
+
+
 def test_a_cache_folder_that_cannot_be_written_falls_back_to_memory_with_a_warning(
     data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable, lockstep: Callable
 ) -> None:
