@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any, Final
 import numpy as np
 from scipy.optimize import nnls
 
-from crowdnav_mesrnn.data.constants import check_split
+from crowdnav_mesrnn.data.constants import PRED_LEN, check_split
 from crowdnav_mesrnn.data.windows import Window, split_windows
 from crowdnav_mesrnn.evaluation import ScoredForecasts, collect_forecasts, cv_predict_batch, resolve_splits
 from crowdnav_mesrnn.models import gaussian
@@ -409,6 +409,7 @@ def calibrate_model(
     block_len: int = DEFAULT_BLOCK_LEN,
     n_resamples: int = DEFAULT_RESAMPLES,
     method: str = "split",
+    reveal: str | None = None,
 ) -> dict[str, Any]:
     """Calibrate on each split's validation windows, measure coverage on its test windows, and average.
 
@@ -426,10 +427,14 @@ def calibrate_model(
     ``gamma_validation_deviation`` (the step size chosen on validation and every candidate's deviation),
     ``coverage_min_step``, ``coverage_second_half``, ``thresholds_end``, ``mean_radius_diff_m`` with
     ``mean_radius_diff_ci`` (online minus split conformal, paired by window) and ``split_conformal`` (its
-    coverage, per-step coverage and mean radius on the same windows).
+    coverage, per-step coverage and mean radius on the same windows). ``reveal`` (online only; default
+    ``"window"``, the strictly causal rule) is when an outcome updates the tracker
+    (:data:`crowdnav_mesrnn.online_conformal.REVEAL_RULES`); the result records it.
     """
     if method not in ("split", "online"):
         raise ValueError(f"unknown calibration method {method!r}; valid: split, online")
+    if method == "split" and reveal is not None:
+        raise ValueError(f"reveal={reveal!r} applies to method 'online' only, not {method!r}")
     splits = resolve_splits(splits)
     levels = tuple(float(c) for c in levels)
     for c in levels:
@@ -451,9 +456,19 @@ def calibrate_model(
         "splits": {},
     }
     if method == "online":
-        from crowdnav_mesrnn.online_conformal import GAMMA_GRID, GAMMA_TOLERANCE, online_for_split
+        from crowdnav_mesrnn.online_conformal import GAMMA_GRID, GAMMA_TOLERANCE, REVEAL_RULES, online_for_split
 
-        out = {"method": "online", **out, "gamma_grid": list(GAMMA_GRID), "gamma_tolerance": GAMMA_TOLERANCE}
+        reveal = REVEAL_RULES[0] if reveal is None else reveal
+        if reveal not in REVEAL_RULES:
+            raise ValueError(f"unknown reveal rule {reveal!r}; valid: {', '.join(REVEAL_RULES)}")
+        out["calibration"] += f"; outcomes revealed {_REVEAL_TEXT[reveal]}"
+        out = {
+            "method": "online",
+            "reveal": reveal,
+            **out,
+            "gamma_grid": list(GAMMA_GRID),
+            "gamma_tolerance": GAMMA_TOLERANCE,
+        }
     per_split: dict[str, Coverage] = {}
     for split in splits:
         predictor = predictor_for(split) if predictor_for is not None else None
@@ -466,7 +481,9 @@ def calibrate_model(
         cov = measure_coverage(cal, test, levels)
         online = None
         if method == "online":
-            online = online_for_split(cal, val_windows, val, val_scores, test_windows, test, cov, levels, data_dir)
+            online = online_for_split(
+                cal, val_windows, val, val_scores, test_windows, test, cov, levels, data_dir, reveal
+            )
             split_cov, cov = cov, online.coverage
         per_split[split] = cov
         row = coverage_fields(cov, levels, block_len, n_resamples)
@@ -513,6 +530,13 @@ def calibrate_model(
             }
         out["splits"]["average"] = avg
     return out
+
+
+#: How each reveal rule of the online method reads in the result's ``calibration`` text.
+_REVEAL_TEXT: Final[dict[str, str]] = {
+    "window": f"per window, once its scored pedestrians are known (all steps at t + {PRED_LEN}; strictly causal)",
+    "step": f"per step (step h at t + h, counting only pedestrians still present at t + {PRED_LEN}: optimistic)",
+}
 
 
 def _online_fields(

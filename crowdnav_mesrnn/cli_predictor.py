@@ -133,6 +133,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         block_len=args.block_len,
         n_resamples=args.resamples,
         method=args.method,
+        reveal=args.reveal,
     )
     return _emit(args, result, format_calibration)
 
@@ -337,6 +338,14 @@ def add_parser(sub: Any) -> None:
         help="split: split conformal thresholds from the validation windows (default); online: from them, a quantile "
         "tracker per step and level over the test scene in time order, fed each outcome once revealed "
         "(crowdnav_mesrnn.online_conformal)",
+    )
+    c.add_argument(
+        "--reveal",
+        default=None,
+        choices=("window", "step"),
+        help="online only: when an outcome updates the tracker. window (default): every step of a window once the "
+        "whole window is observed (t + 12), when its scored pedestrians (present in all 20 frames) are known, "
+        "strictly causal; step: step h at t + h, counting only pedestrians still present at t + 12 (optimistic)",
     )
     c.add_argument("--head", default="point", choices=("point", "gaussian"), help="which shipped weights")
     c.add_argument("--checkpoint", default=None, help="checkpoint path instead; may contain {split} and {model}")

@@ -9,23 +9,34 @@ subgradient descent on the pinball loss; Angelopoulos, Candès & Tibshirani 2023
 ``P`` term alone). ACI's own update of the miss level ``alpha_t`` reads thresholds off a fixed calibration set and
 gives an infinite region once ``alpha_t < 0``; the tracker's regions stay finite, which a planner needs.
 
-**Delayed feedback.** The windows of a test scene are taken in the scene's time order. A window's forecast time
-``t`` is the annotation index of its last observed frame; the truth of its step ``h`` (1 to 12) is at ``t + h``
-and is revealed only then. The threshold ``q_h`` used for the window at ``t`` has been updated with, and only
-with, the outcomes of step ``h`` of the windows at ``t' ≤ t − h``, each judged against the threshold that was
-used for it. A scene's recordings are one stream, in the split's order, all outcomes of one recording revealed
-before the next begins (:func:`window_clock`).
+**Delayed feedback, and when an outcome counts as revealed.** The windows of a test scene are taken in the scene's
+time order. A window's forecast time ``t`` is the annotation index of its last observed frame; the truth of its step
+``h`` (1 to ``PRED_LEN`` = 12) is at ``t + h``. Which pedestrians a window scores is known later still: a window
+scores the pedestrians present in all of its frames (:func:`crowdnav_mesrnn.data.windows.windows_from_recording`),
+through ``t + PRED_LEN``, so "pedestrian ``i``'s step ``h`` counts in window ``t``" is settled only at
+``t + PRED_LEN``. Two reveal rules (:data:`REVEAL_RULES`):
+
+- ``"window"`` (the default; what a robot could run): every step's outcome of the window at ``t`` is used from
+  ``t + PRED_LEN`` on, once the window's scored set is determined. The threshold used at ``t`` depends only on
+  windows at ``t' ≤ t − PRED_LEN``, whose positions and membership are both observed by ``t``.
+- ``"step"`` (optimistic): step ``h``'s outcome is used from ``t + h`` on. No position is used before it is
+  observed, but the update at ``t + h`` already counts only the pedestrians that will still be present at
+  ``t + PRED_LEN``, information from the future for ``h < PRED_LEN``.
+
+Either way each outcome is judged against the threshold that was used for it. A scene's recordings are one stream,
+in the split's order, all outcomes of one recording revealed before the next begins (:func:`window_clock`).
 
 **The update** of step ``h`` at level ``c`` for a revealed window ``j`` with ``n_j`` scored pedestrians of which
 ``m_j`` fell outside their region (score above the threshold used)::
 
-    q_h <- max(0, q_h + γ q_h^0 (m_j − (1 − c) n_j) / (h n̄))
+    q_h <- max(0, q_h + γ q_h^0 (m_j − (1 − c) n_j) / (d n̄))
 
 ``q_h^0`` is the offline (split-conformal, validation) threshold the tracker starts from, so ``γ`` is free of the
 score's units; ``n̄`` is the mean number of scored pedestrians of the windows revealed so far (known online), so
-``γ`` is the step per typical window in sparse and in dense scenes alike. The division by the delay ``h`` keeps the
-feedback loop of every step equally damped: ``h`` updates are already under way when the first of them shows in
-an outcome, and a fixed step large enough for step 1 makes step 12's threshold oscillate and the regions swell
+``γ`` is the step per typical window in sparse and in dense scenes alike. ``d`` is the delay of the reveal rule:
+``h`` for ``"step"``, ``PRED_LEN`` for every step under ``"window"``. The division by the delay keeps the feedback
+loop of every step equally damped: ``d`` updates are already under way when the first of them shows in an
+outcome, and a fixed step large enough for step 1 makes step 12's threshold oscillate and the regions swell
 (with the division, a stationary stream's thresholds stay near the true quantile at every step:
 ``tests/models/test_online_conformal.py``). The pooled miss fraction over the positions tends to ``1 − c`` on any
 stream where ``q_h`` stays bounded (the ``P`` controller's guarantee; a delay changes only the constant).
@@ -34,9 +45,9 @@ stream where ``q_h`` stays bounded (the ``P`` controller's guarantee; a delay ch
 on the split's validation windows, leave one validation scene out: start from the split-conformal thresholds of
 the other validation scenes, track over the left-out scene's validation windows (its own stream), and take its
 mean over the 12 steps of ``|coverage_h − c|``; ``γ``'s validation deviation is the worst over the left-out
-scenes. The chosen ``γ`` is the smallest of :data:`GAMMA_GRID` whose deviation is at most
-:data:`GAMMA_TOLERANCE` (the goal's ±0.03: the steadiest tracker that holds the level on the validation scenes),
-or, when none is, the one with the smallest deviation.
+scenes, tracked with the same reveal rule as the test scene. The chosen ``γ`` is the smallest of
+:data:`GAMMA_GRID` whose deviation is at most :data:`GAMMA_TOLERANCE` (the goal's ±0.03: the steadiest tracker that
+holds the level on the validation scenes), or, when none is, the one with the smallest deviation.
 
 No maintained library fits this as it stands (checked): scipy has no conformal prediction; MAPIE's time-series
 regressor implements ACI around a scikit-learn regressor of a scalar target, updated one observation at a time,
@@ -73,6 +84,8 @@ GAMMA_GRID: Final[tuple[float, ...]] = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
 GAMMA_TOLERANCE: Final[float] = 0.03
 #: Methods of ``predictor calibrate``.
 METHODS: Final[tuple[str, ...]] = ("split", "online")
+#: When an outcome updates the tracker (module docstring); the first is the default.
+REVEAL_RULES: Final[tuple[str, ...]] = ("window", "step")
 
 
 def window_clock(windows: Sequence[Window], recordings: Sequence[Recording]) -> np.ndarray:
@@ -99,7 +112,13 @@ def window_clock(windows: Sequence[Window], recordings: Sequence[Recording]) -> 
 
 
 def track_thresholds(
-    scores: np.ndarray, window: np.ndarray, time: np.ndarray, start: np.ndarray, level: float, gamma: float
+    scores: np.ndarray,
+    window: np.ndarray,
+    time: np.ndarray,
+    start: np.ndarray,
+    level: float,
+    gamma: float,
+    reveal: str = REVEAL_RULES[0],
 ) -> np.ndarray:
     """The quantile tracker with delayed feedback (module docstring) over one stream.
 
@@ -107,10 +126,12 @@ def track_thresholds(
         scores: ``(M, P)`` conformal scores of the scored pedestrians, rows grouped by window (``window`` sorted).
         window: ``(M,)`` window index of each row, in ``[0, W)``, non-decreasing.
         time: ``(W,)`` forecast time of each window (annotation steps), non-decreasing; step ``h`` (0-based ``j``
-            in ``[0, P)``, ``h = j + 1`` annotations ahead) of a window at ``t`` is revealed at ``t + h``.
+            in ``[0, P)``, ``h = j + 1`` annotations ahead) of a window at ``t`` is observed at ``t + h``.
         start: ``(P,)`` starting thresholds (the offline ones); an infinite one stays infinite.
         level: coverage level ``c`` in (0, 1).
         gamma: step size (per typical window, relative to ``start``), > 0.
+        reveal: one of :data:`REVEAL_RULES`: ``"window"`` uses every step of the window at ``t`` from ``t + P`` on
+            (when its scored set is determined), ``"step"`` uses step ``h`` from ``t + h`` on.
 
     Returns:
         ``(W, P)`` the threshold used for each window and step.
@@ -122,6 +143,8 @@ def track_thresholds(
     n_windows, n_steps = len(time), scores.shape[1]
     if not 0.0 < level < 1.0 or not gamma > 0.0:
         raise ValueError(f"need 0 < level < 1 and gamma > 0, got level {level!r}, gamma {gamma!r}")
+    if reveal not in REVEAL_RULES:
+        raise ValueError(f"unknown reveal rule {reveal!r}; valid: {', '.join(REVEAL_RULES)}")
     if start.shape != (n_steps,) or window.shape != (len(scores),):
         raise ValueError(f"start {start.shape} and window {window.shape} must match scores {scores.shape}")
     if np.any(np.diff(window) < 0) or np.any(np.diff(time) < 0):
@@ -133,7 +156,7 @@ def track_thresholds(
     miss_rate = 1.0 - level
     out = np.empty((n_windows, n_steps))
     for j in range(n_steps):
-        q, q0, delay = start[j], start[j], j + 1
+        q, q0, delay = start[j], start[j], (j + 1 if reveal == "step" else n_steps)
         if not np.isfinite(q0):
             out[:, j] = q0
             continue
@@ -166,9 +189,9 @@ class Stream:
     scores: np.ndarray
     time: np.ndarray
 
-    def thresholds(self, start: np.ndarray, level: float, gamma: float) -> np.ndarray:
+    def thresholds(self, start: np.ndarray, level: float, gamma: float, reveal: str = REVEAL_RULES[0]) -> np.ndarray:
         """``(W, P)`` thresholds the tracker uses (:func:`track_thresholds`)."""
-        return track_thresholds(self.scores, self.scored.window, self.time, start, level, gamma)
+        return track_thresholds(self.scores, self.scored.window, self.time, start, level, gamma, reveal)
 
     def covered(self, thresholds: np.ndarray) -> np.ndarray:
         """``(M, P)`` bool: each true position inside its window's region."""
@@ -202,26 +225,34 @@ def scene_streams(
     return {scene: whole.subset(row_scene == scene) for scene in dict.fromkeys(row_scene.tolist())}
 
 
-def validation_deviation(streams: dict[str, Stream], level: float, gamma: float) -> float:
+def validation_deviation(
+    streams: dict[str, Stream], level: float, gamma: float, reveal: str = REVEAL_RULES[0]
+) -> float:
     """The worst over left-out validation scenes of the mean over steps of ``|coverage_h − level|``, each scene
-    tracked from the split-conformal thresholds of the others (module docstring)."""
+    tracked from the split-conformal thresholds of the others with the reveal rule ``reveal`` (module
+    docstring)."""
     key = level_key(level)
     worst = 0.0
     for scene, stream in streams.items():
         others = np.concatenate([s.scores for name, s in streams.items() if name != scene])
         start = np.asarray(conformal_thresholds(others, (level,))[key])
-        per_step = stream.covered(stream.thresholds(start, level, gamma)).mean(0)
+        per_step = stream.covered(stream.thresholds(start, level, gamma, reveal)).mean(0)
         worst = max(worst, float(np.mean(np.abs(per_step - level))))
     return worst
 
 
 def choose_gamma(
-    streams: dict[str, Stream], level: float, grid: Sequence[float] = GAMMA_GRID, tolerance: float = GAMMA_TOLERANCE
+    streams: dict[str, Stream],
+    level: float,
+    grid: Sequence[float] = GAMMA_GRID,
+    tolerance: float = GAMMA_TOLERANCE,
+    reveal: str = REVEAL_RULES[0],
 ) -> tuple[float, list[float]]:
-    """The rule of the module docstring: ``(γ, the validation deviation of every γ of grid)``."""
+    """The rule of the module docstring, the validation streams tracked with ``reveal``: ``(γ, the validation
+    deviation of every γ of grid)``."""
     if len(streams) < 2:
         raise ValueError(f"choosing gamma needs at least two validation scenes, got {list(streams)}")
-    deviations = [validation_deviation(streams, level, g) for g in grid]
+    deviations = [validation_deviation(streams, level, g, reveal) for g in grid]
     within = [g for g, d in zip(grid, deviations, strict=True) if d <= tolerance]
     return (min(within) if within else grid[int(np.argmin(deviations))]), deviations
 
@@ -254,9 +285,10 @@ def online_coverage(
     test: Stream,
     split_coverage: Coverage,
     levels: Sequence[float],
+    reveal: str = REVEAL_RULES[0],
 ) -> OnlineResult:
     """Choose ``γ`` on the validation streams, track over the test stream from ``calibration``'s (split-conformal)
-    thresholds, and measure the coverage and the size of the regions. ``split_coverage`` is split conformal's
+    thresholds, both with the reveal rule ``reveal``, and measure the coverage and the size of the regions. ``split_coverage`` is split conformal's
     on the same test rows; its raw coverage and NLL (the model's own regions, which tracking does not change)
     are carried over."""
     scored = test.scored
@@ -266,9 +298,9 @@ def online_coverage(
     covered, radius, gammas, devs, ends, half, diff = {}, {}, {}, {}, {}, {}, {}
     for c in levels:
         key = level_key(c)
-        gammas[key], devs[key] = choose_gamma(val_streams, c)
+        gammas[key], devs[key] = choose_gamma(val_streams, c, reveal=reveal)
         start = calibration.threshold(c)
-        thr = test.thresholds(start, c, gammas[key])
+        thr = test.thresholds(start, c, gammas[key], reveal)
         ends[key] = thr[-1].tolist()
         inside = test.covered(thr)
         covered[key] = scored.window_sums(inside)[keep]
@@ -299,11 +331,12 @@ def online_for_split(
     split_coverage: Coverage,
     levels: Sequence[float],
     data_dir: str | os.PathLike[str] | None = None,
+    reveal: str = REVEAL_RULES[0],
 ) -> OnlineResult:
     """:func:`online_coverage` on ``calibration.split``: its validation scenes choose ``γ``, its test scene (one
-    stream, its recordings in order) is tracked."""
+    stream, its recordings in order) is tracked; both with the reveal rule ``reveal``."""
     split = calibration.split
     val_streams = scene_streams(val_windows, val, val_scores, load_split(split, "val", data_dir))
     scores = region_scores(test, calibration.score, calibration.error_model)
     stream = Stream(test, scores, window_clock(test_windows, load_split(split, "test", data_dir)))
-    return online_coverage(calibration, val_streams, stream, split_coverage, levels)
+    return online_coverage(calibration, val_streams, stream, split_coverage, levels, reveal)

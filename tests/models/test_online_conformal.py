@@ -1,5 +1,6 @@
-"""Online conformal calibration (``predictor calibrate --method online``): delayed feedback, convergence under a
-shifted error scale where split conformal fails, the window clock, the step-size rule, and the default output."""
+"""Online conformal calibration (``predictor calibrate --method online``): delayed feedback under both reveal rules,
+the window rule's causality given the window membership rule, convergence under a shifted error scale where split
+conformal fails, the window clock, the step-size rule, and the default output."""
 
 from __future__ import annotations
 
@@ -13,10 +14,11 @@ from crowdnav_mesrnn.calibration import conformal_quantile
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
 from crowdnav_mesrnn.data.recordings import Recording
-from crowdnav_mesrnn.data.windows import Window
+from crowdnav_mesrnn.data.windows import Window, windows_from_recording
 from crowdnav_mesrnn.evaluation import ScoredForecasts
 from crowdnav_mesrnn.online_conformal import (
     GAMMA_GRID,
+    REVEAL_RULES,
     Stream,
     choose_gamma,
     track_thresholds,
@@ -35,19 +37,26 @@ def rayleigh_stream(windows: int, per_window: int, steps: int, scale: float, see
     return scores, np.repeat(np.arange(windows), per_window), np.arange(windows)
 
 
-def test_a_threshold_never_depends_on_an_outcome_revealed_after_it_is_used() -> None:
-    """Change the outcome of one window at t_k: the threshold of step h may change only from t_k + h on, and does
-    change there. An update without delay (or off by one) changes it earlier and fails."""
+def reveal_delay(reveal: str, j: int, steps: int) -> int:
+    """Annotations from a forecast until its step ``j + 1`` (0-based ``j``) updates the tracker."""
+    return j + 1 if reveal == "step" else steps
+
+
+@pytest.mark.parametrize("reveal", REVEAL_RULES)
+def test_a_threshold_never_depends_on_an_outcome_revealed_after_it_is_used(reveal: str) -> None:
+    """Change the outcome of one window at t_k: the threshold of step h may change only from the reveal on (t_k + h
+    for the step rule, t_k + 12 for the window rule), and does change there. An update without delay (or off by
+    one) changes it earlier and fails."""
     scores, window, time = rayleigh_stream(80, 2, 12, 1.0, seed=0)
     time = time * 2  # gaps between forecast times: the delay is in annotations, not in windows
     start = np.full(12, RAYLEIGH_Q90)
-    base = track_thresholds(scores, window, time, start, 0.9, 0.5)
+    base = track_thresholds(scores, window, time, start, 0.9, 0.5, reveal)
     for k in (5, 30, 61):
         changed = scores.copy()
         changed[window == k] = 100.0  # both pedestrians of window k miss every step
-        thr = track_thresholds(changed, window, time, start, 0.9, 0.5)
+        thr = track_thresholds(changed, window, time, start, 0.9, 0.5, reveal)
         for j in range(12):
-            revealed = time[k] + j + 1
+            revealed = time[k] + reveal_delay(reveal, j, 12)
             before = time < revealed
             np.testing.assert_array_equal(thr[before, j], base[before, j])
             first_after = np.flatnonzero(~before)
@@ -55,17 +64,74 @@ def test_a_threshold_never_depends_on_an_outcome_revealed_after_it_is_used() -> 
                 assert thr[first_after[0], j] > base[first_after[0], j]  # the miss raised it as soon as revealed
 
 
-def test_the_first_windows_use_the_starting_threshold_until_an_outcome_is_revealed() -> None:
+@pytest.mark.parametrize("reveal", REVEAL_RULES)
+def test_the_first_windows_use_the_starting_threshold_until_an_outcome_is_revealed(reveal: str) -> None:
     scores, window, time = rayleigh_stream(30, 3, 12, 2.0, seed=1)
     start = np.linspace(1.0, 2.0, 12)
-    thr = track_thresholds(scores, window, time, start, 0.9, 0.2)
+    thr = track_thresholds(scores, window, time, start, 0.9, 0.2, reveal)
     for j in range(12):
-        # step h = j + 1 of the window at t = 0 is revealed at t = h: the windows before it have nothing revealed
-        np.testing.assert_array_equal(thr[: j + 1, j], start[j])
-        assert thr[j + 1, j] != start[j]
+        # the window at t = 0 is revealed at t = d (h = j + 1 for the step rule, 12 for the window rule): the
+        # windows before it have nothing revealed
+        d = reveal_delay(reveal, j, 12)
+        np.testing.assert_array_equal(thr[:d, j], start[j])
+        assert thr[d, j] != start[j]
 
 
-def test_on_a_shifted_error_scale_online_coverage_converges_and_split_conformal_does_not() -> None:
+def membership_recording(gone: tuple[int, int] | None = None) -> Recording:
+    """Six pedestrians walking with noise through 60 frames; ``gone = (frame index, pedestrian)`` removes one
+    annotation (the pedestrian missing from that frame)."""
+    rng = np.random.default_rng(7)
+    frames, peds = 60, 6
+    velocity = rng.normal(0.0, 0.5, (1, peds, 2))
+    positions = np.cumsum(velocity + rng.normal(0.0, 0.15, (frames, peds, 2)), axis=0)
+    present = np.ones((frames, peds), bool)
+    if gone is not None:
+        present[gone] = False
+        positions[gone] = 0.0
+    return Recording(
+        "crowds_zara01", Path("synthetic"), 0.4, np.arange(frames) * 10, np.arange(peds), positions, present
+    )
+
+
+def membership_stream(rec: Recording, reveal: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(time (W,), thresholds (W, 12))``: the tracker over ``rec``'s windows, the score of a scored pedestrian's
+    step h its distance at t + h from its constant-velocity forecast made at t (known at t + h)."""
+    windows = windows_from_recording(rec)
+    scores, window = [], []
+    for k, w in enumerate(windows):
+        pos = w.positions[:, w.scored].astype(np.float64)  # (20, n, 2)
+        last, vel = pos[OBS_LEN - 1], pos[OBS_LEN - 1] - pos[OBS_LEN - 2]
+        forecast = last[None] + np.arange(1, PRED_LEN + 1)[:, None, None] * vel[None]
+        scores.append(np.linalg.norm(pos[OBS_LEN:] - forecast, axis=-1).T)  # (n, 12)
+        window += [k] * w.num_scored
+    time = window_clock(windows, [rec])
+    start = np.linspace(0.2, 1.0, PRED_LEN)  # fixed in advance, as the offline thresholds are
+    return time, track_thresholds(np.concatenate(scores), np.asarray(window), time, start, 0.9, 1.0, reveal)
+
+
+def test_window_rule_uses_no_window_before_its_scored_pedestrians_are_known() -> None:
+    """A window scores the pedestrians present in all 20 frames, so whether a pedestrian counts is settled at the
+    window's last frame, t + 12. Remove one pedestrian from one frame f: the windows whose scored set changes are
+    those with f among their frames (forecast times f − 12 to f + 7). Under the window rule no threshold used
+    before f changes (the first affected window is revealed at f, when frame f is observed). The step rule uses
+    that window's step 1 at f − 11 with the changed scored set: thresholds used before f change, and this test's
+    assertion fails on it."""
+    f = 40  # frame index; the affected windows' forecast times are 28..47
+    base = {r: membership_stream(membership_recording(), r) for r in REVEAL_RULES}
+    gone = {r: membership_stream(membership_recording(gone=(f, 2)), r) for r in REVEAL_RULES}
+    time = base["window"][0]
+    for r in REVEAL_RULES:  # every window keeps some scored pedestrian: the same windows, the same clock
+        np.testing.assert_array_equal(gone[r][0], time)
+    before = time < f
+    assert before.sum() > 2 * PRED_LEN  # outcomes revealed before f exist and have moved the thresholds
+    np.testing.assert_array_equal(gone["window"][1][before], base["window"][1][before])
+    assert not np.array_equal(gone["window"][1], base["window"][1])  # the change shows once revealed
+    # the step rule leaks: a threshold used before f already depends on the pedestrian's absence at f
+    assert not np.array_equal(gone["step"][1][before], base["step"][1][before])
+
+
+@pytest.mark.parametrize("reveal", REVEAL_RULES)
+def test_on_a_shifted_error_scale_online_coverage_converges_and_split_conformal_does_not(reveal: str) -> None:
     """Calibrated on scale-1 scores, tested on scale-1.6: split conformal's coverage is far below 0.9 at every
     step; the tracker's reaches 0.9 at every step, with thresholds near the shifted scores' true quantile (it does
     not cover by making the regions huge)."""
@@ -74,17 +140,18 @@ def test_on_a_shifted_error_scale_online_coverage_converges_and_split_conformal_
     scores, window, time = rayleigh_stream(4000, 5, 3, 1.6, seed=3)
     split_cov = (scores <= start[None, :]).mean(0)
     assert np.all(split_cov < 0.7)
-    thr = track_thresholds(scores, window, time, start, 0.9, 0.2)
+    thr = track_thresholds(scores, window, time, start, 0.9, 0.2, reveal)
     online_cov = (scores <= thr[window]).mean(0)
     np.testing.assert_allclose(online_cov, 0.9, atol=0.01)
     late = thr[len(thr) // 2 :]
     np.testing.assert_allclose(late.mean(0), 1.6 * RAYLEIGH_Q90, rtol=0.05)
 
 
-def test_a_stationary_stream_keeps_every_step_near_the_true_quantile() -> None:
+@pytest.mark.parametrize("reveal", REVEAL_RULES)
+def test_a_stationary_stream_keeps_every_step_near_the_true_quantile(reveal: str) -> None:
     """The division of the step by the delay: even a large step leaves step 12 steady (a fixed step oscillates)."""
     scores, window, time = rayleigh_stream(1500, 3, 12, 1.0, seed=4)
-    thr = track_thresholds(scores, window, time, np.full(12, RAYLEIGH_Q90), 0.9, 1.0)
+    thr = track_thresholds(scores, window, time, np.full(12, RAYLEIGH_Q90), 0.9, 1.0, reveal)
     np.testing.assert_allclose(thr.mean(0), RAYLEIGH_Q90, rtol=0.08)
     np.testing.assert_allclose((scores <= thr[window]).mean(0), 0.9, atol=0.015)
 
@@ -95,6 +162,8 @@ def test_tracker_rejects_out_of_order_input() -> None:
         track_thresholds(scores, window, time[::-1], np.ones(2), 0.9, 0.1)
     with pytest.raises(ValueError, match="gamma"):
         track_thresholds(scores, window, time, np.ones(2), 0.9, 0.0)
+    with pytest.raises(ValueError, match="reveal rule 'later'; valid: window, step"):
+        track_thresholds(scores, window, time, np.ones(2), 0.9, 0.1, "later")
 
 
 def test_window_clock_follows_recordings_and_separates_them() -> None:
@@ -160,6 +229,7 @@ def test_online_cli_reports_coverage_sizes_and_split_conformal_beside(
     assert main([*args, "--method", "online"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["method"] == "online"
+    assert res["reveal"] == "window"  # the strictly causal rule is the default
     row = res["splits"]["zara1"]
     assert main(args) == 0
     split_row = json.loads(capsys.readouterr().out)["splits"]["zara1"]
@@ -180,3 +250,12 @@ def test_online_cli_reports_coverage_sizes_and_split_conformal_beside(
             row["mean_radius_m"][key] - split_row["mean_radius_m"][key]
         )
         assert row["thresholds_end"][key] != row["thresholds"][key]
+
+
+def test_reveal_applies_to_the_online_method_only(data_dir: Path) -> None:
+    from crowdnav_mesrnn.calibration import calibrate_model
+
+    with pytest.raises(ValueError, match="reveal='step' applies to method 'online' only"):
+        calibrate_model("cv", "zara1", reveal="step")
+    with pytest.raises(ValueError, match="reveal rule 'soon'; valid: window, step"):
+        calibrate_model("cv", "zara1", method="online", reveal="soon")
