@@ -138,6 +138,44 @@ def _calibrate(args: argparse.Namespace) -> int:
     return _emit(args, result, format_calibration)
 
 
+def _fit_head(args: argparse.Namespace) -> int:
+    import torch
+
+    from crowdnav_mesrnn.evaluation import resolve_splits
+    from crowdnav_mesrnn.head_fit import HeadFitConfig, fit_head
+    from crowdnav_mesrnn.models.pretrained import pretrained_path
+
+    torch.set_num_threads(args.threads)
+    cfg = HeadFitConfig(
+        max_epochs=args.epochs,
+        patience=args.patience,
+        whiten_floor=args.whiten_floor,
+        data_dir=args.data_dir,
+        max_windows=args.max_windows,
+    )
+    jobs = []
+    for split in resolve_splits(args.split):
+        src = (
+            Path(args.point.format(model=args.model, split=split)) if args.point else pretrained_path(args.model, split)
+        )
+        dest = (
+            Path(args.out.format(model=args.model, split=split))
+            if args.out
+            else pretrained_path(args.model, split, "gaussian")
+        )
+        if not src.is_file():
+            raise FileNotFoundError(
+                f"no point weights for {args.model}/{split} at {src}: fit-head fits the head on them (train them with "
+                f"`crowdnav-mesrnn predictor train --model {args.model} --split {split}`, then `predictor export`)"
+            )
+        if dest.exists() and not args.force:
+            raise ValueError(f"{dest} exists: pass --force to replace it")
+        jobs.append((split, src, dest))
+    for split, src, dest in jobs:
+        fit_head(src, dest, cfg, model=args.model, split=split, command=" ".join(sys.argv))
+    return 0
+
+
 def _export(args: argparse.Namespace) -> int:
     from crowdnav_mesrnn.models.pretrained import export_checkpoint
 
@@ -357,6 +395,33 @@ def add_parser(sub: Any) -> None:
     c.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     c.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     c.set_defaults(func=_calibrate)
+
+    f = psub.add_parser(
+        "fit-head",
+        help="fit the gaussian head on the shipped point weights, trunk frozen (MODEL_gaussian_SPLIT.pt)",
+        description="The head-only shortcut of configs/predictor/gaussian.yaml (not the declared plan): loads the point "
+        "weights, freezes every trunk and decoder parameter, fits the distribution head by NLL on the split's training "
+        "windows (the node states of the mean rollout cached once), keeps the epoch of lowest validation NLL and writes "
+        "MODEL_gaussian_SPLIT.pt beside the point weights (a head-only file naming the point weights and their SHA-256), "
+        "where `evaluate --head gaussian` and `calibrate --head gaussian` look. Point weights are never modified "
+        "(crowdnav_mesrnn.head_fit explains why the trunk is the declared recipe's).",
+    )
+    f.add_argument("--model", required=True, choices=LEARNED_MODELS, help="which structural RNN")
+    f.add_argument("--split", default="all", choices=(*SPLITS, "all"), help="split(s) (default: all)")
+    f.add_argument("--epochs", type=int, default=200, help="most L-BFGS iterations, each a pass over the rows (200)")
+    f.add_argument("--patience", type=int, default=10, help="stop after this many without a lower val NLL (10)")
+    f.add_argument(
+        "--whiten-floor", type=float, default=1e-2, help="eigenvalue floor of the whitened fit, relative (default 1e-2)"
+    )
+    f.add_argument("--max-windows", type=int, default=0, help="use only the first N train and val windows (0: all)")
+    f.add_argument(
+        "--point", default=None, help="point weights instead of the shipped ones; may contain {split}, {model}"
+    )
+    f.add_argument("--out", default=None, help="output instead of the shipped path; may contain {split} and {model}")
+    f.add_argument("--force", action="store_true", help="replace an existing output")
+    f.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
+    f.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    f.set_defaults(func=_fit_head)
 
     x = psub.add_parser("export", help="copy a trained checkpoint into the package's pretrained weights")
     x.add_argument("checkpoint", help="a training checkpoint (RUN/best.pt)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +15,7 @@ from crowdnav_mesrnn.data.normalization import MinMax
 from crowdnav_mesrnn.models.base import check_history, last_known
 from crowdnav_mesrnn.models.gaussian import GaussianForecast, params_from_raw
 from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
+from crowdnav_mesrnn.utils import file_sha256
 
 CHECKPOINT_FORMAT = 1
 
@@ -340,9 +342,31 @@ def load_predictor(
     if ck_split is not None and ck_split not in SPLITS:
         raise CheckpointError(f"{path}: unknown split {ck_split!r}")
     net = StructuralRNN(cfg)
+    state = ckpt["state_dict"]
+    if "base" in ckpt:  # a head fitted on other weights (crowdnav_mesrnn.head_fit): the trunk is theirs
+        state = {**_base_state(path, ckpt["base"], cfg), **state}
     try:
-        net.load_state_dict(ckpt["state_dict"])
+        net.load_state_dict(state)
     except RuntimeError as exc:
         raise CheckpointError(f"{path}: weights do not match the config they were saved with: {exc}") from exc
     info = {k: ckpt.get(k) for k in ("train_config", "epoch", "val", "code_version", "selection")}
     return LearnedPredictor(net, MinMax.from_dict(ckpt["norm"]), ck_split, info)
+
+
+def _base_state(path: Path, base: dict[str, Any], cfg: ModelConfig) -> dict[str, torch.Tensor]:
+    """The weights of the point checkpoint that a head-only file at ``path`` was fitted on (``base``: the file name,
+    beside ``path``, and its SHA-256); refused when missing, changed since, or of another architecture."""
+    src = path.parent / str(base.get("file"))
+    if not src.is_file():
+        raise CheckpointError(f"{path}: holds only a head fitted on {src.name}, which is missing (expected at {src})")
+    digest = file_sha256(src)
+    if digest != base.get("sha256"):
+        raise CheckpointError(
+            f"{path}: its head was fitted on {src.name} with SHA-256 {base.get('sha256')}, but that file now has "
+            f"{digest}; refit the head (crowdnav-mesrnn predictor fit-head)"
+        )
+    ck: dict[str, Any] = torch.load(src, map_location="cpu", weights_only=True)
+    theirs = ModelConfig.from_dict(ck["model_config"])
+    if replace(theirs, head=cfg.head, scale_detach=cfg.scale_detach) != cfg:
+        raise CheckpointError(f"{path}: its config differs from that of {src.name} beyond the head")
+    return ck["state_dict"]

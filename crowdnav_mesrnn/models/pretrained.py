@@ -4,7 +4,8 @@
 config (with its split), the normalisation statistics fitted on that split's training data, and a
 ``selection`` note saying why this configuration was chosen (validation data only). Weights with the
 distribution head (``head: gaussian``) ship beside them as ``<model>_gaussian_<split>.pt``; the point
-weights are never replaced by them.
+weights are never replaced by them. ``predictor fit-head`` (:mod:`crowdnav_mesrnn.head_fit`) writes those files holding
+only the head, fitted on the point weights beside them (named with their SHA-256, read by ``load_predictor``).
 """
 
 from __future__ import annotations
@@ -50,8 +51,9 @@ def load_pretrained(model: str, split: str, threads: int | None = None, head: st
             f"`crowdnav-mesrnn predictor train --model {model} --split {split}` and install with "
             f"`crowdnav-mesrnn predictor export runs/predictor/{model}_{split}/best.pt --model {model} --split {split}`"
             if head == "point"
-            else "the plan configs/predictor/gaussian.yaml (`crowdnav-mesrnn predictor plan configs/predictor/gaussian.yaml`"
-            " then `--stage export`)"
+            else f"`crowdnav-mesrnn predictor fit-head --model {model} --split {split}` (the head fitted on the point "
+            "weights, trunk frozen), or the plan configs/predictor/gaussian.yaml (`crowdnav-mesrnn predictor plan "
+            "configs/predictor/gaussian.yaml` then `--stage export`)"
         )
         raise PretrainedNotFoundError(
             f"no pretrained {model!r} weights with the {head} head for split {split!r} at {path}. Train them with {how}."
