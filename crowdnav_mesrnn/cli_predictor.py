@@ -293,6 +293,14 @@ def _plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_bootstrap_and_runtime(p: argparse.ArgumentParser) -> None:
+    """The options every command with block-bootstrap intervals shares: the bootstrap, the data, the threads."""
+    p.add_argument("--block-len", type=int, default=20, help="block bootstrap block length in windows (default 20)")
+    p.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
+    p.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+
+
 def add_parser(sub: Any) -> None:
     p = sub.add_parser("predictor", help="train, evaluate, export and plot trajectory predictors")
     psub = p.add_subparsers(dest="predictor_cmd", required=True, metavar="ACTION")
@@ -346,10 +354,7 @@ def add_parser(sub: Any) -> None:
         choices=("point", "gaussian"),
         help="which shipped weights (default point; gaussian with --samples); a distribution head also gets nll_m",
     )
-    e.add_argument("--block-len", type=int, default=20, help="block bootstrap block length in windows (default 20)")
-    e.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
-    e.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
-    e.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    _add_bootstrap_and_runtime(e)
     e.set_defaults(func=_eval)
 
     c = psub.add_parser(
@@ -390,10 +395,7 @@ def add_parser(sub: Any) -> None:
     c.add_argument("--levels", type=float, nargs="+", default=[0.5, 0.9, 0.95], help="coverage levels")
     c.add_argument("--json", action="store_true", help="print the result as one JSON object")
     c.add_argument("--out", default=None, help="also write the JSON result here (atomically)")
-    c.add_argument("--block-len", type=int, default=20, help="block bootstrap block length in windows (default 20)")
-    c.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
-    c.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
-    c.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    _add_bootstrap_and_runtime(c)
     c.set_defaults(func=_calibrate)
 
     f = psub.add_parser(
@@ -442,10 +444,7 @@ def add_parser(sub: Any) -> None:
     )
     r.add_argument("--extra", action="append", metavar="MODEL:LABEL=TEMPLATE", help="extra rows from checkpoints")
     r.add_argument("--plan", default=None, help="plan file whose seeds to report (configs/predictor/candidates.yaml)")
-    r.add_argument("--block-len", type=int, default=20, help="block bootstrap block length in windows (default 20)")
-    r.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
-    r.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
-    r.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    _add_bootstrap_and_runtime(r)
     r.add_argument(
         "--render-only", action="store_true", help="rewrite the page from its .json (after a change of wording only)"
     )
