@@ -1,11 +1,13 @@
 """The incremental forecast of this checkout against the same code at another git revision, alternating.
 
-Run: ``python benchmarks/online_ab.py --against 5a04669 [--pairs 6] [--repeats 40] [--pedestrians 50]``.
+Run: ``python benchmarks/online_ab.py --against 5a04669 [--pairs 6] [--repeats 40] [--pedestrians 50]
+[--head gaussian]``.
 
 One process per measurement and revision, the two revisions alternating ``--pairs`` times, so both see the
 same load (on a shared machine single figures move by tens of percent between minutes; alternating pairs
 compare like with like). Each process times ``OnlineForecaster.observe`` (one step, carried states) +
-``forecast`` of the shipped zara1 MESRNN for N pedestrians (random walks, everyone present), one thread, and
+``forecast`` of the shipped zara1 MESRNN for N pedestrians (random walks, everyone present), one thread (with
+``--head gaussian``: the shipped distribution head and ``forecast_distribution``, means, scales and correlations), and
 prints the median wall time, the median CPU time of the process and the fastest call over ``--repeats`` calls.
 The other revision is exported with ``git archive`` into a temporary folder and imported from there
 (``PYTHONPATH``), with the same shipped weights. Prints every pair, the medians over pairs, and the median of the
@@ -30,8 +32,8 @@ import json, statistics, sys, time
 import numpy as np, torch
 torch.set_num_threads(1)
 from crowdnav_mesrnn import load_pretrained
-n, repeats = int(sys.argv[1]), int(sys.argv[2])
-pred = load_pretrained("mesrnn", "zara1")
+n, repeats, head = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+pred = load_pretrained("mesrnn", "zara1", head=head)
 rng = np.random.default_rng(0)
 hist = (np.cumsum(rng.normal(0, 0.3, (8, n, 2)), 0) + 5).astype(np.float32)
 mask = np.ones((8, n), bool)
@@ -40,7 +42,7 @@ for t in range(8):
     online.observe(hist[t], mask[t])
 def call():
     online.observe(hist[-1], mask[-1])
-    online.forecast()
+    online.forecast() if head == "point" else online.forecast_distribution()
 for _ in range(3):
     call()
 wall, cpu = [], []
@@ -54,10 +56,10 @@ print(json.dumps({"wall_ms": statistics.median(wall) * 1e3, "cpu_ms": statistics
 """
 
 
-def measure(root: Path, n: int, repeats: int) -> dict[str, float]:
+def measure(root: Path, n: int, repeats: int, head: str) -> dict[str, float]:
     env = {**os.environ, "PYTHONPATH": str(root)}
     out = subprocess.run(
-        [sys.executable, "-c", CHILD, str(n), str(repeats)], cwd=root, env=env, capture_output=True, text=True
+        [sys.executable, "-c", CHILD, str(n), str(repeats), head], cwd=root, env=env, capture_output=True, text=True
     )
     if out.returncode:
         raise RuntimeError(f"measurement in {root} failed:\n{out.stderr}")
@@ -70,19 +72,25 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=6)
     ap.add_argument("--repeats", type=int, default=40)
     ap.add_argument("--pedestrians", type=int, default=50)
+    ap.add_argument(
+        "--head",
+        choices=["point", "gaussian"],
+        default="point",
+        help="gaussian: the distribution head (both revisions)",
+    )
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="online-ab-") as tmp:
         archive = subprocess.run(["git", "archive", args.against], cwd=REPO, capture_output=True, check=True)
         subprocess.run(["tar", "-x", "-C", tmp], input=archive.stdout, check=True)
         rows = []
         print(
-            f"incremental forecast, shipped zara1 MESRNN, {args.pedestrians} pedestrians, 1 thread, "
+            f"incremental forecast, shipped zara1 MESRNN ({args.head} head), {args.pedestrians} pedestrians, 1 thread, "
             f"median of {args.repeats} calls (ms): this checkout vs {args.against}"
         )
         print(f"{'pair':>4}{'wall':>9}{'cpu':>9}{'min':>9}{'wall':>11}{'cpu':>9}{'min':>9}{'cpu ratio':>11}")
         for k in range(args.pairs):
-            new = measure(REPO, args.pedestrians, args.repeats)
-            old = measure(Path(tmp), args.pedestrians, args.repeats)
+            new = measure(REPO, args.pedestrians, args.repeats, args.head)
+            old = measure(Path(tmp), args.pedestrians, args.repeats, args.head)
             rows.append((new, old))
             print(
                 f"{k:>4}{new['wall_ms']:>9.2f}{new['cpu_ms']:>9.2f}{new['min_ms']:>9.2f}"

@@ -117,33 +117,42 @@ def stacked_features_step(
     return torch.stack([out[k] for k in types]), vel
 
 
-def dense_features_linear(
+def dense_features_centred(
     p_t: torch.Tensor, p_tm1: torch.Tensor, p_tm2: torch.Tensor, types: tuple[str, ...] = METAPATH_TYPES
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`stacked_features_step` for ``(N, 2)`` positions with everyone present at all three steps, in ``O(N)``:
-    the sums over neighbours are expanded (``S_i = N p_i − Σ_j p_j``; ``ST_i = p_i ⊙ Σ_j T_j − Σ_j p_j ⊙ T_j``;
-    ``SS_i = p_i ⊙ Σ_j S_j − Σ_j p_j ⊙ S_j + N p_i² − 2 p_i ⊙ Σ_j p_j + Σ_j p_j²``; ``TS`` like ``S`` at ``t − 1``).
-    The same function, rounded differently (sums of positions instead of sums of differences: for the min-max
-    normalised positions of the predictors, within float32 rounding of the pairwise form times ``N``); used by
-    the online forecast only."""
-    n = float(p_t.shape[0])
+) -> tuple[torch.Tensor, torch.Tensor, tuple[float, ...]]:
+    """:func:`stacked_features_step` for ``(N, 2)`` positions with everyone present at all three steps, in ``O(N)``
+    and few operations, with each type's constant factor left out.
+
+    With ``d_i = p_i − c`` (``c`` the centroid at ``t``) and ``Σ_j d_j = 0`` the sums over neighbours are
+    ``S_i = N d_i``, ``SS_i = N d_i² − (N − 1) Σ_j d_j²``, ``ST_i = d_i ⊙ Σ_j T_j − Σ_j d_j ⊙ T_j`` and
+    ``TS_i = N T_i ⊙ (p_{t−1,i} − c_{t−1})``. Returned without the factor ``N`` of ``S``, ``SS`` and ``TS``: the
+    features times ``factors`` (one per type) equal :func:`stacked_features_step` up to float rounding (the centred
+    form rounds like the pairwise sums, not like sums of raw positions). Used by the online forecast, which folds
+    ``factors`` into the edge embedding's weights.
+
+    Returns:
+        ``(len(types), N, 2)`` features, the ``(N, 2)`` velocity and the per-type factors.
+    """
+    n = p_t.shape[0]
     vel = p_t - p_tm1
     out: dict[str, torch.Tensor] = {"T": vel}
+    factor = {"S": float(n), "SS": float(n), "TS": float(n)}
     if {"S", "SS", "ST"} & set(types):
-        total = p_t.sum(0)
-        s_raw = p_t * n - total
-        out["S"] = s_raw
+        d = p_t - p_t.mean(0)
+        out["S"] = d
         if "SS" in types:
-            out["SS"] = p_t * (s_raw.sum(0) - 2.0 * total + n * p_t) - (p_t * s_raw).sum(0) + (p_t * p_t).sum(0)
+            d2 = d * d
+            out["SS"] = torch.sub(d2, d2.sum(0), alpha=(n - 1) / n)
         if "ST" in types:
-            out["ST"] = p_t * vel.sum(0) - (p_t * vel).sum(0)
+            out["ST"] = d * vel.sum(0) - (d * vel).sum(0)
     if "TS" in types:
-        out["TS"] = vel * (p_tm1 * n - p_tm1.sum(0))
+        out["TS"] = vel * (p_tm1 - p_tm1.mean(0))
     if "TT" in types:
         out["TT"] = vel * (p_tm1 - p_tm2)
+    factors = tuple(factor.get(k, 1.0) for k in types)
     if not types:
-        return vel.new_zeros(0, *vel.shape), vel
-    return torch.stack([out[k] for k in types]), vel
+        return vel.new_zeros(0, *vel.shape), vel, factors
+    return torch.stack([out[k] for k in types]), vel, factors
 
 
 def metapath_features(

@@ -171,6 +171,7 @@ class OnlineForecaster:
         self.mask = [torch.zeros(1, num_slots, dtype=torch.bool) for _ in range(2)]
         self.next_pred = torch.zeros(1, num_slots, 2)
         self.next_raw = torch.zeros(1, num_slots, 3) if predictor.has_distribution else None
+        self.seen = [np.zeros(num_slots, bool) for _ in range(2)]  # self.mask in numpy (cheaper tests of a few rows)
         self.last_seen_m = np.zeros((num_slots, 2), np.float32)
         self.steps = 0
         self._scale = torch.as_tensor(predictor.norm.scale, dtype=torch.float32)
@@ -202,22 +203,24 @@ class OnlineForecaster:
         now = np.asarray(present, dtype=bool).reshape(self.n)
         m = torch.from_numpy(now.reshape(1, self.n))
         normed = (torch.from_numpy(pos)[None] - self._lo) * self._scale - 1.0  # MinMax.normalise, constants cached
-        p_t = normed if now.all() else torch.where(m.unsqueeze(-1), normed, torch.zeros(1, self.n, 2))
+        all_now = bool(now.all())
+        p_t = normed if all_now else torch.where(m.unsqueeze(-1), normed, torch.zeros(1, self.n, 2))
         net = self.p.net
-        live = m | self.mask[0]
-        every = bool(live.all())
-        idx = None if every else torch.nonzero(live[0]).flatten()
+        live_np = now | self.seen[0]
+        every = bool(live_np.all())
+        idx = None if every else torch.from_numpy(np.flatnonzero(live_np))
 
         def cols(x: torch.Tensor) -> torch.Tensor:
             return x if idx is None else x[:, idx]
 
         if every or len(idx):  # type: ignore[arg-type]
-            if bool(m[live].all()):  # nobody left since the last frame: all computed rows are present now
+            if not (live_np & ~now).any():  # nobody left since the last frame: all computed rows are present now
+                s1, s2 = (s if every else s[live_np] for s in self.seen)
                 m1, m2 = cols(self.mask[0])[0], cols(self.mask[1])[0]
                 nxt, sub = net.online_step(
                     (cols(p_t)[0], cols(self.pos[0])[0], cols(self.pos[1])[0]),
-                    None if bool(m1.all()) else m1,
-                    None if bool(m2.all()) else m2,
+                    None if s1.all() else m1,
+                    None if s2.all() else m2,
                     self._gather(idx),
                 )
                 raw = net.head_raw(sub["node_h"]) if net.gaussian else None
@@ -242,6 +245,7 @@ class OnlineForecaster:
                     self.next_raw[:, idx] = raw
         self.pos = [p_t, self.pos[0]]
         self.mask = [m, self.mask[0]]
+        self.seen = [now.copy(), self.seen[0]]
         self.last_seen_m[now] = pos[now]
         self.steps += 1
 
@@ -249,9 +253,8 @@ class OnlineForecaster:
         """Slots present at the last observation ``(n,)``, their mean rollout ``(pred_len, n, 2)`` normalised and
         the head's raw output ``(pred_len, n, 3)`` (None with the point head); tensors None when nobody is present."""
         net = self.p.net
-        present = self.mask[0][0]
-        every = bool(present.all())
-        idx = None if every else torch.nonzero(present).flatten()
+        every = bool(self.seen[0].all())
+        idx = None if every else torch.from_numpy(np.flatnonzero(self.seen[0]))
         if idx is not None and len(idx) == 0:
             return np.zeros(0, dtype=np.int64), None, None
 
@@ -303,7 +306,7 @@ class OnlineForecaster:
         if preds is not None:
             assert raw is not None
             s, r = params_from_raw(raw)
-            mean[slots] = self.p.norm.denormalise(preds).permute(1, 0, 2).numpy().astype(np.float32)
+            mean[slots] = ((preds + 1.0) / self._scale + self._lo).permute(1, 0, 2).numpy()  # MinMax.denormalise
             sigma[slots] = (s / self._scale).permute(1, 0, 2).numpy()
             rho[slots] = r.permute(1, 0).numpy()
         return mean, sigma, rho

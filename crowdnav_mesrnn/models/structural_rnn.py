@@ -19,7 +19,7 @@ from torch import nn
 
 from crowdnav_mesrnn.config import ConfigError, replace_checked
 from crowdnav_mesrnn.data.constants import PRED_LEN
-from crowdnav_mesrnn.graph.metapaths import dense_features_linear, stacked_features_step
+from crowdnav_mesrnn.graph.metapaths import dense_features_centred, stacked_features_step
 from crowdnav_mesrnn.models.gaussian import params_from_raw, raw_sigma_init
 from crowdnav_mesrnn.models.gaussian import sample as gaussian_sample
 
@@ -145,10 +145,14 @@ def tanh_from_doubled(z2: torch.Tensor) -> torch.Tensor:
 def lstm_pointwise_regrouped(gates: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`lstm_pointwise` in fewer operations (``i (2g − 1) = 2 i g − i``, ``o (2 s − 1) = 2 o s − o``): the
     same function, different float32 rounding; used by the online path only."""
-    s = torch.sigmoid(gates)
+    return lstm_pointwise_from_sigmoid(torch.sigmoid(gates), c)
+
+
+def lstm_pointwise_from_sigmoid(s: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`lstm_pointwise_regrouped` given the gates' sigmoid ``s`` (a matrix product with the sigmoid fused)."""
     i, f, g, o = s.chunk(4, dim=-1)
-    c_new = torch.addcmul(torch.addcmul(-i, f, c), i, g, value=2.0)
-    return torch.addcmul(-o, o, torch.sigmoid(c_new * 2.0), value=2.0), c_new
+    c_new = torch.addcmul(-i, f, c).addcmul_(i, g, value=2.0)
+    return torch.addcmul(-o, o, c_new.mul(2.0).sigmoid_(), value=2.0), c_new
 
 
 def lstm_pointwise(gates: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -360,15 +364,20 @@ class StructuralRNN(nn.Module):
         key = tuple(v for p in [*self.parameters(), *self.buffers()] for v in (p.data_ptr(), p._version))
         if self._online is not None and self._online[0] == key:
             return self._online[1]
-        node_w = torch.cat([w["node_x_w"], w["node_rec_w"]], 0)  # (embed + K edge_hidden + node_hidden, 4 H)
-        out: dict[str, Any] = {"node_w": node_w.contiguous(), "node_b": w["node_b"].contiguous(), "packed": None}
+        # The embeddings enter as σ(2z) = (tanh z + 1) / 2 (one operation less each): the affine map is folded into
+        # the weights and biases of the products they feed, ``tanh(z) W + b = σ(2z) (2 W) + (b − Σ_rows W)``.
+        node_w = torch.cat([w["node_x_w"] * 2.0, w["node_rec_w"]], 0)  # (embed + K edge_hidden + node_hidden, 4 H)
+        node_b = w["node_b"] - w["node_x_w"].sum(0)
+        out: dict[str, Any] = {"node_w": node_w.contiguous(), "node_b": node_b.contiguous(), "packed": None}
+        out["node_embed_w"] = (self.node_scale[:, None] * w["node_embed_w"]).detach().contiguous()  # input scale folded
         try:  # the product of the node LSTM, the largest of a step, prepacked (oneDNN, x86 builds)
             packed = torch.ops.mkldnn._reorder_linear_weight(node_w.t().contiguous(), 64)
             out["packed"] = (packed, torch.ops.mkldnn._linear_pointwise)
         except (AttributeError, RuntimeError):
             pass
         if self.types:
-            out["edge_w"] = torch.cat([w["edge_x_w"], w["edge_h_w"]], 1).contiguous()  # (K, embed + hidden, 4 H)
+            out["edge_w"] = torch.cat([w["edge_x_w"] * 2.0, w["edge_h_w"]], 1).contiguous()  # (K, embed + hidden, 4 H)
+            out["edge_b"] = (w["edge_b"] - w["edge_x_w"].sum(1, keepdim=True)).contiguous()  # (K, 1, 4 H)
         out["decoder_w"] = self.decoder.weight.detach().t().contiguous()
         out["decoder_b"] = self.decoder.bias.detach().contiguous()
         if self.gaussian:
@@ -388,7 +397,7 @@ class StructuralRNN(nn.Module):
         """One step of :meth:`step` for online forecasting (inference only) when all ``n`` pedestrians are present
         at ``t``, with the operations regrouped for one forecast of a few dozen pedestrians (equal to float32
         rounding, ``tests/models/test_gaussian_head.py``): when everyone is also present at ``t − 1`` and ``t − 2``
-        the masks are skipped and the meta-paths are summed in ``O(N)`` (:func:`dense_features_linear`), each LSTM's
+        the masks are skipped and the meta-paths are summed in ``O(N)`` (:func:`dense_features_centred`), each LSTM's
         input and recurrent products are one matrix product, and the node LSTM's weights are prepacked. The distribution head is not applied (see :meth:`continue_rollout`).
 
         Args:
@@ -407,45 +416,53 @@ class StructuralRNN(nn.Module):
         if m_tm1 is not None or m_tm2 is not None:
             ones = torch.ones(1, n, dtype=torch.bool)
             masks = (ones, ones if m_tm1 is None else m_tm1[None], ones if m_tm2 is None else m_tm2[None])
-        if masks is None and k:
-            feats, vel = dense_features_linear(p[0], p[1], p[2], self.types)
-            feats = feats * self._online_feature_scale(n, ow)
+        if masks is None and k:  # the input scales are folded into the embedding's weights
+            feats, vel, factors = dense_features_centred(p[0], p[1], p[2], self.types)
+            edge_embed_w = self._online_edge_embed_w(n, factors, w, ow)
         else:
             feats, vel = self._features((p[0][None], p[1][None], p[2][None]), masks)
             vel = vel[0]
+            edge_embed_w = w.get("edge_embed_w")
         node_in = vel if self.cfg.node_input == "velocity" else p[0]
-        x = tanh_from_doubled(torch.addmm(w["node_embed_b"], node_in * self.node_scale, w["node_embed_w"]))
+        # the embeddings as σ(2z), not tanh(z) = 2 σ(2z) − 1: the online weights take the difference (_online_weights)
+        x = torch.addmm(w["node_embed_b"], node_in, ow["node_embed_w"]).sigmoid_()
         new: dict[str, torch.Tensor] = {}
         if k:
             assert feats is not None
-            e = tanh_from_doubled(torch.baddbmm(w["edge_embed_b"], feats.reshape(k, -1, 2), w["edge_embed_w"]))
-            gates = torch.baddbmm(w["edge_b"], torch.cat([e, state["edge_h"]], -1), ow["edge_w"])
-            new["edge_h"], new["edge_c"] = lstm_pointwise_regrouped(gates, state["edge_c"])
+            e = torch.baddbmm(w["edge_embed_b"], feats.reshape(k, -1, 2), edge_embed_w).sigmoid_()
+            gates = torch.baddbmm(ow["edge_b"], torch.cat([e, state["edge_h"]], -1), ow["edge_w"])
+            new["edge_h"], new["edge_c"] = lstm_pointwise_from_sigmoid(gates.sigmoid_(), state["edge_c"])
             z = torch.cat([x, *new["edge_h"].unbind(0), state["node_h"]], 1)
         else:
             new["edge_h"], new["edge_c"] = state["edge_h"], state["edge_c"]
             z = torch.cat([x, state["node_h"]], 1)
         packed = ow["packed"] if n >= 8 else None  # prepacking pays only for enough rows
-        if packed is not None:
-            node_gates = packed[1](z, packed[0], ow["node_b"], "none", [], "")
+        if packed is not None:  # the gates' sigmoid fused into the product
+            gate_s = packed[1](z, packed[0], ow["node_b"], "sigmoid", [], "")
         else:
-            node_gates = torch.addmm(ow["node_b"], z, ow["node_w"])
-        new["node_h"], new["node_c"] = lstm_pointwise_regrouped(node_gates, state["node_c"])
-        offset = torch.tanh(torch.addmm(ow["decoder_b"], new["node_h"], ow["decoder_w"]))
-        nxt = p[0] + offset + vel if self.cfg.offset == "cv_residual" else p[0] + offset
+            gate_s = torch.addmm(ow["node_b"], z, ow["node_w"]).sigmoid_()
+        new["node_h"], new["node_c"] = lstm_pointwise_from_sigmoid(gate_s, state["node_c"])
+        offset = torch.addmm(ow["decoder_b"], new["node_h"], ow["decoder_w"]).tanh_()
+        nxt = torch.add(p[0], vel).add_(offset) if self.cfg.offset == "cv_residual" else offset.add_(p[0])
         return nxt, new
 
-    def _online_feature_scale(self, n: int, ow: dict[str, Any]) -> torch.Tensor:
-        """``(K, 1, 2)``: the mean aggregation's divisors (everyone of ``n`` present), ``feature_scale`` and the
-        input scales in one factor, cached per ``n`` in the online weights ``ow`` (one product instead of one per
-        type)."""
-        cache = ow.setdefault("feature_scale", {})
+    def _online_edge_embed_w(
+        self, n: int, factors: tuple[float, ...], w: dict[str, torch.Tensor], ow: dict[str, Any]
+    ) -> torch.Tensor:
+        """``(K, 2, edge_embed)``: the edge embedding's (doubled) weights with the features' left-out ``factors``
+        (:func:`dense_features_centred`), the mean aggregation's divisors (everyone of ``n`` present),
+        ``feature_scale`` and the input scales folded in, cached per ``n`` in the online weights ``ow`` (no product
+        of the features per step)."""
+        cache = ow.setdefault("edge_embed_w", {})
         if n not in cache:
             k = len(self.types)
             nb = float(max(n - 1, 1))
             div = {"S": nb, "ST": nb, "SS": nb * max(n - 2, 1), "TS": nb} if self.cfg.aggregate == "mean" else {}
-            inv = torch.tensor([1.0 / div.get(t, 1.0) for t in self.types], dtype=self.edge_scale.dtype)
-            cache[n] = (inv[:, None, None] * self.cfg.feature_scale * self.edge_scale[:k]).contiguous()
+            inv = torch.tensor(
+                [f / div.get(t, 1.0) for t, f in zip(self.types, factors, strict=True)], dtype=self.edge_scale.dtype
+            )
+            scale = inv[:, None, None] * self.cfg.feature_scale * self.edge_scale[:k]  # (K, 1, 2)
+            cache[n] = (scale.transpose(1, 2) * w["edge_embed_w"]).contiguous()
         return cache[n]
 
     def head_parameters(self) -> list[nn.Parameter]:

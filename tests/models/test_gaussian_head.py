@@ -376,14 +376,19 @@ def test_scale_detach_keeps_the_scales_gradient_out_of_the_trunk() -> None:
 
 @pytest.mark.parametrize("n", [1, 2, 7, 50])
 def test_linear_time_meta_paths_equal_the_pairwise_sums(n: int) -> None:
-    from crowdnav_mesrnn.graph.metapaths import METAPATH_TYPES, dense_features_linear, stacked_features_step
+    from crowdnav_mesrnn.graph.metapaths import METAPATH_TYPES, dense_features_centred, stacked_features_step
 
     g = torch.Generator().manual_seed(n)
     p = [torch.rand(n, 2, generator=g, dtype=torch.float64) * 2 - 1 for _ in range(3)]
     want, want_vel = stacked_features_step(*p, None, None, None, METAPATH_TYPES)
-    got, vel = dense_features_linear(*p, METAPATH_TYPES)
-    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)  # exact algebra (float64)
+    got, vel, factors = dense_features_centred(*p, METAPATH_TYPES)
+    assert factors == tuple(float(n) if t in ("S", "SS", "TS") else 1.0 for t in METAPATH_TYPES)
+    f = torch.tensor(factors, dtype=torch.float64)[:, None, None]
+    torch.testing.assert_close(got * f, want, rtol=1e-12, atol=1e-12)  # exact algebra (float64)
     assert torch.equal(vel, want_vel)
-    f32, _ = dense_features_linear(*(x.float() for x in p), METAPATH_TYPES)
+    f32, _, _ = dense_features_centred(*(x.float() for x in p), METAPATH_TYPES)
     scale = want.abs().amax(dim=(1, 2), keepdim=True).clamp(min=1.0)
-    assert float(((f32.double() - want) / scale).abs().max()) < 1e-5  # float32: rounding only
+    assert float(((f32.double() * f - want) / scale).abs().max()) < 1e-5  # float32: rounding only
+    sub, _, sub_f = dense_features_centred(*p, ("TT", "SS"))  # any subset, in the order asked
+    assert sub_f == (1.0, float(n))
+    torch.testing.assert_close(sub * torch.tensor(sub_f, dtype=torch.float64)[:, None, None], want[[5, 2]])
