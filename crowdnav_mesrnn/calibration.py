@@ -410,6 +410,7 @@ def calibrate_model(
     n_resamples: int = DEFAULT_RESAMPLES,
     method: str = "split",
     reveal: str | None = None,
+    gamma_rule: str | None = None,
 ) -> dict[str, Any]:
     """Calibrate on each split's validation windows, measure coverage on its test windows, and average.
 
@@ -429,12 +430,17 @@ def calibrate_model(
     ``mean_radius_diff_ci`` (online minus split conformal, paired by window) and ``split_conformal`` (its
     coverage, per-step coverage and mean radius on the same windows). ``reveal`` (online only; default
     ``"window"``, the strictly causal rule) is when an outcome updates the tracker
-    (:data:`crowdnav_mesrnn.online_conformal.REVEAL_RULES`); the result records it.
+    (:data:`crowdnav_mesrnn.online_conformal.REVEAL_RULES`); the result records it. ``gamma_rule`` (online only;
+    default ``"validation"``) sets the step size: one chosen on validation, or ``"experts"``, every step size of the
+    grid mixed online (:data:`crowdnav_mesrnn.online_conformal.GAMMA_RULES`); an ``"experts"`` row also holds
+    ``expert_weights_end`` (level key -> ``P`` lists of the experts' final weights).
     """
     if method not in ("split", "online"):
         raise ValueError(f"unknown calibration method {method!r}; valid: split, online")
     if method == "split" and reveal is not None:
         raise ValueError(f"reveal={reveal!r} applies to method 'online' only, not {method!r}")
+    if method == "split" and gamma_rule is not None:
+        raise ValueError(f"gamma_rule={gamma_rule!r} applies to method 'online' only, not {method!r}")
     splits = resolve_splits(splits)
     levels = tuple(float(c) for c in levels)
     for c in levels:
@@ -456,19 +462,40 @@ def calibrate_model(
         "splits": {},
     }
     if method == "online":
-        from crowdnav_mesrnn.online_conformal import GAMMA_GRID, GAMMA_TOLERANCE, REVEAL_RULES, online_for_split
+        from crowdnav_mesrnn.online_conformal import (
+            EXPERT_INTERVAL,
+            GAMMA_GRID,
+            GAMMA_RULES,
+            GAMMA_TOLERANCE,
+            REVEAL_RULES,
+            expert_rates,
+            online_for_split,
+        )
 
         reveal = REVEAL_RULES[0] if reveal is None else reveal
         if reveal not in REVEAL_RULES:
             raise ValueError(f"unknown reveal rule {reveal!r}; valid: {', '.join(REVEAL_RULES)}")
+        experts = gamma_rule == "experts"
+        if gamma_rule is not None and gamma_rule not in GAMMA_RULES:
+            raise ValueError(f"unknown gamma rule {gamma_rule!r}; valid: {', '.join(GAMMA_RULES)}")
         out["calibration"] += f"; outcomes revealed {_REVEAL_TEXT[reveal]}"
+        if experts:
+            out["calibration"] = out["calibration"].replace(
+                "step size chosen on the validation scenes",
+                "every step size of the grid as an expert, mixed by their pinball loss on the revealed outcomes",
+            )
         out = {
             "method": "online",
             "reveal": reveal,
+            **({"gamma_rule": "experts"} if experts else {}),
             **out,
             "gamma_grid": list(GAMMA_GRID),
-            "gamma_tolerance": GAMMA_TOLERANCE,
         }
+        if experts:
+            eta, share = expert_rates(len(GAMMA_GRID))
+            out |= {"expert_interval": EXPERT_INTERVAL, "expert_eta": eta, "expert_share": share}
+        else:
+            out["gamma_tolerance"] = GAMMA_TOLERANCE
     per_split: dict[str, Coverage] = {}
     for split in splits:
         predictor = predictor_for(split) if predictor_for is not None else None
@@ -482,7 +509,17 @@ def calibrate_model(
         online = None
         if method == "online":
             online = online_for_split(
-                cal, val_windows, val, val_scores, test_windows, test, cov, levels, data_dir, reveal
+                cal,
+                val_windows,
+                val,
+                val_scores,
+                test_windows,
+                test,
+                cov,
+                levels,
+                data_dir,
+                reveal,
+                "experts" if experts else "validation",
             )
             split_cov, cov = cov, online.coverage
         per_split[split] = cov
@@ -548,7 +585,8 @@ def _online_fields(
     cov = online.coverage
     per_step = {k: cov.covered[k].sum(0) / cov.counts.sum() for k in keys}
     diffs = {k: PairedErrors(online.radius_diff[k], cov.counts * cov.covered[k].shape[1]) for k in keys}
-    return {
+    extra = {} if online.expert_weights_end is None else {"expert_weights_end": online.expert_weights_end}
+    return extra | {
         "gamma": online.gamma,
         "gamma_validation_deviation": online.gamma_deviation,
         "coverage_min_step": {k: float(per_step[k].min()) for k in keys},
@@ -592,7 +630,11 @@ def format_calibration(result: dict[str, Any]) -> str:
     if result.get("method") == "online":
         lines.append(
             "split conformal on the same windows, coverage (lowest step) and mean radius (m) per level; the online "
-            "step size gamma per level:"
+            + (
+                "experts' step sizes weighted by their final weights (mean over steps) per level:"
+                if result.get("gamma_rule") == "experts"
+                else "step size gamma per level:"
+            )
         )
         for split, r in result["splits"].items():
             sc = r["split_conformal"]

@@ -134,6 +134,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         n_resamples=args.resamples,
         method=args.method,
         reveal=args.reveal,
+        gamma_rule=args.gamma,
     )
     return _emit(args, result, format_calibration)
 
@@ -389,6 +390,14 @@ def add_parser(sub: Any) -> None:
         help="online only: when an outcome updates the tracker. window (default): every step of a window once the "
         "whole window is observed (t + 12), when its scored pedestrians (present in all 20 frames) are known, "
         "strictly causal; step: step h at t + h, counting only pedestrians still present at t + 12 (optimistic)",
+    )
+    c.add_argument(
+        "--gamma",
+        default=None,
+        choices=("validation", "experts"),
+        help="online only: the tracker's step size. validation (default): one step size chosen on the validation "
+        "scenes; experts: a tracker per step size of the grid, mixed online by their pinball loss (no validation "
+        "choice)",
     )
     c.add_argument("--head", default="point", choices=("point", "gaussian"), help="which shipped weights")
     c.add_argument("--checkpoint", default=None, help="checkpoint path instead; may contain {split} and {model}")

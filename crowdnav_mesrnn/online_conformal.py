@@ -49,6 +49,18 @@ scenes, tracked with the same reveal rule as the test scene. The chosen ``γ`` i
 :data:`GAMMA_GRID` whose deviation is at most :data:`GAMMA_TOLERANCE` (the goal's ±0.03: the steadiest tracker that
 holds the level on the validation scenes), or, when none is, the one with the smallest deviation.
 
+**Experts instead of a chosen γ** (``gamma_rule="experts"``, declared in ``docs/results/uncertainty.md`` before it
+was run on any test scene). Choosing one ``γ`` on validation fails where the validation scenes cannot tell the
+candidates apart (on UNIV every candidate's deviation tied, and the tie went to the slowest). Following the
+dynamically-tuned ACI of Gibbs & Candès (2022, "Conformal inference for online prediction with arbitrary
+distribution shifts"), every ``γ`` of :data:`GAMMA_GRID` runs its own tracker (each updated on its own thresholds'
+outcomes, exactly as above), and the threshold used is their weighted mean. The weights follow the experts' pinball
+loss on the revealed outcomes, ``ρ_c(s − q) / q_h^0`` averaged over a window's scored pedestrians, by exponential
+weights with a fixed share (Herbster & Warmuth): ``log w_k −= η loss_k``, then ``w ← (1 − σ) w + σ / K``. The rates
+are the textbook ones for an interval of :data:`EXPERT_INTERVAL` windows, fixed before any run: Hedge's
+``η = sqrt(8 ln K / I)`` and DtACI's ``σ = 1 / (2 I)``. Validation is not read at all; outcomes are revealed with
+the same rule and delay as the single tracker's.
+
 No maintained library fits this as it stands (checked): scipy has no conformal prediction; MAPIE's time-series
 regressor implements ACI around a scikit-learn regressor of a scalar target, updated one observation at a time,
 with no per-horizon delay and no external scores. The tracker is a few lines of numpy.
@@ -56,6 +68,7 @@ with no per-horizon delay and no external scores. The tracker is a few lines of 
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -86,6 +99,11 @@ GAMMA_TOLERANCE: Final[float] = 0.03
 METHODS: Final[tuple[str, ...]] = ("split", "online")
 #: When an outcome updates the tracker (module docstring); the first is the default.
 REVEAL_RULES: Final[tuple[str, ...]] = ("window", "step")
+#: How the step size is set (module docstring): one ``γ`` chosen on validation (the default), or every ``γ`` of the grid
+#: as experts mixed online.
+GAMMA_RULES: Final[tuple[str, ...]] = ("validation", "experts")
+#: The interval (windows) the experts' rates are set for: ``η = sqrt(8 ln K / I)``, ``σ = 1 / (2 I)``.
+EXPERT_INTERVAL: Final[int] = 100
 
 
 def window_clock(windows: Sequence[Window], recordings: Sequence[Recording]) -> np.ndarray:
@@ -173,6 +191,75 @@ def track_thresholds(
                 nxt += 1
             out[k, j] = q
     return out
+
+
+def expert_rates(experts: int, interval: int = EXPERT_INTERVAL) -> tuple[float, float]:
+    """``(η, σ)`` of the expert mixture (module docstring) for ``experts`` experts and an interval of ``interval``
+    windows."""
+    if experts < 1 or interval < 1:
+        raise ValueError(f"need at least one expert and a positive interval, got {experts} and {interval}")
+    return math.sqrt(8.0 * math.log(max(experts, 2)) / interval), 1.0 / (2.0 * interval)
+
+
+def aggregate_thresholds(
+    scores: np.ndarray,
+    window: np.ndarray,
+    time: np.ndarray,
+    start: np.ndarray,
+    level: float,
+    gammas: Sequence[float] = GAMMA_GRID,
+    reveal: str = REVEAL_RULES[0],
+    interval: int = EXPERT_INTERVAL,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The expert mixture of the module docstring over one stream: a tracker per step size of ``gammas``
+    (:func:`track_thresholds`), weighted by their pinball loss on the outcomes revealed so far.
+
+    Args: as :func:`track_thresholds`, with ``gammas`` the experts' step sizes and ``interval`` the windows the rates
+    are set for (:func:`expert_rates`).
+
+    Returns:
+        ``(W, P)`` the thresholds used (each the weighted mean of the experts' for that window and step, with the
+        weights known at its forecast time) and ``(P, K)`` the experts' weights after the last window.
+    """
+    if not len(gammas):
+        raise ValueError("need at least one step size")
+    experts = np.stack([track_thresholds(scores, window, time, start, level, g, reveal) for g in gammas])  # (K, W, P)
+    scores = np.asarray(scores, dtype=np.float64)
+    window = np.asarray(window, dtype=np.int64)
+    time = np.asarray(time, dtype=np.int64)
+    start = np.asarray(start, dtype=np.float64)
+    k_count, n_windows, n_steps = experts.shape
+    eta, share = expert_rates(k_count, interval)
+    bounds = np.searchsorted(window, np.arange(n_windows + 1))
+    out = np.empty((n_windows, n_steps))
+    weights_end = np.full((n_steps, k_count), 1.0 / k_count)
+    for j in range(n_steps):
+        q0, delay = start[j], (j + 1 if reveal == "step" else n_steps)
+        if not np.isfinite(q0):
+            out[:, j] = q0
+            continue
+        unit = q0 if q0 > 0 else 1.0
+        log_w = np.full(k_count, -math.log(k_count))
+        w = np.exp(log_w)
+        nxt = 0
+        for k in range(n_windows):
+            moved = False
+            while nxt < k and time[nxt] + delay <= time[k]:  # outcomes revealed by time[k], oldest first
+                rows = scores[bounds[nxt] : bounds[nxt + 1], j]
+                if len(rows):
+                    diff = rows[None, :] - experts[:, nxt, j][:, None]  # (K, n): score minus each expert's threshold
+                    loss = np.where(diff > 0, level * diff, (level - 1.0) * diff).mean(1) / unit
+                    log_w = log_w - eta * loss
+                    w = np.exp(log_w - log_w.max())
+                    w = (1.0 - share) * w / w.sum() + share / k_count
+                    log_w = np.log(w)
+                    moved = True
+                nxt += 1
+            if moved:
+                w = np.exp(log_w)
+            out[k, j] = float(w @ experts[:, k, j])
+        weights_end[j] = w
+    return out, weights_end
 
 
 @dataclass(frozen=True)
@@ -263,8 +350,10 @@ class OnlineResult:
 
     Attributes:
         coverage: the online regions' coverage (the same shape as split conformal's, for the same rows).
-        gamma: level key -> the chosen step size.
-        gamma_deviation: level key -> the validation deviation of each ``γ`` of :data:`GAMMA_GRID`.
+        gamma: level key -> the chosen step size (``gamma_rule="experts"``: the experts' step sizes weighted by
+            their final weights, averaged over the steps).
+        gamma_deviation: level key -> the validation deviation of each ``γ`` of :data:`GAMMA_GRID` (empty for
+            ``"experts"``, which reads no validation stream).
         thresholds_end: level key -> ``(P,)`` the thresholds after the last window.
         second_half: level key -> pooled coverage over the later half of the windows (time order).
         radius_diff: level key -> per-window sums over positions and steps of the online minus the split-conformal
@@ -277,6 +366,7 @@ class OnlineResult:
     thresholds_end: dict[str, list[float]]
     second_half: dict[str, float]
     radius_diff: dict[str, np.ndarray]
+    expert_weights_end: dict[str, list[list[float]]] | None = None
 
 
 def online_coverage(
@@ -286,21 +376,30 @@ def online_coverage(
     split_coverage: Coverage,
     levels: Sequence[float],
     reveal: str = REVEAL_RULES[0],
+    gamma_rule: str = GAMMA_RULES[0],
 ) -> OnlineResult:
-    """Choose ``γ`` on the validation streams, track over the test stream from ``calibration``'s (split-conformal)
-    thresholds, both with the reveal rule ``reveal``, and measure the coverage and the size of the regions. ``split_coverage`` is split conformal's
+    """Choose ``γ`` on the validation streams (or, ``gamma_rule="experts"``, mix every ``γ`` of the grid online), track
+    over the test stream from ``calibration``'s (split-conformal) thresholds, both with the reveal rule ``reveal``,
+    and measure the coverage and the size of the regions. ``split_coverage`` is split conformal's
     on the same test rows; its raw coverage and NLL (the model's own regions, which tracking does not change)
     are carried over."""
     scored = test.scored
     keep = scored.counts > 0
     late = np.arange(int(keep.sum())) >= int(keep.sum()) // 2  # the later half of the (time-ordered) windows
     unit = unit_radius(scored, calibration)
-    covered, radius, gammas, devs, ends, half, diff = {}, {}, {}, {}, {}, {}, {}
+    if gamma_rule not in GAMMA_RULES:
+        raise ValueError(f"unknown gamma rule {gamma_rule!r}; valid: {', '.join(GAMMA_RULES)}")
+    covered, radius, gammas, devs, ends, half, diff, weights = {}, {}, {}, {}, {}, {}, {}, {}
     for c in levels:
         key = level_key(c)
-        gammas[key], devs[key] = choose_gamma(val_streams, c, reveal=reveal)
         start = calibration.threshold(c)
-        thr = test.thresholds(start, c, gammas[key], reveal)
+        if gamma_rule == "experts":
+            thr, w_end = aggregate_thresholds(test.scores, scored.window, test.time, start, c, GAMMA_GRID, reveal)
+            weights[key] = w_end.tolist()
+            gammas[key], devs[key] = float(np.mean(w_end @ np.asarray(GAMMA_GRID))), []
+        else:
+            gammas[key], devs[key] = choose_gamma(val_streams, c, reveal=reveal)
+            thr = test.thresholds(start, c, gammas[key], reveal)
         ends[key] = thr[-1].tolist()
         inside = test.covered(thr)
         covered[key] = scored.window_sums(inside)[keep]
@@ -309,7 +408,7 @@ def online_coverage(
         diff[key] = scored.window_sums(size - start[None, :] * unit).sum(1)[keep]
         half[key] = float(covered[key][late].sum() / (split_coverage.counts[late].sum() * inside.shape[1]))
     coverage = Coverage(covered, split_coverage.raw, split_coverage.counts, radius, split_coverage.nll_m)
-    return OnlineResult(coverage, gammas, devs, ends, half, diff)
+    return OnlineResult(coverage, gammas, devs, ends, half, diff, weights if gamma_rule == "experts" else None)
 
 
 def unit_radius(scored: ScoredForecasts, calibration: Calibration) -> np.ndarray:
@@ -332,11 +431,13 @@ def online_for_split(
     levels: Sequence[float],
     data_dir: str | os.PathLike[str] | None = None,
     reveal: str = REVEAL_RULES[0],
+    gamma_rule: str = GAMMA_RULES[0],
 ) -> OnlineResult:
     """:func:`online_coverage` on ``calibration.split``: its validation scenes choose ``γ``, its test scene (one
-    stream, its recordings in order) is tracked; both with the reveal rule ``reveal``."""
+    stream, its recordings in order) is tracked; both with the reveal rule ``reveal``; ``gamma_rule`` as
+    :func:`online_coverage`."""
     split = calibration.split
     val_streams = scene_streams(val_windows, val, val_scores, load_split(split, "val", data_dir))
     scores = region_scores(test, calibration.score, calibration.error_model)
     stream = Stream(test, scores, window_clock(test_windows, load_split(split, "test", data_dir)))
-    return online_coverage(calibration, val_streams, stream, split_coverage, levels, reveal)
+    return online_coverage(calibration, val_streams, stream, split_coverage, levels, reveal, gamma_rule)
