@@ -492,8 +492,12 @@ def calibrate_model(
             "gamma_grid": list(GAMMA_GRID),
         }
         if experts:
-            eta, share = expert_rates(len(GAMMA_GRID))
-            out |= {"expert_interval": EXPERT_INTERVAL, "expert_eta": eta, "expert_share": share}
+            rates = {level_key(c): expert_rates(len(GAMMA_GRID), c) for c in levels}
+            out |= {
+                "expert_interval": EXPERT_INTERVAL,
+                "expert_eta": {k: r[0] for k, r in rates.items()},
+                "expert_share": next(iter(rates.values()))[1],
+            }
         else:
             out["gamma_tolerance"] = GAMMA_TOLERANCE
     per_split: dict[str, Coverage] = {}

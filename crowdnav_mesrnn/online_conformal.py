@@ -57,9 +57,9 @@ distribution shifts"), every ``γ`` of :data:`GAMMA_GRID` runs its own tracker (
 outcomes, exactly as above), and the threshold used is their weighted mean. The weights follow the experts' pinball
 loss on the revealed outcomes, ``ρ_c(s − q) / q_h^0`` averaged over a window's scored pedestrians, by exponential
 weights with a fixed share (Herbster & Warmuth): ``log w_k −= η loss_k``, then ``w ← (1 − σ) w + σ / K``. The rates
-are the textbook ones for an interval of :data:`EXPERT_INTERVAL` windows, fixed before any run: Hedge's
-``η = sqrt(8 ln K / I)`` and DtACI's ``σ = 1 / (2 I)``. Validation is not read at all; outcomes are revealed with
-the same rule and delay as the single tracker's.
+are DtACI's for an interval of :data:`EXPERT_INTERVAL` windows (:func:`expert_rates`; at 90 % ``η ≈ 5.6``,
+``σ = 0.005``), fixed before any test run. Validation is not read at all; outcomes are revealed with the same rule
+and delay as the single tracker's.
 
 No maintained library fits this as it stands (checked): scipy has no conformal prediction; MAPIE's time-series
 regressor implements ACI around a scikit-learn regressor of a scalar target, updated one observation at a time,
@@ -193,12 +193,19 @@ def track_thresholds(
     return out
 
 
-def expert_rates(experts: int, interval: int = EXPERT_INTERVAL) -> tuple[float, float]:
-    """``(η, σ)`` of the expert mixture (module docstring) for ``experts`` experts and an interval of ``interval``
-    windows."""
+def expert_rates(experts: int, level: float, interval: int = EXPERT_INTERVAL) -> tuple[float, float]:
+    """``(η, σ)`` of the expert mixture (module docstring) for ``experts`` experts, coverage ``level`` and an interval
+    of ``interval`` windows: DtACI's ``η = sqrt(3 / I) sqrt((ln(K I) + 2) / ((1 − α)² α³ + α² (1 − α)³))`` with
+    ``α = 1 − level``, and ``σ = 1 / (2 I)``."""
     if experts < 1 or interval < 1:
         raise ValueError(f"need at least one expert and a positive interval, got {experts} and {interval}")
-    return math.sqrt(8.0 * math.log(max(experts, 2)) / interval), 1.0 / (2.0 * interval)
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"need 0 < level < 1, got {level!r}")
+    a = 1.0 - level
+    eta = math.sqrt(3.0 / interval) * math.sqrt(
+        (math.log(experts * interval) + 2.0) / ((1 - a) ** 2 * a**3 + a**2 * (1 - a) ** 3)
+    )
+    return eta, 1.0 / (2.0 * interval)
 
 
 def aggregate_thresholds(
@@ -229,7 +236,7 @@ def aggregate_thresholds(
     time = np.asarray(time, dtype=np.int64)
     start = np.asarray(start, dtype=np.float64)
     k_count, n_windows, n_steps = experts.shape
-    eta, share = expert_rates(k_count, interval)
+    eta, share = expert_rates(k_count, level, interval)
     bounds = np.searchsorted(window, np.arange(n_windows + 1))
     out = np.empty((n_windows, n_steps))
     weights_end = np.full((n_steps, k_count), 1.0 / k_count)

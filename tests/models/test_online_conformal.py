@@ -20,7 +20,9 @@ from crowdnav_mesrnn.online_conformal import (
     GAMMA_GRID,
     REVEAL_RULES,
     Stream,
+    aggregate_thresholds,
     choose_gamma,
+    expert_rates,
     track_thresholds,
     window_clock,
 )
@@ -259,3 +261,82 @@ def test_reveal_applies_to_the_online_method_only(data_dir: Path) -> None:
         calibrate_model("cv", "zara1", reveal="step")
     with pytest.raises(ValueError, match="reveal rule 'soon'; valid: window, step"):
         calibrate_model("cv", "zara1", method="online", reveal="soon")
+
+
+@pytest.mark.parametrize("reveal", REVEAL_RULES)
+def test_the_expert_mixture_uses_no_outcome_before_it_is_revealed(reveal: str) -> None:
+    """As for the single tracker: changing one window's outcome changes the mixture's threshold of step h only from
+    its reveal on (the weights and every expert see it then), and changes it there."""
+    scores, window, time = rayleigh_stream(80, 2, 12, 1.0, seed=0)
+    time = time * 2
+    start = np.full(12, RAYLEIGH_Q90)
+    base, _ = aggregate_thresholds(scores, window, time, start, 0.9, reveal=reveal)
+    for k in (5, 30, 61):
+        changed = scores.copy()
+        changed[window == k] = 100.0
+        thr, _ = aggregate_thresholds(changed, window, time, start, 0.9, reveal=reveal)
+        for j in range(12):
+            before = time < time[k] + reveal_delay(reveal, j, 12)
+            np.testing.assert_array_equal(thr[before, j], base[before, j])
+            first_after = np.flatnonzero(~before)
+            if len(first_after):
+                assert thr[first_after[0], j] > base[first_after[0], j]
+
+
+def test_the_expert_mixture_moves_weight_to_the_step_size_that_tracks_a_shift() -> None:
+    """Calibrated on scale 1, tested on a scale that jumps to 1.8 for a short stream: the slowest tracker alone stays
+    far below 0.9, the mixture reaches what the fast trackers reach and ends with most weight on steps of 0.2 or
+    more. Its thresholds always lie between the experts' smallest and largest."""
+    start = np.full(2, RAYLEIGH_Q90)
+    scores, window, time = rayleigh_stream(300, 4, 2, 1.8, seed=7)
+    slow = track_thresholds(scores, window, time, start, 0.9, GAMMA_GRID[0], "window")
+    fast = track_thresholds(scores, window, time, start, 0.9, 1.0, "window")
+    mixed, w_end = aggregate_thresholds(scores, window, time, start, 0.9, reveal="window")
+    cov = {name: float((scores <= t[window]).mean()) for name, t in (("slow", slow), ("fast", fast), ("mix", mixed))}
+    assert cov["slow"] < 0.75
+    assert cov["mix"] > cov["fast"] - 0.03 and cov["mix"] > 0.85
+    np.testing.assert_allclose(w_end.sum(1), 1.0)
+    assert np.all(w_end[:, np.asarray(GAMMA_GRID) >= 0.2].sum(1) > 0.5)
+    experts = np.stack([track_thresholds(scores, window, time, start, 0.9, g, "window") for g in GAMMA_GRID])
+    assert np.all(mixed >= experts.min(0) - 1e-12) and np.all(mixed <= experts.max(0) + 1e-12)
+
+
+def test_on_an_exchangeable_stream_the_mixture_stays_at_the_level() -> None:
+    scores, window, time = rayleigh_stream(1500, 3, 12, 1.0, seed=4)
+    thr, _ = aggregate_thresholds(scores, window, time, np.full(12, RAYLEIGH_Q90), 0.9)
+    np.testing.assert_allclose((scores <= thr[window]).mean(0), 0.9, atol=0.015)
+
+
+def test_expert_rates_are_the_declared_ones() -> None:
+    """DtACI's rates for I = 100 windows and the 7 step sizes: at 90 %, 0.17 * sqrt((ln 700 + 2) / 0.0081)."""
+    eta, share = expert_rates(len(GAMMA_GRID), 0.9)
+    assert eta == pytest.approx(np.sqrt(0.03) * np.sqrt((np.log(700) + 2) / (0.81e-3 + 0.729e-2)))
+    assert 5.5 < eta < 5.7 and share == pytest.approx(0.005)
+    with pytest.raises(ValueError, match="at least one expert"):
+        expert_rates(0, 0.9)
+    with pytest.raises(ValueError, match="0 < level < 1"):
+        expert_rates(7, 1.0)
+
+
+def test_online_cli_with_experts_reports_their_weights(data_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["predictor", "calibrate", "--model", "cv", "--split", "zara1", "--json", "--resamples", "200"]
+    assert main([*args, "--method", "online", "--gamma", "experts"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["gamma_rule"] == "experts" and res["expert_interval"] == 100
+    assert "as an expert" in res["calibration"]
+    row = res["splits"]["zara1"]
+    for key in ("0.5", "0.9", "0.95"):
+        weights = np.asarray(row["expert_weights_end"][key])
+        assert weights.shape == (PRED_LEN, len(GAMMA_GRID))
+        np.testing.assert_allclose(weights.sum(1), 1.0)
+        assert min(GAMMA_GRID) <= row["gamma"][key] <= max(GAMMA_GRID)
+        assert row["gamma_validation_deviation"][key] == []
+    assert main([*args, "--method", "online"]) == 0
+    chosen = json.loads(capsys.readouterr().out)
+    assert "gamma_rule" not in chosen and "expert_weights_end" not in chosen["splits"]["zara1"]
+    from crowdnav_mesrnn.calibration import calibrate_model
+
+    with pytest.raises(ValueError, match="gamma_rule='experts' applies to method 'online' only"):
+        calibrate_model("cv", "zara1", gamma_rule="experts")
+    with pytest.raises(ValueError, match="unknown gamma rule 'fast'; valid: validation, experts"):
+        calibrate_model("cv", "zara1", method="online", gamma_rule="fast")
