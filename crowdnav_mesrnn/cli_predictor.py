@@ -84,24 +84,26 @@ def _checkpoint_loader(args: argparse.Namespace) -> Any:
 def _eval(args: argparse.Namespace) -> int:
     import torch
 
-    from crowdnav_mesrnn.evaluation import evaluate_model, format_result
+    from crowdnav_mesrnn.evaluation import evaluate_model, evaluate_versus, format_result
 
     torch.set_num_threads(args.threads)
-    checkpoint_for = _checkpoint_loader(args)
     head = args.head or ("gaussian" if args.samples else "point")
-    result = evaluate_model(
-        args.model,
-        args.split,
-        data_dir=args.data_dir,
-        checkpoint_for=checkpoint_for,
-        part=args.part,
-        samples=args.samples,
-        sampling=args.sampling,
-        seed=args.seed,
-        head=head if args.model != "cv" else "point",
-        block_len=args.block_len,
-        n_resamples=args.resamples,
-    )
+    common: dict[str, Any] = {
+        "data_dir": args.data_dir,
+        "part": args.part,
+        "samples": args.samples,
+        "sampling": args.sampling,
+        "seed": args.seed,
+        "head": head if args.model != "cv" else "point",
+        "block_len": args.block_len,
+        "n_resamples": args.resamples,
+    }
+    if args.versus:
+        if args.checkpoint:
+            raise ValueError("--versus compares shipped weights; it takes no --checkpoint")
+        result = evaluate_versus(args.model, args.versus, splits=args.split, **common)
+    else:
+        result = evaluate_model(args.model, args.split, checkpoint_for=_checkpoint_loader(args), **common)
     return _emit(args, result, format_result)
 
 
@@ -354,6 +356,16 @@ def add_parser(sub: Any) -> None:
         default=None,
         choices=("point", "gaussian"),
         help="which shipped weights (default point; gaussian with --samples); a distribution head also gets nll_m",
+    )
+    e.add_argument(
+        "--versus",
+        nargs="+",
+        default=None,
+        choices=MODELS,
+        metavar="MODEL",
+        help="also evaluate these shipped models with the same head, samples, sampling and seed, and give the paired "
+        "differences (--model minus each) of ADE/FDE, NLL and best-of-K with block-bootstrap intervals (the JSON's "
+        "versus key)",
     )
     _add_bootstrap_and_runtime(e)
     e.set_defaults(func=_eval)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -240,6 +240,8 @@ def split_norm(split: str, data_dir: str | os.PathLike[str] | None = None) -> Mi
 SAMPLINGS: tuple[str, ...] = ("marginal", "coherent", "feedback")
 #: Metrics of a distribution added by :func:`evaluate_model`, each with a ``_ci`` interval.
 DISTRIBUTION_KEYS = ("nll_m", "min_ade_m", "min_fde_m")
+#: Metrics whose paired differences :func:`paired_differences` gives (the point forecast's, then the distribution's).
+PAIRED_KEYS = ("ade_m", "fde_m", *DISTRIBUTION_KEYS)
 
 
 def distribution_metrics(
@@ -279,6 +281,7 @@ def evaluate_model(
     head: str = "point",
     block_len: int = 20,
     n_resamples: int = 10_000,
+    distribution_sums: dict[str, dict[str, PairedErrors]] | None = None,
 ) -> dict[str, Any]:
     """Evaluate ``cv`` or a learned model on each split's ``part``; averaged over the splits.
 
@@ -294,6 +297,8 @@ def evaluate_model(
         head: which shipped weights to load when ``checkpoint_for`` is None (``point`` or ``gaussian``).
         block_len: block length of the block bootstrap, in windows (:mod:`crowdnav_mesrnn.stats`).
         n_resamples: resamples of the block bootstrap.
+        distribution_sums: if given, filled with ``split -> metric ->`` the per-window sums behind each metric of
+            :data:`DISTRIBUTION_KEYS` (windows in time order), for :func:`paired_differences`.
 
     A model with a distribution head also gets ``nll_m``: the negative log-likelihood of the true positions under
     its Gaussians (nats per position, densities per m²), with its interval. Intervals of ``splits.average`` resample
@@ -346,6 +351,8 @@ def evaluate_model(
             )
             metrics, dist_sums[split] = distribution_metrics(scored, block_len, n_resamples)
             result["splits"][split] |= metrics
+            if distribution_sums is not None:
+                distribution_sums[split] = dist_sums[split]
         elif samples:
             raise ValueError(
                 f"--samples needs a distribution head; the {model!r} weights of split {split!r} have a point head "
@@ -362,6 +369,103 @@ def evaluate_model(
             if all(key in dist_sums.get(s, {}) for s in splits):
                 est, ci = average_ci([dist_sums[s][key] for s in splits], block_len, n_resamples)
                 result["splits"]["average"] |= {key: est, f"{key}_ci": list(ci)}
+    return result
+
+
+def paired_differences(
+    a: Mapping[str, Mapping[str, PairedErrors]],
+    b: Mapping[str, Mapping[str, PairedErrors]],
+    block_len: int = 20,
+    n_resamples: int = 10_000,
+) -> dict[str, dict[str, Any]]:
+    """The paired differences A − B of two evaluations of the same windows, with block-bootstrap intervals.
+
+    Args:
+        a, b: ``split -> metric ->`` per-window sums of one model each (:func:`paired_sums`; the same splits, part
+            and windows for both).
+
+    Returns:
+        ``split -> {metric: A − B, metric_ci: [lo, hi]}`` for every metric of :data:`PAIRED_KEYS` both hold (metres,
+        nats per position for ``nll_m``); the windows are resampled
+        together, so the interval is of the paired difference. Over two or more splits where every split holds the
+        metric, ``average`` is the unweighted mean over the splits, its interval resampling each split
+        independently (:func:`crowdnav_mesrnn.stats.average_ci`).
+
+    Raises:
+        ValueError: the two evaluations cover different splits or score different pedestrians in some window.
+    """
+    if list(a) != list(b):
+        raise ValueError(f"the two evaluations cover different splits: {', '.join(a)} against {', '.join(b)}")
+    out: dict[str, dict[str, Any]] = {}
+    per_key: dict[str, list[PairedErrors]] = {}
+    for split in a:
+        out[split] = {}
+        for key in PAIRED_KEYS:
+            if key not in a[split] or key not in b[split]:
+                continue
+            ea, eb = a[split][key], b[split][key]
+            if not np.array_equal(ea.count, eb.count):
+                raise ValueError(
+                    f"split {split!r}, {key}: the two evaluations score different pedestrians per window "
+                    f"({len(ea.count)} windows, {int(ea.count.sum())} pedestrians against {len(eb.count)} windows, "
+                    f"{int(eb.count.sum())} pedestrians); compare evaluations of the same split, part and windows"
+                )
+            diff = PairedErrors(ea.diff_sum - eb.diff_sum, ea.count)
+            out[split] |= {key: diff.estimate, f"{key}_ci": list(block_bootstrap_ci(diff, block_len, n_resamples))}
+            per_key.setdefault(key, []).append(diff)
+    if len(a) > 1:
+        out["average"] = {}
+        for key, diffs in per_key.items():
+            if len(diffs) == len(a):
+                est, ci = average_ci(diffs, block_len, n_resamples)
+                out["average"] |= {key: est, f"{key}_ci": list(ci)}
+    return out
+
+
+def paired_sums(
+    window_sums: Mapping[str, Mapping[str, np.ndarray]], distribution_sums: Mapping[str, Mapping[str, PairedErrors]]
+) -> dict[str, dict[str, PairedErrors]]:
+    """``split -> metric ->`` per-window sums of every metric of :data:`PAIRED_KEYS` that :func:`evaluate_model`
+    filled into ``window_sums`` (point ADE/FDE) and ``distribution_sums`` (NLL, best-of-K), windows without a scored
+    pedestrian dropped as :func:`distribution_metrics` drops them."""
+    out: dict[str, dict[str, PairedErrors]] = {}
+    for split, ws in window_sums.items():
+        keep = ws["pedestrians"] > 0
+        out[split] = {k: PairedErrors(ws[k][keep], ws["pedestrians"][keep]) for k in ("ade_m", "fde_m")}
+        out[split] |= dict(distribution_sums.get(split, {}))
+    return out
+
+
+def evaluate_versus(model: str, others: Sequence[str], **kwargs: Any) -> dict[str, Any]:
+    """:func:`evaluate_model` of ``model`` and of each of ``others`` with the same arguments (shipped weights, the
+    same head, samples, sampling, seed and bootstrap), and the paired differences ``model − other``.
+
+    Each model's figures are exactly those of its own :func:`evaluate_model` run with these arguments. The returned
+    result is ``model``'s, with ``versus: {other: {"result": other's result, "difference":``
+    :func:`paired_differences` ``(model, other)}}``.
+
+    Raises:
+        ValueError: ``others`` is empty or names ``model`` or a model twice, or ``kwargs`` holds ``checkpoint_for``,
+            ``window_sums`` or ``distribution_sums`` (the comparison is of shipped weights and fills those itself).
+    """
+    taken = {"checkpoint_for", "window_sums", "distribution_sums"} & set(kwargs)
+    if taken:
+        raise ValueError(f"evaluate_versus compares shipped weights and takes no {', '.join(sorted(taken))}")
+    if not others or model in others or len(set(others)) != len(others):
+        raise ValueError(f"versus needs other models than {model!r}, each once; got {', '.join(others) or 'none'}")
+
+    def run(name: str) -> tuple[dict[str, Any], dict[str, dict[str, PairedErrors]]]:
+        ws: dict[str, dict[str, np.ndarray]] = {}
+        ds: dict[str, dict[str, PairedErrors]] = {}
+        res = evaluate_model(name, window_sums=ws, distribution_sums=ds, **kwargs)
+        return res, paired_sums(ws, ds)
+
+    result, sums = run(model)
+    block = {k: kwargs[k] for k in ("block_len", "n_resamples") if k in kwargs}
+    result["versus"] = {}
+    for other in others:
+        res, other_sums = run(other)
+        result["versus"][other] = {"result": res, "difference": paired_differences(sums, other_sums, **block)}
     return result
 
 
@@ -382,7 +486,22 @@ def format_result(result: dict[str, Any]) -> str:
         how = f" ({result['samples']} samples, {result['sampling']})" if "samples" in result else ""
         lines.append(f"distribution{how}; 95 % block-bootstrap intervals in brackets")
         lines.append(f"{'split':<9}" + "".join(f"{k:>26}" for k in extra))
-        for split, r in result["splits"].items():
-            cells = [f"{r[k]:.3f} [{r[k + '_ci'][0]:.3f}, {r[k + '_ci'][1]:.3f}]" if k in r else "-" for k in extra]
-            lines.append(f"{split:<9}" + "".join(f"{c:>26}" for c in cells))
+        lines += _interval_rows(result["splits"], extra)
+    for other, v in result.get("versus", {}).items():
+        lines += ["", format_result(v["result"]), ""]
+        keys = [k for k in PAIRED_KEYS if any(k in r for r in v["difference"].values())]
+        lines.append(
+            f"paired differences {result['model']} − {other} (the same windows; 95 % block-bootstrap intervals)"
+        )
+        lines.append(f"{'split':<9}" + "".join(f"{k:>26}" for k in keys))
+        lines += _interval_rows(v["difference"], keys)
     return "\n".join(lines)
+
+
+def _interval_rows(splits: Mapping[str, Mapping[str, Any]], keys: Sequence[str]) -> list[str]:
+    """One row per split: each key's figure with its interval, ``-`` where the split lacks it."""
+    rows = []
+    for split, r in splits.items():
+        cells = [f"{r[k]:.3f} [{r[k + '_ci'][0]:.3f}, {r[k + '_ci'][1]:.3f}]" if k in r else "-" for k in keys]
+        rows.append(f"{split:<9}" + "".join(f"{c:>26}" for c in cells))
+    return rows

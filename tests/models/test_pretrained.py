@@ -1,4 +1,5 @@
-"""The shipped pretrained predictors: all 15 load, are lean, and reproduce the published results page."""
+"""The shipped pretrained predictors: all 15 load, are lean, and reproduce the published results page; the 15 fitted
+Gaussian heads ship beside them and join them."""
 
 from __future__ import annotations
 
@@ -29,6 +30,24 @@ def test_all_splits_shipped_and_lean(model: str) -> None:
         assert ck["selection"]["note"].startswith("lowest val ADE")
         pred = load_pretrained(model, split)
         assert pred.name == model and pred.split == split
+
+
+@pytest.mark.parametrize("model", ["mesrnn", "srnn", "vlstm"])
+def test_gaussian_heads_shipped_small_and_joined_to_the_point_weights(model: str) -> None:
+    """Every model and split has its fitted head (``predictor fit-head``): a file of a few kB holding only the head and
+    the point weights' SHA-256; loaded, its trunk is the point weights' to the bit."""
+    assert available("gaussian")[model] == list(SPLITS)
+    for split in SPLITS:
+        path = pretrained_path(model, split, "gaussian")
+        assert path.stat().st_size < 20_000, path
+        ck = torch.load(path, weights_only=True)
+        assert sorted(ck["state_dict"]) == ["scale_head.bias", "scale_head.weight", "step_bias"]
+        assert ck["base"]["file"] == pretrained_path(model, split).name
+        point, head = load_pretrained(model, split), load_pretrained(model, split, head="gaussian")
+        assert head.has_distribution and not point.has_distribution
+        joined, trunk = head.net.state_dict(), point.net.state_dict()
+        assert set(joined) - set(trunk) == {"scale_head.bias", "scale_head.weight", "step_bias"}
+        assert all(torch.equal(joined[k], v) for k, v in trunk.items())
 
 
 def test_missing_weights_message(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
