@@ -102,7 +102,7 @@ REVEAL_RULES: Final[tuple[str, ...]] = ("window", "step")
 #: How the step size is set (module docstring): one ``γ`` chosen on validation (the default), or every ``γ`` of the grid
 #: as experts mixed online.
 GAMMA_RULES: Final[tuple[str, ...]] = ("validation", "experts")
-#: The interval (windows) the experts' rates are set for: ``η = sqrt(8 ln K / I)``, ``σ = 1 / (2 I)``.
+#: The interval ``I`` (windows) the experts' rates are set for: DtACI's ``η`` and ``σ = 1 / (2 I)`` (:func:`expert_rates`).
 EXPERT_INTERVAL: Final[int] = 100
 
 

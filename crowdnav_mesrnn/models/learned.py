@@ -194,13 +194,16 @@ class OnlineForecaster:
 
     @torch.inference_mode()
     def observe(self, positions_m: np.ndarray, present: np.ndarray) -> None:
-        """One annotation step: ``(num_slots, 2)`` metres and ``(num_slots,)`` bool presence.
+        """One annotation step: ``(num_slots, 2)`` metres and ``(num_slots,)`` bool presence (neither array is kept:
+        the caller may refill them in place for the next frame).
 
         Only pedestrians present now or at the previous step enter the computation (the others
         can neither update nor influence anyone), so the cost follows the crowd, not the slot count.
         """
         pos = np.asarray(positions_m, dtype=np.float32).reshape(self.n, 2)
-        now = np.asarray(present, dtype=bool).reshape(self.n)
+        # a copy: the presence is kept (as a tensor sharing its memory) for the next steps, and a caller may refill
+        # its array in place for the next frame (a tracker's buffer)
+        now = np.array(present, dtype=bool).reshape(self.n)
         m = torch.from_numpy(now.reshape(1, self.n))
         normed = (torch.from_numpy(pos)[None] - self._lo) * self._scale - 1.0  # MinMax.normalise, constants cached
         all_now = bool(now.all())
@@ -245,7 +248,7 @@ class OnlineForecaster:
                     self.next_raw[:, idx] = raw
         self.pos = [p_t, self.pos[0]]
         self.mask = [m, self.mask[0]]
-        self.seen = [now.copy(), self.seen[0]]
+        self.seen = [now, self.seen[0]]
         self.last_seen_m[now] = pos[now]
         self.steps += 1
 

@@ -209,3 +209,24 @@ def test_online_forecaster_carries_state_and_ignores_absent_slots() -> None:
     got = online.forecast()
     live = mask[-1]
     np.testing.assert_allclose(got[live], want[live], rtol=1e-5, atol=1e-5)
+
+
+def test_online_forecaster_keeps_no_view_of_the_callers_arrays() -> None:
+    """A tracker refilling one position and one presence buffer in place every frame gets the forecasts of fresh
+    arrays (the presence was kept as a view of the caller's array: a later refill rewrote the past frame's mask)."""
+    pred = LearnedPredictor(make_net("mesrnn"), MinMax((0.0, 0.0), (10.0, 10.0)))
+    rng = np.random.default_rng(4)
+    t_len, n = 8, 6
+    pos = (np.cumsum(rng.normal(0.2, 0.1, size=(t_len, n, 2)), axis=0) + 2).astype(np.float32)
+    mask = np.ones((t_len, n), bool)
+    mask[:5, 3] = False  # enters late
+    mask[6, 5] = False  # absent at t - 1 only
+    mask[5, 2] = False  # absent at t - 2 only
+    fresh, reused = pred.online(n), pred.online(n)
+    buf_p, buf_m = np.zeros((n, 2), np.float32), np.zeros(n, bool)
+    for t in range(t_len):
+        fresh.observe(pos[t].copy(), mask[t].copy())
+        buf_p[:], buf_m[:] = pos[t], mask[t]
+        reused.observe(buf_p, buf_m)
+    np.testing.assert_array_equal(reused.forecast(), fresh.forecast())
+    np.testing.assert_allclose(fresh.forecast(), pred.forecast(pos, mask), rtol=0, atol=1e-4)
