@@ -390,7 +390,7 @@ def test_observed_rule_uses_nothing_before_it_is_observed() -> None:
     thresholds change soon after f. Its feedback comes faster than the window rule's: the first threshold to move
     from the start moves at t = 1 (step 1 of the window at 0), the window rule's at t = 12."""
     f = 40
-    base, scored_windows = observed_stream(membership_recording())
+    base, _ = observed_stream(membership_recording())
     gone, _ = observed_stream(membership_recording(gone=(f, 2)))
     start = np.linspace(0.2, 1.0, PRED_LEN)
     thr = {name: s.thresholds(start, 0.9, 1.0, "observed") for name, s in (("base", base), ("gone", gone))}
