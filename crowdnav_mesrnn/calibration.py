@@ -224,8 +224,9 @@ class Forecaster:
     distribution: Callable[[Any, Any], Any] | None = None
     info: dict[str, Any] | None = None
 
-    def collect(self, windows: Sequence[Window], batch_size: int = 64) -> ScoredForecasts:
-        return collect_forecasts(windows, self.point, self.distribution, batch_size=batch_size)
+    def collect(self, windows: Sequence[Window], batch_size: int = 64, rows: str = "scored") -> ScoredForecasts:
+        """:func:`crowdnav_mesrnn.evaluation.collect_forecasts` of ``windows`` (``rows`` as there)."""
+        return collect_forecasts(windows, self.point, self.distribution, batch_size=batch_size, rows=rows)
 
 
 def forecaster_for(model: str, split: str, head: str = "point", predictor: Any = None) -> Forecaster:
@@ -478,6 +479,8 @@ def calibrate_model(
         experts = gamma_rule == "experts"
         if gamma_rule is not None and gamma_rule not in GAMMA_RULES:
             raise ValueError(f"unknown gamma rule {gamma_rule!r}; valid: {', '.join(GAMMA_RULES)}")
+        if reveal == "observed" and not experts:
+            raise ValueError("reveal='observed' runs with the step-size experts only: add gamma_rule='experts'")
         out["calibration"] += f"; outcomes revealed {_REVEAL_TEXT[reveal]}"
         if experts:
             out["calibration"] = out["calibration"].replace(
@@ -524,6 +527,7 @@ def calibrate_model(
                 data_dir,
                 reveal,
                 "experts" if experts else "validation",
+                _feedback_forecasts(forecaster, split, data_dir) if reveal == "observed" else None,
             )
             split_cov, cov = cov, online.coverage
         per_split[split] = cov
@@ -573,10 +577,21 @@ def calibrate_model(
     return out
 
 
+def _feedback_forecasts(
+    forecaster: Forecaster, split: str, data_dir: str | os.PathLike[str] | None
+) -> tuple[list[Window], ScoredForecasts]:
+    """Every test window of ``split`` (whether or not it has a scored pedestrian) and its forecasts of every pedestrian
+    present through the observation: what ``--reveal observed`` learns from."""
+    windows = split_windows(split, "test", 0, data_dir)
+    return windows, forecaster.collect(windows, rows="observed")
+
+
 #: How each reveal rule of the online method reads in the result's ``calibration`` text.
 _REVEAL_TEXT: Final[dict[str, str]] = {
     "window": f"per window, once its scored pedestrians are known (all steps at t + {PRED_LEN}; strictly causal)",
     "step": f"per step (step h at t + h, counting only pedestrians still present at t + {PRED_LEN}: optimistic)",
+    "observed": "per step (step h at t + h, over every pedestrian present from the window's first frame through "
+    "t + h, scored or not; strictly causal)",
 }
 
 

@@ -398,10 +398,12 @@ def add_parser(sub: Any) -> None:
     c.add_argument(
         "--reveal",
         default=None,
-        choices=("window", "step"),
+        choices=("window", "step", "observed"),
         help="online only: when an outcome updates the tracker. window (default): every step of a window once the "
         "whole window is observed (t + 12), when its scored pedestrians (present in all 20 frames) are known, "
-        "strictly causal; step: step h at t + h, counting only pedestrians still present at t + 12 (optimistic)",
+        "strictly causal; step: step h at t + h, counting only pedestrians still present at t + 12 (optimistic); "
+        "observed: step h at t + h over every pedestrian present through t + h, scored or not (strictly causal; "
+        "with --gamma experts only)",
     )
     c.add_argument(
         "--gamma",

@@ -114,6 +114,9 @@ class ScoredForecasts:
         rho: ``(M, P)`` float64 correlations (None without a distribution).
         min_ade: ``(M,)`` float64 best-of-K ADE of each pedestrian, metres (None without samples).
         min_fde: ``(M,)`` float64 best-of-K FDE, metres, the sample chosen independently of ``min_ade``'s.
+        observed: ``(M, P)`` bool, with ``rows="observed"`` (:func:`collect_forecasts`) only: step ``h``'s true
+            position is observed with the pedestrian present in every frame through it (``error`` is 0 elsewhere);
+            None when every row is scored (every step observed).
     """
 
     error: np.ndarray
@@ -124,6 +127,7 @@ class ScoredForecasts:
     rho: np.ndarray | None = None
     min_ade: np.ndarray | None = None
     min_fde: np.ndarray | None = None
+    observed: np.ndarray | None = None
 
     @property
     def counts(self) -> np.ndarray:
@@ -145,14 +149,24 @@ def collect_forecasts(
     sample: SampleFn | None = None,
     samples: int = 0,
     batch_size: int = 64,
+    rows: str = "scored",
 ) -> ScoredForecasts:
     """Run a point forecast (``predict``) or a distribution (``distribution``; its means are the forecast) over
     ``windows`` and keep, per scored pedestrian, the error, the last observed speed, the Gaussians and, with
-    ``sample`` and ``samples > 0``, the best-of-``samples`` ADE/FDE (per pedestrian, over its own samples)."""
+    ``sample`` and ``samples > 0``, the best-of-``samples`` ADE/FDE (per pedestrian, over its own samples).
+
+    ``rows="observed"`` keeps every pedestrian present in all ``OBS_LEN`` observed frames instead (the scored ones
+    and those who leave before the window ends), with ``observed`` marking the steps through which each stays
+    present; the online conformal rule ``--reveal observed`` learns from them (no samples with this option)."""
     if (predict is None) == (distribution is None):
         raise ValueError("give exactly one of predict and distribution")
     if samples and sample is None:
         raise ValueError("samples > 0 needs a sample function")
+    if rows not in ("scored", "observed"):
+        raise ValueError(f"unknown rows {rows!r}; valid: scored, observed")
+    if rows == "observed" and samples:
+        raise ValueError("rows='observed' takes no samples")
+    parts_observed: list[np.ndarray] = []
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("error", "speed", "window", "sigma", "rho", "ade", "fde")}
     for chunk in batches(windows, batch_size):
         pos, pres, scored = collate([windows[i] for i in chunk])
@@ -165,7 +179,12 @@ def collect_forecasts(
                 assert predict is not None
                 mean = predict(pos_t, pres_t)
             sampled = sample(pos_t, pres_t, samples) if samples and sample is not None else None
-        b_idx, n_idx = np.nonzero(scored)
+        if rows == "observed":
+            through = np.cumprod(pres[:, OBS_LEN:], axis=1).astype(bool)  # (B, P, N): present at every step so far
+            b_idx, n_idx = np.nonzero(pres[:, :OBS_LEN].all(axis=1))
+            parts_observed.append(through.transpose(0, 2, 1)[b_idx, n_idx])
+        else:
+            b_idx, n_idx = np.nonzero(scored)
         truth = pos[:, OBS_LEN:]  # (B, P, N, 2)
         parts["error"].append((mean.double().numpy() - truth)[b_idx, :, n_idx])
         last, prev = pos[:, OBS_LEN - 1], pos[:, OBS_LEN - 2]
@@ -187,6 +206,13 @@ def collect_forecasts(
 
     error = cat("error")
     speed = cat("speed")
+    observed = np.concatenate(parts_observed)[order] if parts_observed else None
+    if rows == "observed":
+        if observed is None:
+            observed = np.zeros((0, PRED_LEN), bool)
+        assert error is not None or not len(observed)
+        if error is not None:
+            error = np.where(observed[..., None], error, 0.0)
     return ScoredForecasts(
         error if error is not None else np.zeros((0, PRED_LEN, 2)),
         speed if speed is not None else np.zeros(0),
@@ -196,6 +222,7 @@ def collect_forecasts(
         cat("rho"),
         cat("ade"),
         cat("fde"),
+        observed,
     )
 
 

@@ -98,7 +98,7 @@ GAMMA_TOLERANCE: Final[float] = 0.03
 #: Methods of ``predictor calibrate``.
 METHODS: Final[tuple[str, ...]] = ("split", "online")
 #: When an outcome updates the tracker (module docstring); the first is the default.
-REVEAL_RULES: Final[tuple[str, ...]] = ("window", "step")
+REVEAL_RULES: Final[tuple[str, ...]] = ("window", "step", "observed")
 #: How the step size is set (module docstring): one ``γ`` chosen on validation (the default), or every ``γ`` of the grid
 #: as experts mixed online.
 GAMMA_RULES: Final[tuple[str, ...]] = ("validation", "experts")
@@ -149,7 +149,9 @@ def track_thresholds(
         level: coverage level ``c`` in (0, 1).
         gamma: step size (per typical window, relative to ``start``), > 0.
         reveal: one of :data:`REVEAL_RULES`: ``"window"`` uses every step of the window at ``t`` from ``t + P`` on
-            (when its scored set is determined), ``"step"`` uses step ``h`` from ``t + h`` on.
+            (when its scored set is determined), ``"step"`` uses step ``h`` from ``t + h`` on, and so does
+            ``"observed"``, whose rows are every pedestrian present through the step (scored or not): a NaN score
+            marks a step not observed, which is skipped (:class:`Stream`'s ``feedback``).
 
     Returns:
         ``(W, P)`` the threshold used for each window and step.
@@ -169,28 +171,36 @@ def track_thresholds(
         raise ValueError("rows must be grouped by window and windows in time order")
     if len(window) and (window[0] < 0 or window[-1] >= n_windows):
         raise ValueError(f"window indices must lie in [0, {n_windows})")
+    has_gaps = reveal == "observed"
     bounds = np.searchsorted(window, np.arange(n_windows + 1))
-    counts = np.diff(bounds)
     miss_rate = 1.0 - level
     out = np.empty((n_windows, n_steps))
     for j in range(n_steps):
-        q, q0, delay = start[j], start[j], (j + 1 if reveal == "step" else n_steps)
+        q, q0, delay = start[j], start[j], _delay(reveal, j, n_steps)
         if not np.isfinite(q0):
             out[:, j] = q0
             continue
         nxt, revealed_rows, revealed_windows = 0, 0, 0
         for k in range(n_windows):
             while nxt < k and time[nxt] + delay <= time[k]:  # outcomes revealed by time[k], oldest first
-                n = counts[nxt]
+                rows = scores[bounds[nxt] : bounds[nxt + 1], j]
+                if has_gaps:
+                    rows = rows[~np.isnan(rows)]
+                n = len(rows)
                 if n:
                     revealed_rows += n
                     revealed_windows += 1
-                    missed = np.count_nonzero(scores[bounds[nxt] : bounds[nxt + 1], j] > out[nxt, j])
+                    missed = np.count_nonzero(rows > out[nxt, j])
                     mean_n = revealed_rows / revealed_windows
                     q = max(0.0, q + gamma * q0 * (missed - miss_rate * n) / (delay * mean_n))
                 nxt += 1
             out[k, j] = q
     return out
+
+
+def _delay(reveal: str, j: int, n_steps: int) -> int:
+    """Annotations from a forecast until step ``j + 1`` (0-based ``j``) updates a tracker under ``reveal``."""
+    return j + 1 if reveal in ("step", "observed") else n_steps
 
 
 def expert_rates(experts: int, level: float, interval: int = EXPERT_INTERVAL) -> tuple[float, float]:
@@ -221,8 +231,9 @@ def aggregate_thresholds(
     """The expert mixture of the module docstring over one stream: a tracker per step size of ``gammas``
     (:func:`track_thresholds`), weighted by their pinball loss on the outcomes revealed so far.
 
-    Args: as :func:`track_thresholds`, with ``gammas`` the experts' step sizes and ``interval`` the windows the rates
-    are set for (:func:`expert_rates`).
+    Args: as :func:`track_thresholds` (NaN scores skipped under ``"observed"``, by the experts and their losses
+    alike), with ``gammas`` the experts' step sizes and ``interval`` the windows the rates are set for
+    (:func:`expert_rates`).
 
     Returns:
         ``(W, P)`` the thresholds used (each the weighted mean of the experts' for that window and step, with the
@@ -237,11 +248,12 @@ def aggregate_thresholds(
     start = np.asarray(start, dtype=np.float64)
     k_count, n_windows, n_steps = experts.shape
     eta, share = expert_rates(k_count, level, interval)
+    has_gaps = reveal == "observed"
     bounds = np.searchsorted(window, np.arange(n_windows + 1))
     out = np.empty((n_windows, n_steps))
     weights_end = np.full((n_steps, k_count), 1.0 / k_count)
     for j in range(n_steps):
-        q0, delay = start[j], (j + 1 if reveal == "step" else n_steps)
+        q0, delay = start[j], _delay(reveal, j, n_steps)
         if not np.isfinite(q0):
             out[:, j] = q0
             continue
@@ -253,6 +265,8 @@ def aggregate_thresholds(
             moved = False
             while nxt < k and time[nxt] + delay <= time[k]:  # outcomes revealed by time[k], oldest first
                 rows = scores[bounds[nxt] : bounds[nxt + 1], j]
+                if has_gaps:
+                    rows = rows[~np.isnan(rows)]
                 if len(rows):
                     diff = rows[None, :] - experts[:, nxt, j][:, None]  # (K, n): score minus each expert's threshold
                     loss = np.where(diff > 0, level * diff, (level - 1.0) * diff).mean(1) / unit
@@ -270,6 +284,25 @@ def aggregate_thresholds(
 
 
 @dataclass(frozen=True)
+class Feedback:
+    """What the ``"observed"`` rule learns from on one stream: every window of the scene (whether or not it has a
+    scored pedestrian, so that no window's presence depends on the future), each with every pedestrian present in
+    all its observed frames, a step's score NaN unless the pedestrian is present in every frame through it.
+
+    Attributes:
+        scores: ``(M', P)`` conformal scores, NaN where not observed; rows grouped by ``window``.
+        window: ``(M',)`` index of each row's feedback window, non-decreasing.
+        time: ``(F,)`` forecast times of the feedback windows (:func:`window_clock`, the same clock as the stream's).
+        index: ``(W,)`` the feedback window of each of the stream's windows (the same recording and first frame).
+    """
+
+    scores: np.ndarray
+    window: np.ndarray
+    time: np.ndarray
+    index: np.ndarray
+
+
+@dataclass(frozen=True)
 class Stream:
     """The forecasts of one stream (a scene's windows in time order) and their conformal scores.
 
@@ -277,15 +310,26 @@ class Stream:
         scored: the forecasts (:func:`crowdnav_mesrnn.evaluation.collect_forecasts` order).
         scores: ``(M, P)`` conformal scores.
         time: ``(W,)`` forecast times (:func:`window_clock`).
+        feedback: what the ``"observed"`` rule learns from, or None: the :class:`Feedback` of the same scene.
     """
 
     scored: ScoredForecasts
     scores: np.ndarray
     time: np.ndarray
+    feedback: Feedback | None = None
 
     def thresholds(self, start: np.ndarray, level: float, gamma: float, reveal: str = REVEAL_RULES[0]) -> np.ndarray:
-        """``(W, P)`` thresholds the tracker uses (:func:`track_thresholds`)."""
+        """``(W, P)`` thresholds the tracker uses (:func:`track_thresholds`; under ``"observed"`` run over the
+        feedback stream and read at this stream's windows)."""
+        if reveal == "observed":
+            fb = self._feedback()
+            return track_thresholds(fb.scores, fb.window, fb.time, start, level, gamma, reveal)[fb.index]
         return track_thresholds(self.scores, self.scored.window, self.time, start, level, gamma, reveal)
+
+    def _feedback(self) -> Feedback:
+        if self.feedback is None:
+            raise ValueError("the reveal rule 'observed' needs the stream's feedback rows (Stream.feedback)")
+        return self.feedback
 
     def covered(self, thresholds: np.ndarray) -> np.ndarray:
         """``(M, P)`` bool: each true position inside its window's region."""
@@ -293,6 +337,8 @@ class Stream:
 
     def subset(self, rows: np.ndarray) -> Stream:
         """The stream of the windows holding ``rows`` (a boolean ``(M,)`` mask that keeps whole windows)."""
+        if self.feedback is not None:
+            raise ValueError("a stream with feedback rows cannot be subset (its windows would lose them)")
         keep = np.unique(self.scored.window[rows])
         remap = np.full(self.scored.num_windows, -1, np.int64)
         remap[keep] = np.arange(len(keep))
@@ -396,12 +442,19 @@ def online_coverage(
     unit = unit_radius(scored, calibration)
     if gamma_rule not in GAMMA_RULES:
         raise ValueError(f"unknown gamma rule {gamma_rule!r}; valid: {', '.join(GAMMA_RULES)}")
+    if reveal == "observed" and gamma_rule != "experts":
+        raise ValueError("the reveal rule 'observed' runs with the step-size experts only (gamma rule 'experts')")
     covered, radius, gammas, devs, ends, half, diff, weights = {}, {}, {}, {}, {}, {}, {}, {}
     for c in levels:
         key = level_key(c)
         start = calibration.threshold(c)
         if gamma_rule == "experts":
-            thr, w_end = aggregate_thresholds(test.scores, scored.window, test.time, start, c, GAMMA_GRID, reveal)
+            if reveal == "observed":
+                fb = test._feedback()
+                thr_fb, w_end = aggregate_thresholds(fb.scores, fb.window, fb.time, start, c, GAMMA_GRID, reveal)
+                thr = thr_fb[fb.index]
+            else:
+                thr, w_end = aggregate_thresholds(test.scores, scored.window, test.time, start, c, GAMMA_GRID, reveal)
             weights[key] = w_end.tolist()
             gammas[key], devs[key] = float(np.mean(w_end @ np.asarray(GAMMA_GRID))), []
         else:
@@ -439,12 +492,42 @@ def online_for_split(
     data_dir: str | os.PathLike[str] | None = None,
     reveal: str = REVEAL_RULES[0],
     gamma_rule: str = GAMMA_RULES[0],
+    feedback_forecasts: tuple[Sequence[Window], ScoredForecasts] | None = None,
 ) -> OnlineResult:
     """:func:`online_coverage` on ``calibration.split``: its validation scenes choose ``γ``, its test scene (one
     stream, its recordings in order) is tracked; both with the reveal rule ``reveal``; ``gamma_rule`` as
-    :func:`online_coverage`."""
+    :func:`online_coverage`. ``feedback_forecasts`` (``reveal="observed"`` only): every test window (``min_scored``
+    0) and its forecasts collected with ``rows="observed"`` (:func:`crowdnav_mesrnn.evaluation.collect_forecasts`)."""
     split = calibration.split
     val_streams = scene_streams(val_windows, val, val_scores, load_split(split, "val", data_dir))
     scores = region_scores(test, calibration.score, calibration.error_model)
-    stream = Stream(test, scores, window_clock(test_windows, load_split(split, "test", data_dir)))
+    recordings = load_split(split, "test", data_dir)
+    feedback = None
+    if reveal == "observed":
+        if feedback_forecasts is None or feedback_forecasts[1].observed is None:
+            raise ValueError("the reveal rule 'observed' needs every test window's forecasts with rows='observed'")
+        feedback = feedback_stream(*feedback_forecasts, test_windows, recordings, calibration)
+    stream = Stream(test, scores, window_clock(test_windows, recordings), feedback)
     return online_coverage(calibration, val_streams, stream, split_coverage, levels, reveal, gamma_rule)
+
+
+def feedback_stream(
+    windows: Sequence[Window],
+    forecasts: ScoredForecasts,
+    scored_windows: Sequence[Window],
+    recordings: Sequence[Recording],
+    calibration: Calibration,
+) -> Feedback:
+    """The :class:`Feedback` of a scene from all its ``windows`` (``min_scored`` 0, time order) and their ``forecasts``
+    (``rows="observed"``), for the stream of ``scored_windows`` (each must be among ``windows``)."""
+    if forecasts.observed is None:
+        raise ValueError("feedback forecasts must be collected with rows='observed'")
+    raw = region_scores(forecasts, calibration.score, calibration.error_model)
+    position = {(w.recording, w.start_frame): i for i, w in enumerate(windows)}
+    try:
+        index = np.array([position[(w.recording, w.start_frame)] for w in scored_windows], dtype=np.int64)
+    except KeyError as err:
+        raise ValueError(f"scored window {err.args[0]} is not among the feedback windows") from None
+    return Feedback(
+        np.where(forecasts.observed, raw, np.nan), forecasts.window, window_clock(windows, recordings), index
+    )

@@ -19,6 +19,7 @@ from crowdnav_mesrnn.evaluation import ScoredForecasts
 from crowdnav_mesrnn.online_conformal import (
     GAMMA_GRID,
     REVEAL_RULES,
+    Feedback,
     Stream,
     aggregate_thresholds,
     choose_gamma,
@@ -30,6 +31,8 @@ from crowdnav_mesrnn.online_conformal import (
 REPO = Path(__file__).resolve().parents[2]
 #: The 0.9 quantile of a Rayleigh(1) score (the Mahalanobis radius of a standard bivariate Gaussian).
 RAYLEIGH_Q90 = float(np.sqrt(-2 * np.log(0.1)))
+#: The reveal rules that learn from the scored rows themselves (``"observed"`` learns from a Feedback stream).
+SCORED_RULES = tuple(r for r in REVEAL_RULES if r != "observed")
 
 
 def rayleigh_stream(windows: int, per_window: int, steps: int, scale: float, seed: int) -> tuple[np.ndarray, ...]:
@@ -44,7 +47,7 @@ def reveal_delay(reveal: str, j: int, steps: int) -> int:
     return j + 1 if reveal == "step" else steps
 
 
-@pytest.mark.parametrize("reveal", REVEAL_RULES)
+@pytest.mark.parametrize("reveal", SCORED_RULES)
 def test_a_threshold_never_depends_on_an_outcome_revealed_after_it_is_used(reveal: str) -> None:
     """Change the outcome of one window at t_k: the threshold of step h may change only from the reveal on (t_k + h
     for the step rule, t_k + 12 for the window rule), and does change there. An update without delay (or off by
@@ -66,7 +69,7 @@ def test_a_threshold_never_depends_on_an_outcome_revealed_after_it_is_used(revea
                 assert thr[first_after[0], j] > base[first_after[0], j]  # the miss raised it as soon as revealed
 
 
-@pytest.mark.parametrize("reveal", REVEAL_RULES)
+@pytest.mark.parametrize("reveal", SCORED_RULES)
 def test_the_first_windows_use_the_starting_threshold_until_an_outcome_is_revealed(reveal: str) -> None:
     scores, window, time = rayleigh_stream(30, 3, 12, 2.0, seed=1)
     start = np.linspace(1.0, 2.0, 12)
@@ -119,10 +122,10 @@ def test_window_rule_uses_no_window_before_its_scored_pedestrians_are_known() ->
     that window's step 1 at f − 11 with the changed scored set: thresholds used before f change, and this test's
     assertion fails on it."""
     f = 40  # frame index; the affected windows' forecast times are 28..47
-    base = {r: membership_stream(membership_recording(), r) for r in REVEAL_RULES}
-    gone = {r: membership_stream(membership_recording(gone=(f, 2)), r) for r in REVEAL_RULES}
+    base = {r: membership_stream(membership_recording(), r) for r in SCORED_RULES}
+    gone = {r: membership_stream(membership_recording(gone=(f, 2)), r) for r in SCORED_RULES}
     time = base["window"][0]
-    for r in REVEAL_RULES:  # every window keeps some scored pedestrian: the same windows, the same clock
+    for r in SCORED_RULES:  # every window keeps some scored pedestrian: the same windows, the same clock
         np.testing.assert_array_equal(gone[r][0], time)
     before = time < f
     assert before.sum() > 2 * PRED_LEN  # outcomes revealed before f exist and have moved the thresholds
@@ -132,7 +135,7 @@ def test_window_rule_uses_no_window_before_its_scored_pedestrians_are_known() ->
     assert not np.array_equal(gone["step"][1][before], base["step"][1][before])
 
 
-@pytest.mark.parametrize("reveal", REVEAL_RULES)
+@pytest.mark.parametrize("reveal", SCORED_RULES)
 def test_on_a_shifted_error_scale_online_coverage_converges_and_split_conformal_does_not(reveal: str) -> None:
     """Calibrated on scale-1 scores, tested on scale-1.6: split conformal's coverage is far below 0.9 at every
     step; the tracker's reaches 0.9 at every step, with thresholds near the shifted scores' true quantile (it does
@@ -149,7 +152,7 @@ def test_on_a_shifted_error_scale_online_coverage_converges_and_split_conformal_
     np.testing.assert_allclose(late.mean(0), 1.6 * RAYLEIGH_Q90, rtol=0.05)
 
 
-@pytest.mark.parametrize("reveal", REVEAL_RULES)
+@pytest.mark.parametrize("reveal", SCORED_RULES)
 def test_a_stationary_stream_keeps_every_step_near_the_true_quantile(reveal: str) -> None:
     """The division of the step by the delay: even a large step leaves step 12 steady (a fixed step oscillates)."""
     scores, window, time = rayleigh_stream(1500, 3, 12, 1.0, seed=4)
@@ -263,7 +266,7 @@ def test_reveal_applies_to_the_online_method_only(data_dir: Path) -> None:
         calibrate_model("cv", "zara1", method="online", reveal="soon")
 
 
-@pytest.mark.parametrize("reveal", REVEAL_RULES)
+@pytest.mark.parametrize("reveal", SCORED_RULES)
 def test_the_expert_mixture_uses_no_outcome_before_it_is_revealed(reveal: str) -> None:
     """As for the single tracker: changing one window's outcome changes the mixture's threshold of step h only from
     its reveal on (the weights and every expert see it then), and changes it there."""
@@ -340,3 +343,82 @@ def test_online_cli_with_experts_reports_their_weights(data_dir: Path, capsys: p
         calibrate_model("cv", "zara1", gamma_rule="experts")
     with pytest.raises(ValueError, match="unknown gamma rule 'fast'; valid: validation, experts"):
         calibrate_model("cv", "zara1", method="online", gamma_rule="fast")
+
+
+def observed_stream(rec: Recording) -> tuple[Stream, list[Window]]:
+    """The scored stream of ``rec`` (windows with a scored pedestrian; constant-velocity distance scores) with its
+    :class:`Feedback` (every window, every pedestrian present through the observation, NaN where not observed)."""
+    from crowdnav_mesrnn.evaluation import collect_forecasts, cv_predict_batch
+
+    scored_windows = windows_from_recording(rec)
+    every = windows_from_recording(rec, min_scored=0)
+    scored = collect_forecasts(scored_windows, cv_predict_batch)
+    rows = collect_forecasts(every, cv_predict_batch, rows="observed")
+    assert rows.observed is not None
+    fb_scores = np.where(rows.observed, np.linalg.norm(rows.error, axis=-1), np.nan)
+    position = {w.start_frame: i for i, w in enumerate(every)}
+    index = np.array([position[w.start_frame] for w in scored_windows])
+    feedback = Feedback(fb_scores, rows.window, window_clock(every, [rec]), index)
+    stream = Stream(scored, np.linalg.norm(scored.error, axis=-1), window_clock(scored_windows, [rec]), feedback)
+    return stream, scored_windows
+
+
+def test_observed_rows_are_everyone_present_through_the_observation_marked_while_they_stay() -> None:
+    """Pedestrian 2 misses frame 40: in the window whose observation ends at frame 35 it is a feedback row (present
+    in all 8 observed frames) observed at steps 1-4 only, not a scored one; the scored rows are all observed."""
+    from crowdnav_mesrnn.evaluation import collect_forecasts, cv_predict_batch
+
+    rec = membership_recording(gone=(40, 2))
+    every = windows_from_recording(rec, min_scored=0)
+    k = next(i for i, w in enumerate(every) if w.start_frame == rec.frames[35 - OBS_LEN + 1])
+    rows = collect_forecasts(every, cv_predict_batch, rows="observed")
+    assert rows.observed is not None
+    mine = rows.observed[rows.window == k]  # the window's six pedestrians, in column order
+    assert mine.shape == (6, PRED_LEN) and every[k].num_scored == 5
+    np.testing.assert_array_equal(mine[2], np.arange(1, PRED_LEN + 1) <= 4)
+    assert mine[np.arange(6) != 2].all()
+    np.testing.assert_array_equal(rows.error[rows.window == k][2, 4:], 0.0)  # unobserved steps carry no error
+    with pytest.raises(ValueError, match="takes no samples"):
+        collect_forecasts(every, cv_predict_batch, rows="observed", samples=2, sample=lambda *a: None)
+    with pytest.raises(ValueError, match="unknown rows 'all'"):
+        collect_forecasts(every, cv_predict_batch, rows="all")
+
+
+def test_observed_rule_uses_nothing_before_it_is_observed() -> None:
+    """Remove pedestrian 2 from frame f: under the observed rule no threshold used before f changes (its rows, their
+    presence and the feedback windows themselves are all settled by what is observed up to each step), and
+    thresholds change soon after f. Its feedback comes faster than the window rule's: the first threshold to move
+    from the start moves at t = 1 (step 1 of the window at 0), the window rule's at t = 12."""
+    f = 40
+    base, _ = observed_stream(membership_recording())
+    gone, _ = observed_stream(membership_recording(gone=(f, 2)))
+    start = np.linspace(0.2, 1.0, PRED_LEN)
+    thr = {name: s.thresholds(start, 0.9, 1.0, "observed") for name, s in (("base", base), ("gone", gone))}
+    np.testing.assert_array_equal(gone.time, base.time)
+    before = base.time < f
+    np.testing.assert_array_equal(thr["gone"][before], thr["base"][before])
+    assert not np.array_equal(thr["gone"][base.time < f + 2], thr["base"][base.time < f + 2])
+    moved = np.flatnonzero(np.any(thr["base"] != start, axis=1))
+    window_moved = np.flatnonzero(np.any(base.thresholds(start, 0.9, 1.0, "window") != start, axis=1))
+    assert base.time[moved[0]] == base.time[0] + 1 and base.time[window_moved[0]] == base.time[0] + PRED_LEN
+    with pytest.raises(ValueError, match="needs the stream's feedback rows"):
+        Stream(base.scored, base.scores, base.time).thresholds(start, 0.9, 1.0, "observed")
+
+
+def test_observed_rule_runs_with_experts_only_and_the_cli_records_it(
+    data_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from crowdnav_mesrnn.calibration import calibrate_model
+
+    with pytest.raises(ValueError, match="reveal='observed' runs with the step-size experts only"):
+        calibrate_model("cv", "zara1", method="online", reveal="observed")
+    args = ["predictor", "calibrate", "--model", "cv", "--split", "zara1", "--json", "--resamples", "200"]
+    assert main([*args, "--method", "online", "--gamma", "experts", "--reveal", "observed"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["reveal"] == "observed" and "present from the window's first frame through t + h" in res["calibration"]
+    row = res["splits"]["zara1"]
+    assert main([*args, "--method", "online", "--gamma", "experts"]) == 0
+    window_row = json.loads(capsys.readouterr().out)["splits"]["zara1"]
+    assert row["windows"] == window_row["windows"] and row["pedestrians"] == window_row["pedestrians"]
+    assert row["split_conformal"] == window_row["split_conformal"]  # the same scored windows, the same start
+    assert row["coverage"] != window_row["coverage"]
