@@ -14,7 +14,7 @@ time order. A window's forecast time ``t`` is the annotation index of its last o
 ``h`` (1 to ``PRED_LEN`` = 12) is at ``t + h``. Which pedestrians a window scores is known later still: a window
 scores the pedestrians present in all of its frames (:func:`crowdnav_mesrnn.data.windows.windows_from_recording`),
 through ``t + PRED_LEN``, so "pedestrian ``i``'s step ``h`` counts in window ``t``" is settled only at
-``t + PRED_LEN``. Two reveal rules (:data:`REVEAL_RULES`):
+``t + PRED_LEN``. Three reveal rules (:data:`REVEAL_RULES`):
 
 - ``"window"`` (the default; what a robot could run): every step's outcome of the window at ``t`` is used from
   ``t + PRED_LEN`` on, once the window's scored set is determined. The threshold used at ``t`` depends only on
@@ -22,8 +22,13 @@ through ``t + PRED_LEN``, so "pedestrian ``i``'s step ``h`` counts in window ``t
 - ``"step"`` (optimistic): step ``h``'s outcome is used from ``t + h`` on. No position is used before it is
   observed, but the update at ``t + h`` already counts only the pedestrians that will still be present at
   ``t + PRED_LEN``, information from the future for ``h < PRED_LEN``.
+- ``"observed"`` (strictly causal, learns sooner; with the step-size experts only): step ``h`` of the forecast at
+  ``t`` is used from ``t + h`` on, over every pedestrian present in every frame from the window's first through
+  ``t + h`` (:class:`Feedback`): scored or not, so membership is known when the outcome is. It learns from every
+  window of the scene, with or without a scored pedestrian (whether a window has one is settled only at
+  ``t + PRED_LEN``), and its thresholds are read at the scored windows, where coverage is measured as for the others.
 
-Either way each outcome is judged against the threshold that was used for it. A scene's recordings are one stream,
+Each outcome is judged against the threshold that was used for it. A scene's recordings are one stream,
 in the split's order, all outcomes of one recording revealed before the next begins (:func:`window_clock`).
 
 **The update** of step ``h`` at level ``c`` for a revealed window ``j`` with ``n_j`` scored pedestrians of which
