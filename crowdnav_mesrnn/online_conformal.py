@@ -528,6 +528,14 @@ def feedback_stream(
     if forecasts.observed is None:
         raise ValueError("feedback forecasts must be collected with rows='observed'")
     raw = region_scores(forecasts, calibration.score, calibration.error_model)
+    bad = np.argwhere(forecasts.observed & np.isnan(raw))
+    if len(bad):  # NaN marks a step not observed: an observed step's NaN score would be skipped as one, silently
+        row, step = (int(x) for x in bad[0])
+        w = windows[int(forecasts.window[row])]
+        raise ValueError(
+            f"{len(bad)} observed step(s) have a NaN conformal score, the first at step {step + 1} of row {row} "
+            f"(window of {w.recording!r} from frame {w.start_frame}): check the forecasts' errors and Gaussians"
+        )
     position = {(w.recording, w.start_frame): i for i, w in enumerate(windows)}
     try:
         index = np.array([position[(w.recording, w.start_frame)] for w in scored_windows], dtype=np.int64)

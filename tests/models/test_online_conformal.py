@@ -410,7 +410,7 @@ def test_observed_rule_runs_with_experts_only_and_the_cli_records_it(
 ) -> None:
     from crowdnav_mesrnn.calibration import calibrate_model
 
-    with pytest.raises(ValueError, match="reveal='observed' runs with the step-size experts only"):
+    with pytest.raises(ValueError, match=r"reveal='observed' runs with the step-size experts only: .*--gamma experts"):
         calibrate_model("cv", "zara1", method="online", reveal="observed")
     args = ["predictor", "calibrate", "--model", "cv", "--split", "zara1", "--json", "--resamples", "200"]
     assert main([*args, "--method", "online", "--gamma", "experts", "--reveal", "observed"]) == 0
@@ -422,3 +422,31 @@ def test_observed_rule_runs_with_experts_only_and_the_cli_records_it(
     assert row["windows"] == window_row["windows"] and row["pedestrians"] == window_row["pedestrians"]
     assert row["split_conformal"] == window_row["split_conformal"]  # the same scored windows, the same start
     assert row["coverage"] != window_row["coverage"]
+
+
+def test_feedback_refuses_a_nan_score_at_an_observed_step() -> None:
+    """NaN marks a step not observed in the feedback rows; a NaN score at an observed step (a broken forecast or
+    Gaussian) must not be skipped as if unobserved, silently: it is an error naming the row and step. A NaN where the
+    step is not observed is what the mask says and passes."""
+    import dataclasses
+
+    from crowdnav_mesrnn.calibration import Calibration
+    from crowdnav_mesrnn.evaluation import collect_forecasts, cv_predict_batch
+    from crowdnav_mesrnn.online_conformal import feedback_stream
+
+    rec = membership_recording(gone=(40, 2))
+    every = windows_from_recording(rec, min_scored=0)
+    rows = collect_forecasts(every, cv_predict_batch, rows="observed")
+    assert rows.observed is not None and not rows.observed.all()
+    cal = Calibration("cv", "point", "zara1", "radius", {"0.9": (1.0,) * PRED_LEN}, None, 1, 1)
+    unobserved = tuple(int(x) for x in np.argwhere(~rows.observed)[0])
+    err = rows.error.copy()
+    err[unobserved] = np.nan
+    fb = feedback_stream(every, dataclasses.replace(rows, error=err), every, [rec], cal)
+    assert np.isnan(fb.scores[unobserved]) and not np.isnan(fb.scores[rows.observed]).any()
+    err[3, 5, 0] = np.nan
+    assert rows.observed[3, 5]
+    with pytest.raises(
+        ValueError, match=r"1 observed step\(s\) have a NaN conformal score, the first at step 6 of row 3"
+    ):
+        feedback_stream(every, dataclasses.replace(rows, error=err), every, [rec], cal)
