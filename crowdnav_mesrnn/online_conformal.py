@@ -37,9 +37,10 @@ in the split's order, all outcomes of one recording revealed before the next beg
     q_h <- max(0, q_h + γ q_h^0 (m_j − (1 − c) n_j) / (d n̄))
 
 ``q_h^0`` is the offline (split-conformal, validation) threshold the tracker starts from, so ``γ`` is free of the
-score's units; ``n̄`` is the mean number of scored pedestrians of the windows revealed so far (known online), so
-``γ`` is the step per typical window in sparse and in dense scenes alike. ``d`` is the delay of the reveal rule:
-``h`` for ``"step"``, ``PRED_LEN`` for every step under ``"window"``. The division by the delay keeps the feedback
+score's units; ``n̄`` is the mean number of scored pedestrians of the windows revealed so far (known online; under
+``"observed"``, of the feedback rows observed at the step, over the windows with one), so ``γ`` is the step per
+typical window in sparse and in dense scenes alike. ``d`` is the delay of the reveal rule: ``h`` for ``"step"`` and
+``"observed"``, ``PRED_LEN`` for every step under ``"window"``. The division by the delay keeps the feedback
 loop of every step equally damped: ``d`` updates are already under way when the first of them shows in an
 outcome, and a fixed step large enough for step 1 makes step 12's threshold oscillate and the regions swell
 (with the division, a stationary stream's thresholds stay near the true quantile at every step:
