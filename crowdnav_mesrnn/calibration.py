@@ -480,7 +480,9 @@ def calibrate_model(
         if gamma_rule is not None and gamma_rule not in GAMMA_RULES:
             raise ValueError(f"unknown gamma rule {gamma_rule!r}; valid: {', '.join(GAMMA_RULES)}")
         if reveal == "observed" and not experts:
-            raise ValueError("reveal='observed' runs with the step-size experts only: add gamma_rule='experts'")
+            raise ValueError(
+                "reveal='observed' runs with the step-size experts only: add gamma_rule='experts' (--gamma experts)"
+            )
         out["calibration"] += f"; outcomes revealed {_REVEAL_TEXT[reveal]}"
         if experts:
             out["calibration"] = out["calibration"].replace(

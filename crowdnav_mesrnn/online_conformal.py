@@ -37,9 +37,10 @@ in the split's order, all outcomes of one recording revealed before the next beg
     q_h <- max(0, q_h + γ q_h^0 (m_j − (1 − c) n_j) / (d n̄))
 
 ``q_h^0`` is the offline (split-conformal, validation) threshold the tracker starts from, so ``γ`` is free of the
-score's units; ``n̄`` is the mean number of scored pedestrians of the windows revealed so far (known online), so
-``γ`` is the step per typical window in sparse and in dense scenes alike. ``d`` is the delay of the reveal rule:
-``h`` for ``"step"``, ``PRED_LEN`` for every step under ``"window"``. The division by the delay keeps the feedback
+score's units; ``n̄`` is the mean number of scored pedestrians of the windows revealed so far (known online; under
+``"observed"``, of the feedback rows observed at the step, over the windows with one), so ``γ`` is the step per
+typical window in sparse and in dense scenes alike. ``d`` is the delay of the reveal rule: ``h`` for ``"step"`` and
+``"observed"``, ``PRED_LEN`` for every step under ``"window"``. The division by the delay keeps the feedback
 loop of every step equally damped: ``d`` updates are already under way when the first of them shows in an
 outcome, and a fixed step large enough for step 1 makes step 12's threshold oscillate and the regions swell
 (with the division, a stationary stream's thresholds stay near the true quantile at every step:
@@ -528,6 +529,14 @@ def feedback_stream(
     if forecasts.observed is None:
         raise ValueError("feedback forecasts must be collected with rows='observed'")
     raw = region_scores(forecasts, calibration.score, calibration.error_model)
+    bad = np.argwhere(forecasts.observed & np.isnan(raw))
+    if len(bad):  # NaN marks a step not observed: an observed step's NaN score would be skipped as one, silently
+        row, step = (int(x) for x in bad[0])
+        w = windows[int(forecasts.window[row])]
+        raise ValueError(
+            f"{len(bad)} observed step(s) have a NaN conformal score, the first at step {step + 1} of row {row} "
+            f"(window of {w.recording!r} from frame {w.start_frame}): check the forecasts' errors and Gaussians"
+        )
     position = {(w.recording, w.start_frame): i for i, w in enumerate(windows)}
     try:
         index = np.array([position[(w.recording, w.start_frame)] for w in scored_windows], dtype=np.int64)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crowdnav_mesrnn.calibration import conformal_quantile
+from crowdnav_mesrnn.calibration import Calibration, Forecaster, conformal_quantile
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
 from crowdnav_mesrnn.data.recordings import Recording
@@ -410,7 +410,7 @@ def test_observed_rule_runs_with_experts_only_and_the_cli_records_it(
 ) -> None:
     from crowdnav_mesrnn.calibration import calibrate_model
 
-    with pytest.raises(ValueError, match="reveal='observed' runs with the step-size experts only"):
+    with pytest.raises(ValueError, match=r"reveal='observed' runs with the step-size experts only: .*--gamma experts"):
         calibrate_model("cv", "zara1", method="online", reveal="observed")
     args = ["predictor", "calibrate", "--model", "cv", "--split", "zara1", "--json", "--resamples", "200"]
     assert main([*args, "--method", "online", "--gamma", "experts", "--reveal", "observed"]) == 0
@@ -422,3 +422,107 @@ def test_observed_rule_runs_with_experts_only_and_the_cli_records_it(
     assert row["windows"] == window_row["windows"] and row["pedestrians"] == window_row["pedestrians"]
     assert row["split_conformal"] == window_row["split_conformal"]  # the same scored windows, the same start
     assert row["coverage"] != window_row["coverage"]
+
+
+def test_feedback_refuses_a_nan_score_at_an_observed_step() -> None:
+    """NaN marks a step not observed in the feedback rows; a NaN score at an observed step (a broken forecast or
+    Gaussian) must not be skipped as if unobserved, silently: it is an error naming the row and step. A NaN where the
+    step is not observed is what the mask says and passes."""
+    import dataclasses
+
+    from crowdnav_mesrnn.evaluation import collect_forecasts, cv_predict_batch
+    from crowdnav_mesrnn.online_conformal import feedback_stream
+
+    rec = membership_recording(gone=(40, 2))
+    every = windows_from_recording(rec, min_scored=0)
+    rows = collect_forecasts(every, cv_predict_batch, rows="observed")
+    assert rows.observed is not None and not rows.observed.all()
+    cal = Calibration("cv", "point", "zara1", "radius", {"0.9": (1.0,) * PRED_LEN}, None, 1, 1)
+    unobserved = tuple(int(x) for x in np.argwhere(~rows.observed)[0])
+    err = rows.error.copy()
+    err[unobserved] = np.nan
+    fb = feedback_stream(every, dataclasses.replace(rows, error=err), every, [rec], cal)
+    assert np.isnan(fb.scores[unobserved]) and not np.isnan(fb.scores[rows.observed]).any()
+    err[3, 5, 0] = np.nan
+    assert rows.observed[3, 5]
+    with pytest.raises(
+        ValueError, match=r"1 observed step\(s\) have a NaN conformal score, the first at step 6 of row 3"
+    ):
+        feedback_stream(every, dataclasses.replace(rows, error=err), every, [rec], cal)
+
+
+def observed_thresholds(
+    recordings: list[Recording], forecaster: Forecaster, calibration: Calibration, level: float = 0.9
+) -> tuple[list[tuple[str, int]], np.ndarray, np.ndarray]:
+    """The ``"observed"`` rule's expert-mixture thresholds over every window of ``recordings``: ``((recording, first
+    frame) of each window, (W, P) thresholds used, (W,) forecast times)``."""
+    from crowdnav_mesrnn.online_conformal import feedback_stream
+
+    every = [w for rec in recordings for w in windows_from_recording(rec, min_scored=0)]
+    scored = [w for rec in recordings for w in windows_from_recording(rec, min_scored=2)]
+    rows = forecaster.collect(every, rows="observed")
+    fb = feedback_stream(every, rows, scored, recordings, calibration)
+    start = np.asarray(calibration.threshold(level))
+    thr = aggregate_thresholds(fb.scores, fb.window, fb.time, start, level, GAMMA_GRID, "observed")[0]
+    return [(w.recording, w.start_frame) for w in every], thr, fb.time
+
+
+def future_changed(rec: Recording, last: int, truncate: bool, seed: int) -> Recording:
+    """``rec`` with everything after annotation ``last`` changed: cut off (``truncate``), or every later position
+    moved, 40 % of the pedestrians gone, presence gaps, and two new pedestrians."""
+    import dataclasses
+
+    if truncate:
+        k = last + 1
+        return dataclasses.replace(rec, frames=rec.frames[:k], positions=rec.positions[:k], present=rec.present[:k])
+    rng = np.random.default_rng(seed)
+    pos, pres = rec.positions.copy(), rec.present.copy()
+    pos[last + 1 :] += rng.normal(0.0, 0.7, pos[last + 1 :].shape)
+    pres[last + 1 :, rng.random(pres.shape[1]) < 0.4] = False
+    pres[last + 1 :] &= rng.random(pres[last + 1 :].shape) > 0.1
+    new_pres = np.zeros((len(rec.frames), 2), bool)
+    new_pres[last + 3 : last + 30] = True
+    new_pos = np.where(new_pres[..., None], rng.normal(5.0, 3.0, (len(rec.frames), 2, 2)), 0.0)
+    return dataclasses.replace(
+        rec,
+        positions=np.concatenate([np.where(pres[..., None], pos, 0.0), new_pos], axis=1),
+        present=np.concatenate([pres, new_pres], axis=1),
+        ped_ids=np.concatenate([rec.ped_ids, rec.ped_ids.max() + 1 + np.arange(2)]),
+    )
+
+
+@pytest.mark.slow
+def test_observed_rule_on_zara1_uses_nothing_after_the_forecast_time(data_dir: Path) -> None:
+    """Brute force on a real scene: change (or cut off) everything in ZARA1's test recording after annotation T;
+    every threshold used at a forecast time <= T stays bit-identical, and thresholds used soon after T change."""
+    from crowdnav_mesrnn.calibration import fit_calibration, forecaster_for
+    from crowdnav_mesrnn.data.recordings import load_split
+
+    forecaster = forecaster_for("cv", "zara1")
+    cal = fit_calibration(forecaster, "zara1", data_dir=data_dir)
+    (rec,) = load_split("zara1", "test", data_dir)
+    keys, base, time = observed_thresholds([rec], forecaster, cal)
+    for last in (150, 433, 700):
+        for truncate in (False, True):
+            changed_keys, changed, _ = observed_thresholds([future_changed(rec, last, truncate, last)], forecaster, cal)
+            position = {k: i for i, k in enumerate(changed_keys)}
+            before = [i for i in np.flatnonzero(time <= last) if keys[i] in position]
+            assert len(before) >= last - OBS_LEN + 1 - (PRED_LEN if truncate else 0)
+            np.testing.assert_array_equal(changed[[position[keys[i]] for i in before]], base[before])
+            if not truncate:
+                soon = np.flatnonzero((time > last) & (time <= last + 3))
+                assert not np.array_equal(changed[[position[keys[i]] for i in soon]], base[soon])
+
+
+def test_calibrate_learns_the_observed_rule_from_every_window_of_the_test_scene(data_dir: Path) -> None:
+    """The feedback windows are every start of the test recording, those without a scored pedestrian included
+    (whether a window has one is settled only at t + 12: keeping only those would make the clock's windows depend on
+    the future), with their forecasts collected over every pedestrian present through the observation."""
+    from crowdnav_mesrnn.calibration import _feedback_forecasts, forecaster_for
+    from crowdnav_mesrnn.data.recordings import load_split
+
+    (rec,) = load_split("zara1", "test", data_dir)
+    windows, rows = _feedback_forecasts(forecaster_for("cv", "zara1"), "zara1", data_dir)
+    assert [w.start_frame for w in windows] == rec.frames[: len(rec.frames) - OBS_LEN - PRED_LEN + 1].tolist()
+    assert any(w.num_scored == 0 for w in windows)
+    assert rows.observed is not None and rows.num_windows == len(windows)
