@@ -408,8 +408,8 @@ def paired_differences(
     """The paired differences A − B of two evaluations of the same windows, with block-bootstrap intervals.
 
     Args:
-        a, b: ``split -> metric ->`` per-window sums of one model each (:func:`paired_sums`; the same splits, part
-            and windows for both).
+        a: ``split -> metric ->`` per-window sums of model A (:func:`paired_sums`).
+        b: the same for model B (the same splits, part and windows as ``a``).
 
     Returns:
         ``split -> {metric: A − B, metric_ci: [lo, hi]}`` for every metric of :data:`PAIRED_KEYS` both hold (metres,
