@@ -10,7 +10,8 @@ recording and a digest of a :class:`TableKey`:
 - ``recording_hash``: SHA-256 of the recording's annotation times, ids, presence and positions
   (:func:`recording_fingerprint`);
 - the settings: forecast memory (``window``/``carried``), ``obs_len``, ``pred_len``, the perception rule
-  (:data:`PERCEPTION`), the chunk size and :data:`FORMAT_VERSION`.
+  (:data:`PERCEPTION`), the chunk size and :data:`FORMAT_VERSION` (``carried`` tables also
+  :data:`CARRIED_REVISION`).
 
 The environment's ``dt_s`` and ``horizon_steps`` are not part of the key: the files hold the predictor's raw
 forecasts on the annotation grid, and their resampling onto ``t + h * dt_s`` happens at lookup (microseconds).
@@ -44,6 +45,10 @@ from crowdnav_mesrnn.utils import atomic_write, file_lock
 #: Bump when the content or layout of the files changes (old files then no longer match and are rebuilt).
 #: 2: one predictor call per frame (no cross-frame batching), so a chunk equals its frames computed alone.
 FORMAT_VERSION: Final[int] = 2
+#: Bump when the arithmetic of the online (carried-state) forecast changes; part of the key of ``carried`` tables
+#: only, so ``window`` tables are kept. 2: the regrouped online step (issue 19), equal to the former to float32
+#: rounding (about 2e-5 m), so tables computed before differ slightly from a fresh computation.
+CARRIED_REVISION: Final[int] = 2
 #: How forecasts relate to perception: taken at each annotation frame from the histories up to it.
 PERCEPTION: Final[str] = "latest-annotation"
 #: Annotation frames per file.
@@ -138,13 +143,17 @@ class TableKey:
     pred_len: int
 
     def meta(self) -> dict[str, Any]:
-        """The key plus the fixed settings, as stored in every file."""
-        return {
+        """The key plus the fixed settings, as stored in every file (``carried`` tables: and
+        :data:`CARRIED_REVISION`)."""
+        meta = {
             **asdict(self),
             "format": FORMAT_VERSION,
             "perception": PERCEPTION,
             "chunk_frames": CHUNK_FRAMES,
         }
+        if self.memory == "carried":
+            meta["carried_revision"] = CARRIED_REVISION
+        return meta
 
     def digest(self) -> str:
         return hashlib.sha256(json.dumps(self.meta(), sort_keys=True).encode()).hexdigest()[:20]

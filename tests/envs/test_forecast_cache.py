@@ -335,3 +335,21 @@ def test_info_skips_files_it_did_not_write(tmp_path: Path, capsys: pytest.Captur
     (tmp_path / "mesrnn-window" / "notes.npz").write_bytes(b"x")
     assert main(["forecasts", "info", "--cache-dir", str(tmp_path), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["entries"] == []
+
+
+def test_the_online_arithmetic_revision_keys_carried_tables_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A change of the online forecast's arithmetic (CARRIED_REVISION) gives carried tables a new key, so tables
+    computed by the old arithmetic are rebuilt, and leaves window tables' keys as they were."""
+    from envs import forecast_cache
+
+    def digests() -> dict[str, str]:
+        keys = {
+            m: forecast_cache.TableKey("mesrnn", "p" * 64, "rec", "r" * 64, m, 8, 12) for m in ("window", "carried")
+        }
+        return {m: k.digest() for m, k in keys.items()}
+
+    before = digests()
+    monkeypatch.setattr(forecast_cache, "CARRIED_REVISION", forecast_cache.CARRIED_REVISION + 1)
+    after = digests()
+    assert after["window"] == before["window"]
+    assert after["carried"] != before["carried"]
