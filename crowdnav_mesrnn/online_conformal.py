@@ -76,7 +76,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Final
 
@@ -177,8 +177,6 @@ def track_thresholds(
         raise ValueError("rows must be grouped by window and windows in time order")
     if len(window) and (window[0] < 0 or window[-1] >= n_windows):
         raise ValueError(f"window indices must lie in [0, {n_windows})")
-    has_gaps = reveal == "observed"
-    bounds = np.searchsorted(window, np.arange(n_windows + 1))
     miss_rate = 1.0 - level
     out = np.empty((n_windows, n_steps))
     for j in range(n_steps):
@@ -186,20 +184,15 @@ def track_thresholds(
         if not np.isfinite(q0):
             out[:, j] = q0
             continue
-        nxt, revealed_rows, revealed_windows = 0, 0, 0
-        for k in range(n_windows):
-            while nxt < k and time[nxt] + delay <= time[k]:  # outcomes revealed by time[k], oldest first
-                rows = scores[bounds[nxt] : bounds[nxt + 1], j]
-                if has_gaps:
-                    rows = rows[~np.isnan(rows)]
+        revealed_rows, revealed_windows = 0, 0
+        for k, revealed in _revealed_before(scores[:, j], window, time, delay, reveal):
+            for i, rows in revealed:
                 n = len(rows)
-                if n:
-                    revealed_rows += n
-                    revealed_windows += 1
-                    missed = np.count_nonzero(rows > out[nxt, j])
-                    mean_n = revealed_rows / revealed_windows
-                    q = max(0.0, q + gamma * q0 * (missed - miss_rate * n) / (delay * mean_n))
-                nxt += 1
+                revealed_rows += n
+                revealed_windows += 1
+                missed = np.count_nonzero(rows > out[i, j])
+                mean_n = revealed_rows / revealed_windows
+                q = max(0.0, q + gamma * q0 * (missed - miss_rate * n) / (delay * mean_n))
             out[k, j] = q
     return out
 
@@ -207,6 +200,29 @@ def track_thresholds(
 def _delay(reveal: str, j: int, n_steps: int) -> int:
     """Annotations from a forecast until step ``j + 1`` (0-based ``j``) updates a tracker under ``reveal``."""
     return j + 1 if reveal in ("step", "observed") else n_steps
+
+
+def _revealed_before(
+    step_scores: np.ndarray, window: np.ndarray, time: np.ndarray, delay: int, reveal: str
+) -> Iterator[tuple[int, list[tuple[int, np.ndarray]]]]:
+    """For each window ``k`` in time order: ``(k, [(i, scores), ...])``, the earlier windows ``i`` whose outcomes
+    (``delay`` annotations after their forecast) are revealed by ``time[k]`` and not before, oldest first, each with
+    its rows' scores of one step (``step_scores (M,)``; NaN rows, steps not observed under ``"observed"``, dropped;
+    windows left without a row skipped). The one place the trackers read outcomes: :func:`track_thresholds` and
+    :func:`aggregate_thresholds` update from exactly these."""
+    bounds = np.searchsorted(window, np.arange(len(time) + 1))
+    has_gaps = reveal == "observed"
+    nxt = 0
+    for k in range(len(time)):
+        revealed = []
+        while nxt < k and time[nxt] + delay <= time[k]:
+            rows = step_scores[bounds[nxt] : bounds[nxt + 1]]
+            if has_gaps:
+                rows = rows[~np.isnan(rows)]
+            if len(rows):
+                revealed.append((nxt, rows))
+            nxt += 1
+        yield k, revealed
 
 
 def expert_rates(experts: int, level: float, interval: int = EXPERT_INTERVAL) -> tuple[float, float]:
@@ -254,8 +270,6 @@ def aggregate_thresholds(
     start = np.asarray(start, dtype=np.float64)
     k_count, n_windows, n_steps = experts.shape
     eta, share = expert_rates(k_count, level, interval)
-    has_gaps = reveal == "observed"
-    bounds = np.searchsorted(window, np.arange(n_windows + 1))
     out = np.empty((n_windows, n_steps))
     weights_end = np.full((n_steps, k_count), 1.0 / k_count)
     for j in range(n_steps):
@@ -266,23 +280,13 @@ def aggregate_thresholds(
         unit = q0 if q0 > 0 else 1.0
         log_w = np.full(k_count, -math.log(k_count))
         w = np.exp(log_w)
-        nxt = 0
-        for k in range(n_windows):
-            moved = False
-            while nxt < k and time[nxt] + delay <= time[k]:  # outcomes revealed by time[k], oldest first
-                rows = scores[bounds[nxt] : bounds[nxt + 1], j]
-                if has_gaps:
-                    rows = rows[~np.isnan(rows)]
-                if len(rows):
-                    diff = rows[None, :] - experts[:, nxt, j][:, None]  # (K, n): score minus each expert's threshold
-                    loss = np.where(diff > 0, level * diff, (level - 1.0) * diff).mean(1) / unit
-                    log_w = log_w - eta * loss
-                    w = np.exp(log_w - log_w.max())
-                    w = (1.0 - share) * w / w.sum() + share / k_count
-                    log_w = np.log(w)
-                    moved = True
-                nxt += 1
-            if moved:
+        for k, revealed in _revealed_before(scores[:, j], window, time, delay, reveal):
+            for i, rows in revealed:
+                diff = rows[None, :] - experts[:, i, j][:, None]  # (K, n): score minus each expert's threshold
+                loss = np.where(diff > 0, level * diff, (level - 1.0) * diff).mean(1) / unit
+                log_w = log_w - eta * loss
+                mixed = np.exp(log_w - log_w.max())
+                log_w = np.log((1.0 - share) * mixed / mixed.sum() + share / k_count)
                 w = np.exp(log_w)
             out[k, j] = float(w @ experts[:, k, j])
         weights_end[j] = w
