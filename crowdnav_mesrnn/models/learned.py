@@ -168,10 +168,11 @@ class OnlineForecaster:
         self.n = num_slots
         self.state = predictor.net.init_state(num_slots)
         self.pos = [torch.zeros(1, num_slots, 2) for _ in range(2)]  # t, t-1 (normalised)
-        self.mask = [torch.zeros(1, num_slots, dtype=torch.bool) for _ in range(2)]
+        # presence at t, t-1, in numpy (cheaper tests of a few rows) and as tensors sharing its memory
+        self.seen = [np.zeros(num_slots, bool) for _ in range(2)]
+        self.mask = [torch.from_numpy(s.reshape(1, num_slots)) for s in self.seen]
         self.next_pred = torch.zeros(1, num_slots, 2)
         self.next_raw = torch.zeros(1, num_slots, 3) if predictor.has_distribution else None
-        self.seen = [np.zeros(num_slots, bool) for _ in range(2)]  # self.mask in numpy (cheaper tests of a few rows)
         self.last_seen_m = np.zeros((num_slots, 2), np.float32)
         self.steps = 0
         self._scale = torch.as_tensor(predictor.norm.scale, dtype=torch.float32)

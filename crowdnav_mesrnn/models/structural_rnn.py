@@ -142,14 +142,10 @@ def tanh_from_doubled(z2: torch.Tensor) -> torch.Tensor:
     return torch.sigmoid(z2).mul(2.0).sub_(1.0)
 
 
-def lstm_pointwise_regrouped(gates: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`lstm_pointwise` in fewer operations (``i (2g − 1) = 2 i g − i``, ``o (2 s − 1) = 2 o s − o``): the
-    same function, different float32 rounding; used by the online path only."""
-    return lstm_pointwise_from_sigmoid(torch.sigmoid(gates), c)
-
-
 def lstm_pointwise_from_sigmoid(s: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`lstm_pointwise_regrouped` given the gates' sigmoid ``s`` (a matrix product with the sigmoid fused)."""
+    """:func:`lstm_pointwise` given the gates' sigmoid ``s`` (a matrix product with the sigmoid fused), in fewer
+    operations (``i (2g − 1) = 2 i g − i``, ``o (2 s − 1) = 2 o s − o``): the same function, different float32
+    rounding; used by the online path only."""
     i, f, g, o = s.chunk(4, dim=-1)
     c_new = torch.addcmul(-i, f, c).addcmul_(i, g, value=2.0)
     return torch.addcmul(-o, o, c_new.mul(2.0).sigmoid_(), value=2.0), c_new
