@@ -19,9 +19,10 @@ from crowdnav_mesrnn.data.recordings import load_split
 from crowdnav_mesrnn.data.windows import Window, collate, split_windows
 from crowdnav_mesrnn.evaluation import batches, collect_forecasts, evaluate_windows
 from crowdnav_mesrnn.models import gaussian
+from crowdnav_mesrnn.models.architecture import ModelConfig
 from crowdnav_mesrnn.models.gaussian import params_from_raw
 from crowdnav_mesrnn.models.learned import CHECKPOINT_FORMAT, LearnedPredictor, lean_state
-from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
 from crowdnav_mesrnn.utils import atomic_write, code_version
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "predictor"

@@ -68,7 +68,7 @@ def _predictor_train() -> None:
 
 
 def _predictor_model() -> None:
-    from crowdnav_mesrnn.models.structural_rnn import ModelConfig
+    from crowdnav_mesrnn.models.architecture import ModelConfig
 
     ModelConfig.from_dict({"model": "srnn", "node_hiden": 8})
 

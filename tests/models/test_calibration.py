@@ -24,8 +24,9 @@ from crowdnav_mesrnn.data import MinMax
 from crowdnav_mesrnn.data.windows import Window
 from crowdnav_mesrnn.evaluation import ScoredForecasts, collect_forecasts, evaluate_model
 from crowdnav_mesrnn.models import gaussian
+from crowdnav_mesrnn.models.architecture import ModelConfig
 from crowdnav_mesrnn.models.learned import LearnedPredictor, lean_state
-from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
 
 
 def synthetic_scored(m: int, seed: int, a: float = 0.1, b: float = 0.8, windows: int = 0) -> ScoredForecasts:

@@ -24,8 +24,9 @@ from crowdnav_mesrnn.head_fit import (
     head_rows,
 )
 from crowdnav_mesrnn.models import gaussian
+from crowdnav_mesrnn.models.architecture import ModelConfig
 from crowdnav_mesrnn.models.learned import CHECKPOINT_FORMAT, CheckpointError, lean_state, load_predictor
-from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
 from crowdnav_mesrnn.utils import file_sha256
 
 TINY = {"node_embed": 8, "node_hidden": 16, "edge_embed": 4, "edge_hidden": 8}

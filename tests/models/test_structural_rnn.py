@@ -11,8 +11,9 @@ import torch
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data import MinMax
 from crowdnav_mesrnn.models import ConstantVelocity, get_predictor
+from crowdnav_mesrnn.models.architecture import MODEL_TYPES, ModelConfig
 from crowdnav_mesrnn.models.learned import CheckpointError, LearnedPredictor, lean_state, load_predictor
-from crowdnav_mesrnn.models.structural_rnn import MODEL_TYPES, ModelConfig, StructuralRNN
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
 
 SMALL = {"node_embed": 16, "node_hidden": 32, "edge_embed": 8, "edge_hidden": 16}
 
