@@ -26,7 +26,7 @@ from _timing import median_seconds
 
 from crowdnav_mesrnn.data import MinMax, collate, data_available, split_windows
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
-from crowdnav_mesrnn.evaluation import batches
+from crowdnav_mesrnn.evaluation.metrics import batches
 from crowdnav_mesrnn.models.architecture import ModelConfig
 from crowdnav_mesrnn.models.learned import LearnedPredictor
 from crowdnav_mesrnn.models.pretrained import load_pretrained

@@ -25,7 +25,7 @@ per horizon step ``h``, ``q_h(c)`` is the ``⌈(n + 1) c⌉``-th smallest of the
 prediction; infinite when that exceeds ``n``). It would guarantee coverage ``≥ c`` if test and validation
 pedestrians were exchangeable; they are not (another scene, and overlapping windows), so coverage is measured
 on the held-out scene's test windows, per step and pooled, with block-bootstrap intervals
-(:mod:`crowdnav_mesrnn.stats`: windows overlap, so blocks of consecutive windows are resampled).
+(:mod:`crowdnav_mesrnn.evaluation.statistics`: windows overlap, so blocks of consecutive windows are resampled).
 """
 
 from __future__ import annotations
@@ -41,9 +41,16 @@ from scipy.optimize import nnls
 
 from crowdnav_mesrnn.data.constants import PRED_LEN, check_split
 from crowdnav_mesrnn.data.windows import Window, split_windows
-from crowdnav_mesrnn.evaluation import ScoredForecasts, collect_forecasts, cv_predict_batch, resolve_splits
+from crowdnav_mesrnn.evaluation.metrics import ScoredForecasts, collect_forecasts, cv_predict_batch
+from crowdnav_mesrnn.evaluation.protocol import resolve_splits
+from crowdnav_mesrnn.evaluation.statistics import (
+    DEFAULT_BLOCK_LEN,
+    DEFAULT_RESAMPLES,
+    PairedErrors,
+    average_ci,
+    block_bootstrap_ci,
+)
 from crowdnav_mesrnn.models import gaussian
-from crowdnav_mesrnn.stats import DEFAULT_BLOCK_LEN, DEFAULT_RESAMPLES, PairedErrors, average_ci, block_bootstrap_ci
 
 if TYPE_CHECKING:
     from crowdnav_mesrnn.online_conformal import OnlineResult
@@ -225,7 +232,7 @@ class Forecaster:
     info: dict[str, Any] | None = None
 
     def collect(self, windows: Sequence[Window], batch_size: int = 64, rows: str = "scored") -> ScoredForecasts:
-        """:func:`crowdnav_mesrnn.evaluation.collect_forecasts` of ``windows`` (``rows`` as there)."""
+        """:func:`crowdnav_mesrnn.evaluation.metrics.collect_forecasts` of ``windows`` (``rows`` as there)."""
         return collect_forecasts(windows, self.point, self.distribution, batch_size=batch_size, rows=rows)
 
 

@@ -84,7 +84,7 @@ def _checkpoint_loader(args: argparse.Namespace) -> Any:
 def _eval(args: argparse.Namespace) -> int:
     import torch
 
-    from crowdnav_mesrnn.evaluation import evaluate_model, evaluate_versus, format_result
+    from crowdnav_mesrnn.evaluation.protocol import evaluate_model, evaluate_versus, format_result
 
     torch.set_num_threads(args.threads)
     head = args.head or ("gaussian" if args.samples else "point")
@@ -144,7 +144,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 def _fit_head(args: argparse.Namespace) -> int:
     import torch
 
-    from crowdnav_mesrnn.evaluation import resolve_splits
+    from crowdnav_mesrnn.evaluation.protocol import resolve_splits
     from crowdnav_mesrnn.head_fit import HeadFitConfig, fit_head
     from crowdnav_mesrnn.models.pretrained import pretrained_path
 

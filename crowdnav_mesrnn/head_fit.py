@@ -45,7 +45,7 @@ from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
 from crowdnav_mesrnn.data.normalization import MinMax
 from crowdnav_mesrnn.data.windows import Window, collate, split_windows
-from crowdnav_mesrnn.evaluation import batches, collect_forecasts
+from crowdnav_mesrnn.evaluation.metrics import batches, collect_forecasts
 from crowdnav_mesrnn.models import gaussian
 from crowdnav_mesrnn.models.gaussian import params_from_raw
 from crowdnav_mesrnn.models.learned import CHECKPOINT_FORMAT, CheckpointError, LearnedPredictor, load_predictor
@@ -138,7 +138,7 @@ def head_rows(
         norm: the split's normalisation (that of the weights).
         rows: ``valid``: every pedestrian rolled out whose true position is known at the step (the rows of the
             training loss, :func:`crowdnav_mesrnn.training.gaussian_nll_loss`); ``scored``: the pedestrians present
-            in all 20 steps (the rows of validation and evaluation, :func:`crowdnav_mesrnn.evaluation.collect_forecasts`).
+            in all 20 steps (the rows of validation and evaluation, :func:`crowdnav_mesrnn.evaluation.metrics.collect_forecasts`).
     """
     if rows not in ("valid", "scored"):
         raise ValueError(f"rows must be 'valid' or 'scored', got {rows!r}")

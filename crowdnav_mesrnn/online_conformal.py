@@ -93,7 +93,7 @@ from crowdnav_mesrnn.calibration import (
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, RECORDINGS
 from crowdnav_mesrnn.data.recordings import Recording, load_split
 from crowdnav_mesrnn.data.windows import Window
-from crowdnav_mesrnn.evaluation import ScoredForecasts
+from crowdnav_mesrnn.evaluation.metrics import ScoredForecasts
 from crowdnav_mesrnn.models import gaussian
 
 #: Step sizes ``γ`` the validation rule chooses from (module docstring).
@@ -317,7 +317,7 @@ class Stream:
     """The forecasts of one stream (a scene's windows in time order) and their conformal scores.
 
     Attributes:
-        scored: the forecasts (:func:`crowdnav_mesrnn.evaluation.collect_forecasts` order).
+        scored: the forecasts (:func:`crowdnav_mesrnn.evaluation.metrics.collect_forecasts` order).
         scores: ``(M, P)`` conformal scores.
         time: ``(W,)`` forecast times (:func:`window_clock`).
         feedback: what the ``"observed"`` rule learns from, or None: the :class:`Feedback` of the same scene.
@@ -507,7 +507,7 @@ def online_for_split(
     """:func:`online_coverage` on ``calibration.split``: its validation scenes choose ``γ``, its test scene (one
     stream, its recordings in order) is tracked; both with the reveal rule ``reveal``; ``gamma_rule`` as
     :func:`online_coverage`. ``feedback_forecasts`` (``reveal="observed"`` only): every test window (``min_scored``
-    0) and its forecasts collected with ``rows="observed"`` (:func:`crowdnav_mesrnn.evaluation.collect_forecasts`)."""
+    0) and its forecasts collected with ``rows="observed"`` (:func:`crowdnav_mesrnn.evaluation.metrics.collect_forecasts`)."""
     split = calibration.split
     val_streams = scene_streams(val_windows, val, val_scores, load_split(split, "val", data_dir))
     scores = region_scores(test, calibration.score, calibration.error_model)

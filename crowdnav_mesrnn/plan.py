@@ -466,7 +466,7 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
     import torch
 
     from crowdnav_mesrnn.data import MinMax, collate, split_windows
-    from crowdnav_mesrnn.evaluation import batches, collect_forecasts
+    from crowdnav_mesrnn.evaluation.metrics import batches, collect_forecasts
     from crowdnav_mesrnn.models.learned import LearnedPredictor
     from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
     from crowdnav_mesrnn.training import clip_gradients, make_optimizer, rotate_windows, training_loss
@@ -503,7 +503,7 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
     pred = LearnedPredictor(net.eval(), norm)
     val = [windows[i] for c in chunks[1:] for i in c]
     t0 = time.perf_counter()
-    from crowdnav_mesrnn.evaluation import evaluate_windows
+    from crowdnav_mesrnn.evaluation.metrics import evaluate_windows
 
     evaluate_windows(pred.predict_batch, val, norm)
     if pred.has_distribution:  # validation also rolls out the distribution (its NLL)

@@ -11,7 +11,7 @@ import torch
 
 from crowdnav_mesrnn.data.constants import OBS_LEN
 from crowdnav_mesrnn.data.windows import collate, split_windows
-from crowdnav_mesrnn.evaluation import cv_predict_batch
+from crowdnav_mesrnn.evaluation.metrics import cv_predict_batch
 
 COLOURS = {"cv": "tab:orange", "vlstm": "tab:purple", "srnn": "tab:blue", "mesrnn": "tab:red"}
 

@@ -18,9 +18,8 @@ import yaml
 from crowdnav_mesrnn.claims.compute import COMMAND as CLAIMS_COMMAND
 from crowdnav_mesrnn.claims.render import render_claims
 from crowdnav_mesrnn.data.constants import SPLITS
-from crowdnav_mesrnn.evaluation import evaluate_model
-from crowdnav_mesrnn.models.learned import load_predictor
-from crowdnav_mesrnn.stats import (
+from crowdnav_mesrnn.evaluation.protocol import evaluate_model
+from crowdnav_mesrnn.evaluation.statistics import (
     DEFAULT_BLOCK_LEN,
     DEFAULT_RESAMPLES,
     SeededDifference,
@@ -29,6 +28,7 @@ from crowdnav_mesrnn.stats import (
     seeded_difference_ci,
     verdict,
 )
+from crowdnav_mesrnn.models.learned import load_predictor
 
 #: Social-GAN paper (Gupta et al., CVPR 2018), Table 1, ADE/FDE in metres, 8 -> 12 steps.
 PUBLISHED_SGAN: dict[str, dict[str, tuple[float, float]]] = {
@@ -137,7 +137,7 @@ def _label(key: str) -> str:
 
 
 # ------------------------------------------------------------------ computing
-#: Per-window errors of one model on one split (:func:`crowdnav_mesrnn.evaluation.window_errors`), or a
+#: Per-window errors of one model on one split (:func:`crowdnav_mesrnn.evaluation.metrics.window_errors`), or a
 #: list of them, one per training seed.
 WindowErrors = dict[str, np.ndarray] | list[dict[str, np.ndarray]]
 
@@ -163,7 +163,7 @@ def compare(
 
     A value may be a list of per-window errors, one per training seed: the difference is then between
     seed-averaged errors and the interval also counts the seeds' variance
-    (:func:`~crowdnav_mesrnn.stats.seeded_difference_ci`). With one seed per model this is exactly the
+    (:func:`~crowdnav_mesrnn.evaluation.statistics.seeded_difference_ci`). With one seed per model this is exactly the
     block bootstrap of the paired difference."""
     out: dict[str, Any] = {}
     for a, b in pairs:

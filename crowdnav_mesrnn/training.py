@@ -17,7 +17,7 @@ from crowdnav_mesrnn.data.constants import OBS_LEN, check_split
 from crowdnav_mesrnn.data.normalization import MinMax
 from crowdnav_mesrnn.data.recordings import load_split
 from crowdnav_mesrnn.data.windows import Window, collate, split_windows
-from crowdnav_mesrnn.evaluation import batches, collect_forecasts, evaluate_windows
+from crowdnav_mesrnn.evaluation.metrics import batches, collect_forecasts, evaluate_windows
 from crowdnav_mesrnn.models import gaussian
 from crowdnav_mesrnn.models.architecture import ModelConfig
 from crowdnav_mesrnn.models.gaussian import params_from_raw

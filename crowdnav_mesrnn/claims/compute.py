@@ -18,8 +18,13 @@ from scipy import stats as sps
 from crowdnav_mesrnn.claims.declared import DECLARED, ClaimsConfig
 from crowdnav_mesrnn.claims.measure import MOTIONS, bin_label, density_bin, measure_windows
 from crowdnav_mesrnn.data.constants import SPLITS
-from crowdnav_mesrnn.evaluation import BatchPredictFn, cv_predict_batch
-from crowdnav_mesrnn.stats import DEFAULT_BLOCK_LEN, DEFAULT_RESAMPLES, SeededDifference, ratio_differences
+from crowdnav_mesrnn.evaluation.metrics import BatchPredictFn, cv_predict_batch
+from crowdnav_mesrnn.evaluation.statistics import (
+    DEFAULT_BLOCK_LEN,
+    DEFAULT_RESAMPLES,
+    SeededDifference,
+    ratio_differences,
+)
 
 MODELS: tuple[str, ...] = ("cv", "vlstm", "srnn", "mesrnn")
 LEARNED: tuple[str, ...] = ("vlstm", "srnn", "mesrnn")

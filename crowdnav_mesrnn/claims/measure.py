@@ -3,7 +3,7 @@ motion type, and colliding pairs of forecasts and of the ground truth (definitio
 :mod:`crowdnav_mesrnn.claims.declared`).
 
 Everything is summed per window (never averaged), so a split's figure is a ratio of sums and blocks of
-windows can be resampled by :mod:`crowdnav_mesrnn.stats`.
+windows can be resampled by :mod:`crowdnav_mesrnn.evaluation.statistics`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 from crowdnav_mesrnn.claims.declared import DECLARED, ClaimsConfig
 from crowdnav_mesrnn.data.constants import OBS_LEN, STEP_S
 from crowdnav_mesrnn.data.windows import Window
-from crowdnav_mesrnn.evaluation import BatchPredictFn, predicted_batches
+from crowdnav_mesrnn.evaluation.metrics import BatchPredictFn, predicted_batches
 
 #: Motion types of the true future, in the order of the ``motion_*`` rows.
 MOTIONS: tuple[str, ...] = ("near-stationary", "linear", "non-linear")

@@ -22,7 +22,8 @@ from crowdnav_mesrnn.calibration import (
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data import MinMax
 from crowdnav_mesrnn.data.windows import Window
-from crowdnav_mesrnn.evaluation import ScoredForecasts, collect_forecasts, evaluate_model
+from crowdnav_mesrnn.evaluation.metrics import ScoredForecasts, collect_forecasts
+from crowdnav_mesrnn.evaluation.protocol import evaluate_model
 from crowdnav_mesrnn.models import gaussian
 from crowdnav_mesrnn.models.architecture import ModelConfig
 from crowdnav_mesrnn.models.learned import LearnedPredictor, lean_state

@@ -18,7 +18,7 @@ from crowdnav_mesrnn.claims.measure import (
     motion_types,
 )
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, SPLITS
-from crowdnav_mesrnn.stats import combine_interval, ratio_differences
+from crowdnav_mesrnn.evaluation.statistics import combine_interval, ratio_differences
 
 K = np.arange(1, PRED_LEN + 1, dtype=float)
 

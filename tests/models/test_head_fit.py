@@ -13,7 +13,7 @@ from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import PRED_LEN
 from crowdnav_mesrnn.data.windows import collate, split_windows
-from crowdnav_mesrnn.evaluation import split_norm
+from crowdnav_mesrnn.evaluation.protocol import split_norm
 from crowdnav_mesrnn.head_fit import (
     HEAD_KEYS,
     HeadFitConfig,

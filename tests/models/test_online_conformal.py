@@ -15,7 +15,7 @@ from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
 from crowdnav_mesrnn.data.recordings import Recording
 from crowdnav_mesrnn.data.windows import Window, windows_from_recording
-from crowdnav_mesrnn.evaluation import ScoredForecasts
+from crowdnav_mesrnn.evaluation.metrics import ScoredForecasts
 from crowdnav_mesrnn.online_conformal import (
     GAMMA_GRID,
     REVEAL_RULES,
@@ -348,7 +348,7 @@ def test_online_cli_with_experts_reports_their_weights(data_dir: Path, capsys: p
 def observed_stream(rec: Recording) -> tuple[Stream, list[Window]]:
     """The scored stream of ``rec`` (windows with a scored pedestrian; constant-velocity distance scores) with its
     :class:`Feedback` (every window, every pedestrian present through the observation, NaN where not observed)."""
-    from crowdnav_mesrnn.evaluation import collect_forecasts, cv_predict_batch
+    from crowdnav_mesrnn.evaluation.metrics import collect_forecasts, cv_predict_batch
 
     scored_windows = windows_from_recording(rec)
     every = windows_from_recording(rec, min_scored=0)
@@ -366,7 +366,7 @@ def observed_stream(rec: Recording) -> tuple[Stream, list[Window]]:
 def test_observed_rows_are_everyone_present_through_the_observation_marked_while_they_stay() -> None:
     """Pedestrian 2 misses frame 40: in the window whose observation ends at frame 35 it is a feedback row (present
     in all 8 observed frames) observed at steps 1-4 only, not a scored one; the scored rows are all observed."""
-    from crowdnav_mesrnn.evaluation import collect_forecasts, cv_predict_batch
+    from crowdnav_mesrnn.evaluation.metrics import collect_forecasts, cv_predict_batch
 
     rec = membership_recording(gone=(40, 2))
     every = windows_from_recording(rec, min_scored=0)
@@ -430,7 +430,7 @@ def test_feedback_refuses_a_nan_score_at_an_observed_step() -> None:
     step is not observed is what the mask says and passes."""
     import dataclasses
 
-    from crowdnav_mesrnn.evaluation import collect_forecasts, cv_predict_batch
+    from crowdnav_mesrnn.evaluation.metrics import collect_forecasts, cv_predict_batch
     from crowdnav_mesrnn.online_conformal import feedback_stream
 
     rec = membership_recording(gone=(40, 2))

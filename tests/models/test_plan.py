@@ -170,7 +170,7 @@ def test_execute_is_resumable_and_exports_the_best_seed(
 
     # The report's seed section, end to end on these runs: every seed and candidate on test, and the
     # comparison over seeds against constant velocity.
-    from crowdnav_mesrnn.evaluation import evaluate_model
+    from crowdnav_mesrnn.evaluation.protocol import evaluate_model
     from crowdnav_mesrnn.report import render_seeds, seed_results
 
     cv: dict = {}
