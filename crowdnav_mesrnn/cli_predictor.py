@@ -120,7 +120,7 @@ def _emit(args: argparse.Namespace, result: dict[str, Any], fmt: Callable[[dict[
 def _calibrate(args: argparse.Namespace) -> int:
     import torch
 
-    from crowdnav_mesrnn.calibration import calibrate_model, format_calibration
+    from crowdnav_mesrnn.uncertainty.calibration import calibrate_model, format_calibration
 
     torch.set_num_threads(args.threads)
     predictor_for = _checkpoint_loader(args)
