@@ -60,7 +60,7 @@ def runs_for(args: argparse.Namespace) -> dict[str, list[Run]]:
 
 def check_same_recipe(folder: Path, model: str, cand: Candidate, seed: int) -> None:
     """A reused fp32 run must have been trained with exactly this configuration and seed."""
-    from crowdnav_mesrnn.training import load_configs
+    from crowdnav_mesrnn.training.trainer import load_configs
 
     recorded = yaml.safe_load((folder / "run.yaml").read_text())
     mcfg, tcfg = load_configs(model, cand.config_path(model), {**cand.overrides, "seed": seed})

@@ -32,7 +32,7 @@ from crowdnav_mesrnn.models.learned import LearnedPredictor
 from crowdnav_mesrnn.models.pretrained import load_pretrained
 from crowdnav_mesrnn.models.reference import reference_forward, reference_rollout
 from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
-from crowdnav_mesrnn.training import keep_freed_memory, masked_loss
+from crowdnav_mesrnn.training.trainer import keep_freed_memory, masked_loss
 
 COMPACT = {"node_embed": 64, "node_hidden": 128, "edge_embed": 32, "edge_hidden": 64}
 STEPS = OBS_LEN + PRED_LEN - 1

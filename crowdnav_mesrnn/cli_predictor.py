@@ -29,7 +29,7 @@ def _parse_sets(items: list[str] | None) -> dict[str, Any]:
 def _train(args: argparse.Namespace) -> int:
     import torch
 
-    from crowdnav_mesrnn.training import Trainer, load_configs
+    from crowdnav_mesrnn.training.trainer import Trainer, load_configs
 
     torch.set_num_threads(args.threads)
     overrides = _parse_sets(args.set)
@@ -145,8 +145,8 @@ def _fit_head(args: argparse.Namespace) -> int:
     import torch
 
     from crowdnav_mesrnn.evaluation.protocol import resolve_splits
-    from crowdnav_mesrnn.head_fit import HeadFitConfig, fit_head
     from crowdnav_mesrnn.models.pretrained import pretrained_path
+    from crowdnav_mesrnn.training.head_fit import HeadFitConfig, fit_head
 
     torch.set_num_threads(args.threads)
     cfg = HeadFitConfig(

@@ -312,7 +312,7 @@ def train_run(
     run: Run, data_dir: str | None = None, progress: bool = False, log: Callable[[str], None] = print
 ) -> dict:
     """Train (or resume) one run and write ``done.json``; returns its content."""
-    from crowdnav_mesrnn.training import Trainer, load_configs
+    from crowdnav_mesrnn.training.trainer import Trainer, load_configs
 
     overrides = dict(run.overrides)
     if data_dir:
@@ -379,7 +379,7 @@ def execute(
         return export(plan, log)
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; valid: {', '.join(STAGES)}")
-    from crowdnav_mesrnn.training import keep_freed_memory
+    from crowdnav_mesrnn.training.trainer import keep_freed_memory
 
     keep_freed_memory()
     stages = ("candidates", "seeds") if stage == "all" else (stage,)
@@ -469,7 +469,7 @@ def measure_rate(mcfg: Any, tcfg: Any, batches_count: int = 3, data_dir: str | N
     from crowdnav_mesrnn.evaluation.metrics import batches, collect_forecasts
     from crowdnav_mesrnn.models.learned import LearnedPredictor
     from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
-    from crowdnav_mesrnn.training import clip_gradients, make_optimizer, rotate_windows, training_loss
+    from crowdnav_mesrnn.training.trainer import clip_gradients, make_optimizer, rotate_windows, training_loss
 
     windows = split_windows("zara1", "train", tcfg.min_scored, data_dir)
     norm = MinMax.fit(np.concatenate([w.positions[w.present] for w in windows]))
@@ -588,7 +588,7 @@ def dry_run(
     """
     import torch
 
-    from crowdnav_mesrnn.training import load_configs
+    from crowdnav_mesrnn.training.trainer import load_configs
 
     torch.set_num_threads(1)
     cache_path = plan.out_dir / "rates.json"

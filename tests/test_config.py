@@ -62,7 +62,7 @@ def _train(key: str) -> Callable[[], Any]:
 
 
 def _predictor_train() -> None:
-    from crowdnav_mesrnn.training import load_configs
+    from crowdnav_mesrnn.training.trainer import load_configs
 
     load_configs("srnn", overrides={"bach_size": 3})
 

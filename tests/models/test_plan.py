@@ -25,7 +25,7 @@ from crowdnav_mesrnn.plan import (
     status,
     summary,
 )
-from crowdnav_mesrnn.training import load_configs
+from crowdnav_mesrnn.training.trainer import load_configs
 
 SHIPPED = REPO_ROOT / "configs" / "predictor" / "candidates.yaml"
 

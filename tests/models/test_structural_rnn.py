@@ -109,7 +109,7 @@ def test_constant_velocity() -> None:
 
 
 def test_overfitting_one_batch_decreases_loss() -> None:
-    from crowdnav_mesrnn.training import masked_loss
+    from crowdnav_mesrnn.training.trainer import masked_loss
 
     net = make_net("mesrnn").train()
     pos, mask = random_batch(b=4, n=4, seed=1)
