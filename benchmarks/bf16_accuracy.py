@@ -29,7 +29,8 @@ import yaml
 
 from agents.stats import welch_seed_test
 from crowdnav_mesrnn.models.base import LEARNED_MODELS
-from crowdnav_mesrnn.plan import Candidate, Run, epoch_rates, parse_shard, read_done, run_lock, train_run, yaml_scalar
+from crowdnav_mesrnn.studies.plan import Candidate, Run, parse_shard, read_done, run_lock, train_run, yaml_scalar
+from crowdnav_mesrnn.studies.plan_budget import epoch_rates
 
 
 def default_out(model: str, split: str, config: str, sets: dict) -> Path:

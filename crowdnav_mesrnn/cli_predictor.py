@@ -219,7 +219,8 @@ def _select(args: argparse.Namespace) -> int:
 def _report(args: argparse.Namespace) -> int:
     import torch
 
-    from crowdnav_mesrnn.report import build_plan_report, build_report, render, render_plan
+    from crowdnav_mesrnn.studies.report import build_plan_report, build_report
+    from crowdnav_mesrnn.studies.report_render import render, render_plan
     from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text
 
     if args.plan_only and args.out is None:
@@ -261,8 +262,9 @@ def _report_claims(args: argparse.Namespace, out: Path) -> int:
     """``report --claims``: test the paper's further claims and merge them into the page's JSON (every
     other key kept), then re-render the page. The plan's seeds are used where its run folders hold them
     all (``--plan``, else the plan the page was made with), else the shipped weights."""
-    from crowdnav_mesrnn.claims.compute import compute_claims
-    from crowdnav_mesrnn.report import add_claims, render
+    from crowdnav_mesrnn.studies.claims.compute import compute_claims
+    from crowdnav_mesrnn.studies.report import add_claims
+    from crowdnav_mesrnn.studies.report_render import render
     from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text
 
     source = out.with_suffix(".json")
@@ -282,14 +284,32 @@ def _report_claims(args: argparse.Namespace, out: Path) -> int:
     return 0
 
 
-def _plan(args: argparse.Namespace) -> int:
-    from crowdnav_mesrnn.plan import main_plan
+def main_plan(args: argparse.Namespace) -> int:
+    """``crowdnav-mesrnn predictor plan``: run a stage of a comparison plan, or print its budget (``--dry-run``)."""
+    import torch
 
-    return main_plan(args)
+    from crowdnav_mesrnn.studies.plan import execute, load_plan, parse_shard
+    from crowdnav_mesrnn.studies.plan_budget import dry_run
+
+    torch.set_num_threads(args.threads)
+    plan = load_plan(args.file)
+    if args.dry_run:
+        print(
+            dry_run(
+                plan,
+                args.stage if args.stage != "export" else "all",
+                args.measure_batches,
+                args.remeasure,
+                args.data_dir,
+            )
+        )
+        return 0
+    execute(plan, args.stage, parse_shard(args.shard), args.data_dir, log=lambda s: print(s, flush=True))
+    return 0
 
 
 def _plot(args: argparse.Namespace) -> int:
-    from crowdnav_mesrnn.plotting import plot_window
+    from crowdnav_mesrnn.studies.plotting import plot_window
 
     path = plot_window(args.split, args.window, args.out, models=args.models.split(","), data_dir=args.data_dir)
     print(f"wrote {path}")
@@ -501,7 +521,7 @@ def add_parser(sub: Any) -> None:
     pl.add_argument("--measure-batches", type=int, default=3, help="training batches timed per config (dry run)")
     pl.add_argument("--remeasure", action="store_true", help="ignore the cached throughputs (dry run)")
     pl.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
-    pl.set_defaults(func=_plan)
+    pl.set_defaults(func=main_plan)
 
     g = psub.add_parser("plot", help="draw observed paths, true futures and forecasts of one test window")
     g.add_argument("--split", required=True, choices=SPLITS, help="whose test windows (its held-out scene)")
