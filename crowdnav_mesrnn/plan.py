@@ -1,7 +1,7 @@
 """Deprecated: moved to :mod:`crowdnav_mesrnn.studies.plan` and :mod:`crowdnav_mesrnn.studies.plan_budget`."""
 
 from crowdnav_mesrnn._deprecated import warn_moved
-from crowdnav_mesrnn.cli_predictor import (  # noqa: F401
+from crowdnav_mesrnn.cli.predictor import (  # noqa: F401
     main_plan,
 )
 from crowdnav_mesrnn.studies.plan import (  # noqa: F401
