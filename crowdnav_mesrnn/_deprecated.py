@@ -21,17 +21,20 @@ def warn_moved(old: str, new: str) -> None:
 
 def moved_attributes(module: str, moved: Mapping[str, str]) -> Callable[[str], Any]:
     """A module ``__getattr__`` (PEP 562) for ``module``: each name of ``moved`` (name -> the module that now holds
-    it) is looked up there, with a ``DeprecationWarning`` at every use; any other name raises ``AttributeError``."""
+    it, or ``"module:new_name"`` when it was renamed too) is looked up there, with a ``DeprecationWarning`` at every
+    use; any other name raises ``AttributeError``."""
 
     def __getattr__(name: str) -> Any:
-        target = moved.get(name)
-        if target is None:
+        where = moved.get(name)
+        if where is None:
             raise AttributeError(f"module {module!r} has no attribute {name!r}")
+        target, _, new_name = where.partition(":")
+        new_name = new_name or name
         warnings.warn(
-            f"{module}.{name} moved to {target}.{name}: import it from {target} instead",
+            f"{module}.{name} moved to {target}.{new_name}: import it from {target} instead",
             DeprecationWarning,
             stacklevel=2,
         )
-        return getattr(importlib.import_module(target), name)
+        return getattr(importlib.import_module(target), new_name)
 
     return __getattr__

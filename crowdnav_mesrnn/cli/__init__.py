@@ -37,7 +37,7 @@ def _resolve(target: str) -> Callable[[Any], None]:
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser; only ``command``'s module is imported (every other subcommand is a stub that lists its help)."""
-    from crowdnav_mesrnn import __version__
+    from crowdnav_mesrnn._version import __version__
 
     parser = argparse.ArgumentParser(
         prog="crowdnav-mesrnn", description="MESRNN trajectory prediction and robot crowd navigation on ETH/UCY."
@@ -75,4 +75,4 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
-__getattr__ = moved_attributes(__name__, {"add_data": "crowdnav_mesrnn.cli.data"})
+__getattr__ = moved_attributes(__name__, {"add_data": "crowdnav_mesrnn.cli.data:add_parser"})
