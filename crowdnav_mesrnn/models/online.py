@@ -85,7 +85,7 @@ class OnlineInference:
             m_tm1, m_tm2: ``(n,)`` bool presence at ``t − 1`` and ``t − 2`` (None: everyone present).
             state: hidden states of the ``n`` rows (not modified).
             weights: ``(self._weights(), self._online_weights())`` when the caller already has them (looking them
-                up checks every parameter's version: tens of microseconds per step).
+                up checks every parameter's version, at every step).
 
         Returns:
             ``(n, 2)`` the (mean) prediction of step ``t + 1`` and the new state.

@@ -27,7 +27,7 @@ def gate_scale(hidden: int, like: torch.Tensor) -> torch.Tensor:
 
 def tanh_from_doubled(z2: torch.Tensor) -> torch.Tensor:
     """``tanh(z)`` given ``z2 = 2 z``, as ``2 σ(2z) − 1``: the same function through the sigmoid kernel,
-    which is several times faster than ``torch.tanh`` on this project's CPUs (docs/results/speed.md)."""
+    which is faster than ``torch.tanh`` on CPUs (figures: ``docs/results/speed.md``)."""
     return torch.sigmoid(z2).mul(2.0).sub_(1.0)
 
 
