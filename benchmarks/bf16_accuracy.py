@@ -29,7 +29,8 @@ import yaml
 
 from agents.stats import welch_seed_test
 from crowdnav_mesrnn.models.base import LEARNED_MODELS
-from crowdnav_mesrnn.plan import Candidate, Run, epoch_rates, parse_shard, read_done, run_lock, train_run, yaml_scalar
+from crowdnav_mesrnn.studies.plan import Candidate, Run, parse_shard, read_done, run_lock, train_run, yaml_scalar
+from crowdnav_mesrnn.studies.plan_budget import epoch_rates
 
 
 def default_out(model: str, split: str, config: str, sets: dict) -> Path:
@@ -60,7 +61,7 @@ def runs_for(args: argparse.Namespace) -> dict[str, list[Run]]:
 
 def check_same_recipe(folder: Path, model: str, cand: Candidate, seed: int) -> None:
     """A reused fp32 run must have been trained with exactly this configuration and seed."""
-    from crowdnav_mesrnn.training import load_configs
+    from crowdnav_mesrnn.training.trainer import load_configs
 
     recorded = yaml.safe_load((folder / "run.yaml").read_text())
     mcfg, tcfg = load_configs(model, cand.config_path(model), {**cand.overrides, "seed": seed})

@@ -26,12 +26,13 @@ from _timing import median_seconds
 
 from crowdnav_mesrnn.data import MinMax, collate, data_available, split_windows
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
-from crowdnav_mesrnn.evaluation import batches
+from crowdnav_mesrnn.evaluation.metrics import batches
+from crowdnav_mesrnn.models.architecture import ModelConfig
 from crowdnav_mesrnn.models.learned import LearnedPredictor
 from crowdnav_mesrnn.models.pretrained import load_pretrained
 from crowdnav_mesrnn.models.reference import reference_forward, reference_rollout
-from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
-from crowdnav_mesrnn.training import keep_freed_memory, masked_loss
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
+from crowdnav_mesrnn.training.trainer import keep_freed_memory, masked_loss
 
 COMPACT = {"node_embed": 64, "node_hidden": 128, "edge_embed": 32, "edge_hidden": 64}
 STEPS = OBS_LEN + PRED_LEN - 1

@@ -8,9 +8,8 @@ from __future__ import annotations
 
 from typing import Any
 
-__version__ = "0.1.0"
-
 from crowdnav_mesrnn._registration import register_envs
+from crowdnav_mesrnn._version import __version__
 
 register_envs()
 

@@ -81,7 +81,7 @@ def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
 
 def code_version() -> str:
     """Package version plus the git commit when run from a checkout (``"0.1.0+g1a2b3c4"``)."""
-    from crowdnav_mesrnn import __version__
+    from crowdnav_mesrnn._version import __version__
 
     try:
         here = Path(__file__).resolve().parent

@@ -121,8 +121,8 @@ class CalibratedUncertainty(UncertaintySource):
 def calibration_key(name: str, split: str, levels: tuple[float, ...], data_dir: str | None) -> str:
     """Digest of what a calibration depends on: the predictor's weights, the split's training and validation
     recordings, the levels and the calibration format."""
-    from crowdnav_mesrnn.calibration import CALIBRATION_FORMAT
     from crowdnav_mesrnn.data.recordings import load_split
+    from crowdnav_mesrnn.uncertainty.conformal import CALIBRATION_FORMAT
 
     h = hashlib.sha256()
     if name == "cv":
@@ -145,7 +145,8 @@ def load_or_fit_calibration(
     read from ``cache_dir/calibration/`` when a file with the same key exists, else fitted (training and
     validation windows of the split; a few seconds for ``cv``, tens of seconds for a learned predictor) and
     written atomically under a lock, so concurrent processes fit it once."""
-    from crowdnav_mesrnn.calibration import LEVELS, Calibration, fit_calibration, forecaster_for
+    from crowdnav_mesrnn.uncertainty.calibration import fit_calibration, forecaster_for
+    from crowdnav_mesrnn.uncertainty.conformal import LEVELS, Calibration
 
     levels = tuple(sorted({*LEVELS, float(level)}))
 

@@ -62,13 +62,13 @@ def _train(key: str) -> Callable[[], Any]:
 
 
 def _predictor_train() -> None:
-    from crowdnav_mesrnn.training import load_configs
+    from crowdnav_mesrnn.training.trainer import load_configs
 
     load_configs("srnn", overrides={"bach_size": 3})
 
 
 def _predictor_model() -> None:
-    from crowdnav_mesrnn.models.structural_rnn import ModelConfig
+    from crowdnav_mesrnn.models.architecture import ModelConfig
 
     ModelConfig.from_dict({"model": "srnn", "node_hiden": 8})
 

@@ -35,7 +35,7 @@ from agents.bench.report import write_report
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
-from crowdnav_mesrnn.stats import DEFAULT_BLOCK_LEN
+from crowdnav_mesrnn.evaluation.statistics import DEFAULT_BLOCK_LEN
 
 __all__ = ["BenchConfig", "run_bench"]
 

@@ -22,9 +22,10 @@ import torch
 
 from crowdnav_mesrnn.data.constants import OBS_LEN, SPLITS, check_split
 from crowdnav_mesrnn.data.windows import split_windows
-from crowdnav_mesrnn.evaluation import cv_predict_batch, split_norm, window_errors
+from crowdnav_mesrnn.evaluation.metrics import cv_predict_batch, window_errors
+from crowdnav_mesrnn.evaluation.protocol import split_norm
+from crowdnav_mesrnn.evaluation.statistics import DEFAULT_BLOCK_LEN, PairedErrors, average_ci, block_bootstrap_ci
 from crowdnav_mesrnn.models.base import Predictor
-from crowdnav_mesrnn.stats import DEFAULT_BLOCK_LEN, PairedErrors, average_ci, block_bootstrap_ci
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json
 
 #: Metrics compared against constant velocity.

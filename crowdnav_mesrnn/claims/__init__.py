@@ -1,2 +1,5 @@
-"""Tests of the MESRNN paper's further claims (density, motion type, social compliance, scene
-difficulty) on the leave-one-out test sets; the declaration is :mod:`crowdnav_mesrnn.claims.declared`."""
+"""Deprecated: moved to :mod:`crowdnav_mesrnn.studies.claims`."""
+
+from crowdnav_mesrnn._deprecated import warn_moved
+
+warn_moved(__name__, "crowdnav_mesrnn.studies.claims")

@@ -12,9 +12,10 @@ import torch
 
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, SPLITS
 from crowdnav_mesrnn.data.normalization import MinMax
+from crowdnav_mesrnn.models.architecture import ModelConfig
 from crowdnav_mesrnn.models.base import check_history, last_known
 from crowdnav_mesrnn.models.gaussian import GaussianForecast, params_from_raw
-from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
 from crowdnav_mesrnn.utils import file_sha256
 
 CHECKPOINT_FORMAT = 1

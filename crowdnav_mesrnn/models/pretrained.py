@@ -17,9 +17,9 @@ from typing import Any
 import torch
 
 from crowdnav_mesrnn.data.constants import SPLITS, check_split
+from crowdnav_mesrnn.models.architecture import HEADS
 from crowdnav_mesrnn.models.base import LEARNED_MODELS
 from crowdnav_mesrnn.models.learned import CHECKPOINT_FORMAT, CheckpointError, LearnedPredictor, load_predictor
-from crowdnav_mesrnn.models.structural_rnn import HEADS
 from crowdnav_mesrnn.utils import atomic_write
 
 PRETRAINED_DIR = Path(__file__).resolve().parent.parent / "pretrained"

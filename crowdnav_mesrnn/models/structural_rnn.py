@@ -5,245 +5,34 @@ feature of that type; the NodeRNN reads an embedding of the node's own position 
 the edge hidden states and decodes an offset (linear + tanh); next position = current + offset.
 All pedestrians of all windows step together; an absent pedestrian neither updates its hidden
 states nor influences its neighbours (its features and its contribution to theirs are masked).
+
+The architecture is :mod:`crowdnav_mesrnn.models.architecture`, the LSTM arithmetic
+:mod:`crowdnav_mesrnn.models.recurrence`, and the online (one frame at a time) path
+:mod:`crowdnav_mesrnn.models.online`.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
 
-from crowdnav_mesrnn.config import ConfigError, replace_checked
+from crowdnav_mesrnn._deprecated import moved_attributes
 from crowdnav_mesrnn.data.constants import PRED_LEN
-from crowdnav_mesrnn.graph.metapaths import dense_features_centred, stacked_features_step
+from crowdnav_mesrnn.graph.metapaths import stacked_features_step
 from crowdnav_mesrnn.models.gaussian import params_from_raw, raw_sigma_init
 from crowdnav_mesrnn.models.gaussian import sample as gaussian_sample
+from crowdnav_mesrnn.models.online import OnlineInference
+from crowdnav_mesrnn.models.recurrence import GroupedLSTMCell, LiveRows, gate_scale, lstm_pointwise, tanh_from_doubled
 
-#: Values of :attr:`ModelConfig.head`.
-HEADS: tuple[str, ...] = ("point", "gaussian")
-#: Fields of the distribution head with their point-model values: left out of a config's repr and saved dict when
-#: they hold these, so point configs read (and hash, in the forecast cache's keys) as before the head existed.
-_POINT_DEFAULTS: dict[str, Any] = {"head": "point", "scale_detach": False}
-
-MODEL_TYPES: dict[str, tuple[str, ...]] = {
-    "mesrnn": ("S", "T", "SS", "ST", "TS", "TT"),
-    "srnn": ("S", "T"),
-    "vlstm": (),
-}
+if TYPE_CHECKING:
+    from crowdnav_mesrnn.models.architecture import ModelConfig
 
 
-@dataclass(frozen=True)
-class ModelConfig:
-    """Architecture of a structural RNN (paper sizes by default)."""
-
-    model: str = "mesrnn"
-    """Which model: ``mesrnn``, ``srnn`` or ``vlstm``; fixes the meta-path types."""
-    node_embed: int = 128
-    """Node embedding size (paper: 128)."""
-    node_hidden: int = 256
-    """NodeRNN LSTM hidden size (paper: 256)."""
-    edge_embed: int = 64
-    """EdgeRNN embedding size (paper: 64)."""
-    edge_hidden: int = 128
-    """EdgeRNN LSTM hidden size (paper: 128)."""
-    dropout: float = 0.0
-    """Dropout after the embeddings (training only)."""
-    aggregate: str = "sum"
-    """How meta-paths are pooled over neighbours: ``sum`` (paper) or ``mean``."""
-    feature_scale: float = 1.0
-    """Multiplier on edge features before the embedding (1 = paper)."""
-    node_input: str = "position"
-    """What the node embedding reads: ``position`` (paper) or ``velocity`` (last displacement; scene-independent)."""
-    offset: str = "absolute"
-    """What the decoder's offset is added to: ``absolute`` (paper: current position) or ``cv_residual``
-    (current position plus the last displacement, so the network learns a correction to constant velocity;
-    the decoder starts at zero, i.e. the untrained model is exactly constant velocity)."""
-    standardise: bool = False
-    """Scale every edge feature type and the node input by the inverse of its RMS on the training data
-    (fitted once before training, stored with the weights). Off in the paper."""
-    head: str = "point"
-    """What the decoder predicts: ``point`` (paper: the offset of the next position) or ``gaussian`` (a bivariate
-    Gaussian over the next position: the same offset as its mean, plus two scales and a correlation from a
-    second linear layer on the node state, :mod:`crowdnav_mesrnn.models.gaussian`; trained by negative
-    log-likelihood). The point path is the same arithmetic with either head."""
-    scale_detach: bool = False
-    """With the gaussian head: the scales and correlation are read from the node state with the gradient stopped,
-    so learning them never changes the features the mean (the point forecast) is decoded from."""
-    types: tuple[str, ...] = field(default=())
-    """Meta-path types; filled from ``model`` (not set by hand)."""
-
-    def __repr__(self) -> str:
-        # the head's fields appear only when they are not the point defaults, so a point config's repr (hashed into
-        # the forecast cache's keys, envs.forecast_cache.predictor_fingerprint) is what it was before they existed.
-        names = [
-            f.name
-            for f in fields(self)
-            if f.name not in _POINT_DEFAULTS or getattr(self, f.name) != _POINT_DEFAULTS[f.name]
-        ]
-        return f"ModelConfig({', '.join(f'{n}={getattr(self, n)!r}' for n in names)})"
-
-    def __post_init__(self) -> None:
-        if self.model not in MODEL_TYPES:
-            raise ConfigError(f"unknown model {self.model!r}; valid models: {', '.join(MODEL_TYPES)}")
-        if self.aggregate not in ("sum", "mean"):
-            raise ConfigError(f"aggregate must be 'sum' or 'mean', got {self.aggregate!r}")
-        if self.node_input not in ("position", "velocity"):
-            raise ConfigError(f"node_input must be 'position' or 'velocity', got {self.node_input!r}")
-        if self.offset not in ("absolute", "cv_residual"):
-            raise ConfigError(f"offset must be 'absolute' or 'cv_residual', got {self.offset!r}")
-        if self.head not in HEADS:
-            raise ConfigError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
-        if self.scale_detach and self.head != "gaussian":
-            raise ConfigError("scale_detach needs head: gaussian")
-        if self.types != MODEL_TYPES[self.model]:
-            if self.types:
-                raise ConfigError(f"types {self.types} do not match model {self.model!r} ({MODEL_TYPES[self.model]})")
-            object.__setattr__(self, "types", MODEL_TYPES[self.model])
-        for name in ("node_embed", "node_hidden", "edge_embed", "edge_hidden"):
-            if getattr(self, name) <= 0:
-                raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
-
-    @classmethod
-    def from_dict(cls, d: dict) -> ModelConfig:
-        d = dict(d)
-        if "types" in d:
-            d["types"] = tuple(d["types"])
-        return replace_checked(cls(model=d.get("model", "mesrnn")), d, "model config")
-
-    def to_dict(self) -> dict:
-        """The config as saved in checkpoints (the head's fields only when not the point defaults, so point configs
-        read the same as those saved before the fields existed: resuming and comparing them keeps working)."""
-        out = asdict(self)
-        out["types"] = list(self.types)
-        for key, default in _POINT_DEFAULTS.items():
-            if out[key] == default:
-                del out[key]
-        return out
-
-
-def _gate_scale(hidden: int, like: torch.Tensor) -> torch.Tensor:
-    """``(4 hidden,)`` column multipliers for LSTM gates ``[i, f, g, o]``: 2 on the cell candidate ``g``.
-
-    With the candidate's pre-activation doubled, one sigmoid serves all four gates:
-    ``tanh(z) = 2 σ(2z) − 1``. Scaling weights by 2 is exact in floating point.
-    """
-    scale = torch.ones(4 * hidden, dtype=like.dtype, device=like.device)
-    scale[2 * hidden : 3 * hidden] = 2.0
-    return scale
-
-
-def tanh_from_doubled(z2: torch.Tensor) -> torch.Tensor:
-    """``tanh(z)`` given ``z2 = 2 z``, as ``2 σ(2z) − 1``: the same function through the sigmoid kernel,
-    which is several times faster than ``torch.tanh`` on this project's CPUs (docs/results/speed.md)."""
-    return torch.sigmoid(z2).mul(2.0).sub_(1.0)
-
-
-def lstm_pointwise_from_sigmoid(s: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`lstm_pointwise` given the gates' sigmoid ``s`` (a matrix product with the sigmoid fused), in fewer
-    operations (``i (2g − 1) = 2 i g − i``, ``o (2 s − 1) = 2 o s − o``): the same function, different float32
-    rounding; used by the online path only."""
-    i, f, g, o = s.chunk(4, dim=-1)
-    c_new = torch.addcmul(-i, f, c).addcmul_(i, g, value=2.0)
-    return torch.addcmul(-o, o, c_new.mul(2.0).sigmoid_(), value=2.0), c_new
-
-
-def lstm_pointwise(gates: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The LSTM update from pre-activations ``(..., 4H)`` ordered ``[i, f, g, o]`` whose ``g`` block is
-    already doubled (see :func:`_gate_scale`); returns ``(h, c)``, each ``(..., H)``."""
-    s = torch.sigmoid(gates)
-    i, f, g, o = s.chunk(4, dim=-1)
-    c_new = torch.addcmul(f * c, i, g.mul(2.0).sub_(1.0))
-    return o * tanh_from_doubled(c_new * 2.0), c_new
-
-
-class GroupedLSTMCell(nn.Module):
-    """``K`` independent LSTM cells (one per meta-path type) evaluated with batched matmuls.
-
-    Input ``x: (K, R, in)``, state ``(h, c): (K, R, hidden)``. :class:`StructuralRNN` reads the weights
-    directly (one batched matmul for all types per step); :meth:`forward` is the plain definition.
-    """
-
-    def __init__(self, groups: int, input_size: int, hidden_size: int) -> None:
-        super().__init__()
-        self.hidden_size = hidden_size
-        k = 1.0 / math.sqrt(hidden_size)
-        self.weight = nn.Parameter(torch.empty(groups, input_size + hidden_size, 4 * hidden_size).uniform_(-k, k))
-        self.bias = nn.Parameter(torch.empty(groups, 1, 4 * hidden_size).uniform_(-k, k))
-
-    def forward(self, x: torch.Tensor, h: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        gates = torch.baddbmm(self.bias, torch.cat([x, h], dim=-1), self.weight)
-        i, f, g, o = gates.chunk(4, dim=-1)
-        c_new = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
-        h_new = torch.sigmoid(o) * torch.tanh(c_new)
-        return h_new, c_new
-
-
-class _LiveRows:
-    """Hidden states split into the rows computed at the current step and the frozen rest.
-
-    Rows absent at a step keep their state, so only present rows are computed: their states are
-    gathered from the full state when the set of present rows changes (and scattered back first);
-    while the set stays the same (e.g. the whole rollout) they stay gathered. When every row is
-    present no index operation is done at all.
-    """
-
-    def __init__(self, state: dict[str, torch.Tensor], decode: Any) -> None:
-        self.full = dict(state)
-        self.decode = decode
-        self.rows: torch.Tensor | None = None
-        self.all = False
-        self.sub: dict[str, torch.Tensor] = {}
-        self.frozen_offsets: torch.Tensor | None = None
-
-    @staticmethod
-    def _dim(key: str) -> int:
-        return 1 if key.startswith("edge") else 0
-
-    def select(self, rows: torch.Tensor | None) -> dict[str, torch.Tensor]:
-        """States of ``rows`` (``None``: every row)."""
-        if self.sub:
-            if rows is None and self.all:
-                return self.sub
-            if rows is not None and self.rows is not None and rows.shape == self.rows.shape:
-                if torch.equal(rows, self.rows):
-                    return self.sub
-        self.flush()
-        self.all = rows is None
-        self.rows = rows
-        if rows is None:
-            self.sub = dict(self.full)
-        else:
-            self.sub = {k: v.index_select(self._dim(k), rows) for k, v in self.full.items()}
-        return self.sub
-
-    def flush(self) -> None:
-        """Write the live rows back into the full state."""
-        if not self.sub:
-            return
-        if self.all:
-            self.full = dict(self.sub)
-        else:
-            assert self.rows is not None
-            for k, v in self.sub.items():
-                self.full[k] = self.full[k].index_copy(self._dim(k), self.rows, v)
-        self.sub, self.rows, self.all, self.frozen_offsets = {}, None, False, None
-
-    def offsets(self, live: torch.Tensor) -> torch.Tensor:
-        """``(R, 2)`` decoder offsets of every row from the live rows' ``live (P, 2)``; frozen rows
-        are decoded from their kept state (once per set of live rows)."""
-        if self.all:
-            return live
-        if self.frozen_offsets is None:
-            self.frozen_offsets = self.decode(self.full["node_h"])
-        assert self.rows is not None
-        return self.frozen_offsets.index_copy(0, self.rows, live)
-
-
-class StructuralRNN(nn.Module):
+class StructuralRNN(OnlineInference, nn.Module):
     """The structural RNN over a spatio-temporal graph; positions in normalised units.
 
     Implementation notes (the arithmetic is that of the module docstring; only its order changes):
@@ -320,7 +109,7 @@ class StructuralRNN(nn.Module):
                 return self._prepared[1]
         cfg, k = self.cfg, len(self.types)
         cell = self.node_cell
-        gs = _gate_scale(cfg.node_hidden, cell.weight_ih)[:, None]
+        gs = gate_scale(cfg.node_hidden, cell.weight_ih)[:, None]
         w_ih, w_hh = cell.weight_ih * gs, cell.weight_hh * gs
         ne = cfg.node_embed
         out = {
@@ -331,7 +120,7 @@ class StructuralRNN(nn.Module):
             "node_rec_w": torch.cat([w_ih[:, ne:], w_hh], dim=1).t(),
         }
         if k:
-            gse = _gate_scale(cfg.edge_hidden, self.edge_cell.weight)
+            gse = gate_scale(cfg.edge_hidden, self.edge_cell.weight)
             w = self.edge_cell.weight * gse
             out |= {
                 "edge_embed_w": self.edge_embed_w * 2.0,
@@ -344,122 +133,6 @@ class StructuralRNN(nn.Module):
             out = {name: v.contiguous() for name, v in out.items()}
             self._prepared = (key, out)
         return out
-
-    def online_weights(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
-        """``(self._weights(), self._online_weights())`` with one check of the parameters' versions (inference)."""
-        key = tuple(v for p in [*self.parameters(), *self.buffers()] for v in (p.data_ptr(), p._version))
-        if self._online is not None and self._online[0] == key and self._prepared is not None:
-            return self._prepared[1], self._online[1]
-        return self._weights(), self._online_weights()
-
-    def _online_weights(self) -> dict[str, Any]:
-        """Weights of :meth:`continue_rollout` (inference only): the input and recurrent halves of every LSTM in one
-        matrix each (one product per LSTM and step), and the node LSTM's matrix prepacked for oneDNN where this
-        torch build has it. Cached like :meth:`_weights`."""
-        w = self._weights()
-        key = tuple(v for p in [*self.parameters(), *self.buffers()] for v in (p.data_ptr(), p._version))
-        if self._online is not None and self._online[0] == key:
-            return self._online[1]
-        # The embeddings enter as σ(2z) = (tanh z + 1) / 2 (one operation less each): the affine map is folded into
-        # the weights and biases of the products they feed, ``tanh(z) W + b = σ(2z) (2 W) + (b − Σ_rows W)``.
-        node_w = torch.cat([w["node_x_w"] * 2.0, w["node_rec_w"]], 0)  # (embed + K edge_hidden + node_hidden, 4 H)
-        node_b = w["node_b"] - w["node_x_w"].sum(0)
-        out: dict[str, Any] = {"node_w": node_w.contiguous(), "node_b": node_b.contiguous(), "packed": None}
-        out["node_embed_w"] = (self.node_scale[:, None] * w["node_embed_w"]).detach().contiguous()  # input scale folded
-        try:  # the product of the node LSTM, the largest of a step, prepacked (oneDNN, x86 builds)
-            packed = torch.ops.mkldnn._reorder_linear_weight(node_w.t().contiguous(), 64)
-            out["packed"] = (packed, torch.ops.mkldnn._linear_pointwise)
-        except (AttributeError, RuntimeError):
-            pass
-        if self.types:
-            out["edge_w"] = torch.cat([w["edge_x_w"] * 2.0, w["edge_h_w"]], 1).contiguous()  # (K, embed + hidden, 4 H)
-            out["edge_b"] = (w["edge_b"] - w["edge_x_w"].sum(1, keepdim=True)).contiguous()  # (K, 1, 4 H)
-        out["decoder_w"] = self.decoder.weight.detach().t().contiguous()
-        out["decoder_b"] = self.decoder.bias.detach().contiguous()
-        if self.gaussian:
-            out["head_w"] = self.scale_head.weight.detach().t().contiguous()
-            out["head_b"] = self.scale_head.bias.detach().contiguous()
-        self._online = (key, out)
-        return out
-
-    def online_step(
-        self,
-        p: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-        m_tm1: torch.Tensor | None,
-        m_tm2: torch.Tensor | None,
-        state: dict[str, torch.Tensor],
-        weights: tuple[dict[str, torch.Tensor], dict[str, Any]] | None = None,
-    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """One step of :meth:`step` for online forecasting (inference only) when all ``n`` pedestrians are present
-        at ``t``, with the operations regrouped for one forecast of a few dozen pedestrians (equal to float32
-        rounding, ``tests/models/test_gaussian_head.py``): when everyone is also present at ``t − 1`` and ``t − 2``
-        the masks are skipped and the meta-paths are summed in ``O(N)`` (:func:`dense_features_centred`), each LSTM's
-        input and recurrent products are one matrix product, and the node LSTM's weights are prepacked. The distribution head is not applied (see :meth:`continue_rollout`).
-
-        Args:
-            p: positions at ``t, t − 1, t − 2``, each ``(n, 2)`` normalised (0 where absent).
-            m_tm1, m_tm2: ``(n,)`` bool presence at ``t − 1`` and ``t − 2`` (None: everyone present).
-            state: hidden states of the ``n`` rows (not modified).
-            weights: ``(self._weights(), self._online_weights())`` when the caller already has them (looking them
-                up checks every parameter's version: tens of microseconds per step).
-
-        Returns:
-            ``(n, 2)`` the (mean) prediction of step ``t + 1`` and the new state.
-        """
-        w, ow = weights if weights is not None else self.online_weights()
-        n, k = p[0].shape[0], len(self.types)
-        masks = None
-        if m_tm1 is not None or m_tm2 is not None:
-            ones = torch.ones(1, n, dtype=torch.bool)
-            masks = (ones, ones if m_tm1 is None else m_tm1[None], ones if m_tm2 is None else m_tm2[None])
-        if masks is None and k:  # the input scales are folded into the embedding's weights
-            feats, vel, factors = dense_features_centred(p[0], p[1], p[2], self.types)
-            edge_embed_w = self._online_edge_embed_w(n, factors, w, ow)
-        else:
-            feats, vel = self._features((p[0][None], p[1][None], p[2][None]), masks)
-            vel = vel[0]
-            edge_embed_w = w.get("edge_embed_w")
-        node_in = vel if self.cfg.node_input == "velocity" else p[0]
-        # the embeddings as σ(2z), not tanh(z) = 2 σ(2z) − 1: the online weights take the difference (_online_weights)
-        x = torch.addmm(w["node_embed_b"], node_in, ow["node_embed_w"]).sigmoid_()
-        new: dict[str, torch.Tensor] = {}
-        if k:
-            assert feats is not None
-            e = torch.baddbmm(w["edge_embed_b"], feats.reshape(k, -1, 2), edge_embed_w).sigmoid_()
-            gates = torch.baddbmm(ow["edge_b"], torch.cat([e, state["edge_h"]], -1), ow["edge_w"])
-            new["edge_h"], new["edge_c"] = lstm_pointwise_from_sigmoid(gates.sigmoid_(), state["edge_c"])
-            z = torch.cat([x, *new["edge_h"].unbind(0), state["node_h"]], 1)
-        else:
-            new["edge_h"], new["edge_c"] = state["edge_h"], state["edge_c"]
-            z = torch.cat([x, state["node_h"]], 1)
-        packed = ow["packed"] if n >= 8 else None  # prepacking pays only for enough rows
-        if packed is not None:  # the gates' sigmoid fused into the product
-            gate_s = packed[1](z, packed[0], ow["node_b"], "sigmoid", [], "")
-        else:
-            gate_s = torch.addmm(ow["node_b"], z, ow["node_w"]).sigmoid_()
-        new["node_h"], new["node_c"] = lstm_pointwise_from_sigmoid(gate_s, state["node_c"])
-        offset = torch.addmm(ow["decoder_b"], new["node_h"], ow["decoder_w"]).tanh_()
-        nxt = torch.add(p[0], vel).add_(offset) if self.cfg.offset == "cv_residual" else offset.add_(p[0])
-        return nxt, new
-
-    def _online_edge_embed_w(
-        self, n: int, factors: tuple[float, ...], w: dict[str, torch.Tensor], ow: dict[str, Any]
-    ) -> torch.Tensor:
-        """``(K, 2, edge_embed)``: the edge embedding's (doubled) weights with the features' left-out ``factors``
-        (:func:`dense_features_centred`), the mean aggregation's divisors (everyone of ``n`` present),
-        ``feature_scale`` and the input scales folded in, cached per ``n`` in the online weights ``ow`` (no product
-        of the features per step)."""
-        cache = ow.setdefault("edge_embed_w", {})
-        if n not in cache:
-            k = len(self.types)
-            nb = float(max(n - 1, 1))
-            div = {"S": nb, "ST": nb, "SS": nb * max(n - 2, 1), "TS": nb} if self.cfg.aggregate == "mean" else {}
-            inv = torch.tensor(
-                [f / div.get(t, 1.0) for t, f in zip(self.types, factors, strict=True)], dtype=self.edge_scale.dtype
-            )
-            scale = inv[:, None, None] * self.cfg.feature_scale * self.edge_scale[:k]  # (K, 1, 2)
-            cache[n] = (scale.transpose(1, 2) * w["edge_embed_w"]).contiguous()
-        return cache[n]
 
     def head_parameters(self) -> list[nn.Parameter]:
         """The distribution head's parameters (empty with the point head)."""
@@ -477,50 +150,6 @@ class StructuralRNN(nn.Module):
         """The distribution head's raw ``(σx, σy, ρ)`` ``(..., 3)`` from node states ``(..., node_hidden)`` of a
         prediction ``ahead`` steps after the last observed input."""
         return self._head_linear(node_h) + self._step_bias(ahead)
-
-    def continue_rollout(
-        self,
-        first: torch.Tensor,
-        p_t: torch.Tensor,
-        p_tm1: torch.Tensor,
-        m_tm1: torch.Tensor,
-        state: dict[str, torch.Tensor],
-        steps: int,
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The free steps of :meth:`scan_distribution` after an observed step ``t``, by :meth:`online_step`
-        (inference only), for ``n`` pedestrians all present at ``t`` and all rolled out.
-
-        Args:
-            first: ``(n, 2)`` the prediction of step ``t + 1`` (the observed step's output), normalised.
-            p_t, p_tm1: ``(n, 2)`` positions at ``t`` and ``t − 1`` (0 where absent), normalised.
-            m_tm1: ``(n,)`` bool presence at ``t − 1``.
-            state: hidden states of the ``n`` rows after step ``t`` (not modified).
-            steps: free steps after ``first``.
-
-        Returns:
-            ``(steps, n, 2)`` the means of steps ``t + 2 ..`` and, with the gaussian head, the raw ``(σx, σy, ρ)``
-            ``(steps, n, 3)`` (None with the point head), computed for all steps at once after the loop.
-        """
-        n = first.shape[0]
-        cur, h0, h1 = first, p_t, p_tm1
-        m2: torch.Tensor | None = None if bool(m_tm1.all()) else m_tm1  # presence at t − 1, for the first step
-        preds: list[torch.Tensor] = []
-        hs: list[torch.Tensor] = []
-        weights = self.online_weights()
-        for _ in range(steps):
-            nxt, state = self.online_step((cur, h0, h1), None, m2, state, weights)
-            h1, h0, cur, m2 = h0, cur, nxt, None
-            preds.append(nxt)
-            hs.append(state["node_h"])
-        if not preds:
-            return first.new_zeros(0, n, 2), (first.new_zeros(0, n, 3) if self.gaussian else None)
-        raw = None
-        if self.gaussian:
-            ahead = torch.arange(1, steps + 1).clamp(max=len(self.step_bias) - 1)
-            ow = weights[1]
-            raw = torch.addmm(ow["head_b"], torch.cat(hs, 0), ow["head_w"]).view(steps, n, 3)
-            raw = raw + self.step_bias.detach()[ahead][:, None]
-        return torch.stack(preds), raw
 
     # --------------------------------------------------------------- features
     def _features(
@@ -641,7 +270,7 @@ class StructuralRNN(nn.Module):
     def _advance(
         self,
         w: dict[str, torch.Tensor],
-        live: _LiveRows,
+        live: LiveRows,
         rows: torch.Tensor | None,
         node_x: torch.Tensor,
         edge_x: torch.Tensor | None,
@@ -713,7 +342,7 @@ class StructuralRNN(nn.Module):
         n_known, b, n = known_m.shape
         r = b * n
         w = self._weights()
-        live = _LiveRows(state, self._decode)
+        live = LiveRows(state, self._decode)
         residual = self.cfg.offset == "cv_residual"
         gaussian = self.gaussian
         preds: list[torch.Tensor] = []
@@ -938,3 +567,14 @@ class StructuralRNN(nn.Module):
         )
         out = torch.cat([first[None], rest], 0)  # (pred_len, B * samples, N, 2)
         return out.view(pred_len, b, samples, n, 2).permute(1, 2, 0, 3, 4)
+
+
+__getattr__ = moved_attributes(
+    __name__,
+    {
+        "HEADS": "crowdnav_mesrnn.models.architecture",
+        "MODEL_TYPES": "crowdnav_mesrnn.models.architecture",
+        "ModelConfig": "crowdnav_mesrnn.models.architecture",
+        "lstm_pointwise_from_sigmoid": "crowdnav_mesrnn.models.online",
+    },
+)

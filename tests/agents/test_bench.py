@@ -15,7 +15,8 @@ from agents.bench.metrics import protocol_batch_fn
 from agents.bench.planner import bench_grid
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data.windows import split_windows
-from crowdnav_mesrnn.evaluation import cv_predict_batch, split_norm, window_errors
+from crowdnav_mesrnn.evaluation.metrics import cv_predict_batch, window_errors
+from crowdnav_mesrnn.evaluation.protocol import split_norm
 from crowdnav_mesrnn.models import ConstantVelocity
 
 PLUGIN = '''

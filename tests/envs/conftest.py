@@ -63,8 +63,9 @@ def make_tiny_learned_predictor(model: str = "mesrnn", seed: int = 0) -> Any:
     import torch
 
     from crowdnav_mesrnn.data.normalization import MinMax
+    from crowdnav_mesrnn.models.architecture import ModelConfig
     from crowdnav_mesrnn.models.learned import LearnedPredictor
-    from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
+    from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
 
     torch.manual_seed(seed)
     cfg = ModelConfig(model=model, node_hidden=16, node_embed=8, edge_hidden=8, edge_embed=4)

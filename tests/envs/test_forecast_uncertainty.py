@@ -60,7 +60,7 @@ def test_noisy_oracle_radius_holds_its_noise_at_the_level() -> None:
 def test_calibrations_are_cached_on_disk_and_reused(
     data_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import crowdnav_mesrnn.calibration as calibration
+    import crowdnav_mesrnn.uncertainty.calibration as calibration
 
     src = CalibratedUncertainty("cv", "zara1", 0.9, 0.4, 12, tmp_path, str(data_dir))
     cal = src.calibration("zara1")

@@ -11,8 +11,9 @@ import pytest
 import torch
 
 from crowdnav_mesrnn import load_pretrained
+from crowdnav_mesrnn.models.architecture import MODEL_TYPES, ModelConfig
 from crowdnav_mesrnn.models.reference import reference_forward, reference_rollout, reference_step
-from crowdnav_mesrnn.models.structural_rnn import MODEL_TYPES, ModelConfig, StructuralRNN
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
 
 FIXTURE = Path(__file__).resolve().parent / "fixtures" / "shipped_forecasts.npz"
 SMALL = {"node_embed": 16, "node_hidden": 24, "edge_embed": 8, "edge_hidden": 12}

@@ -13,9 +13,10 @@ from scipy import stats
 from crowdnav_mesrnn import load_pretrained
 from crowdnav_mesrnn.data import MinMax
 from crowdnav_mesrnn.models import gaussian
+from crowdnav_mesrnn.models.architecture import MODEL_TYPES, ModelConfig
 from crowdnav_mesrnn.models.learned import LearnedPredictor, lean_state, load_predictor
 from crowdnav_mesrnn.models.reference import reference_forward
-from crowdnav_mesrnn.models.structural_rnn import MODEL_TYPES, ModelConfig, StructuralRNN
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
 
 SMALL = {"node_embed": 16, "node_hidden": 24, "edge_embed": 8, "edge_hidden": 12}
 RESIDUAL = {"aggregate": "mean", "node_input": "velocity", "offset": "cv_residual"}

@@ -11,7 +11,7 @@ import torch
 
 from crowdnav_mesrnn import load_pretrained
 from crowdnav_mesrnn.data import SPLITS
-from crowdnav_mesrnn.evaluation import evaluate_model
+from crowdnav_mesrnn.evaluation.protocol import evaluate_model
 from crowdnav_mesrnn.models.pretrained import PretrainedNotFoundError, available, pretrained_path
 
 RESULTS = Path(__file__).resolve().parents[2] / "docs" / "results" / "predictors.json"

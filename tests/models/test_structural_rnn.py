@@ -11,8 +11,9 @@ import torch
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data import MinMax
 from crowdnav_mesrnn.models import ConstantVelocity, get_predictor
+from crowdnav_mesrnn.models.architecture import MODEL_TYPES, ModelConfig
 from crowdnav_mesrnn.models.learned import CheckpointError, LearnedPredictor, lean_state, load_predictor
-from crowdnav_mesrnn.models.structural_rnn import MODEL_TYPES, ModelConfig, StructuralRNN
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
 
 SMALL = {"node_embed": 16, "node_hidden": 32, "edge_embed": 8, "edge_hidden": 16}
 
@@ -108,7 +109,7 @@ def test_constant_velocity() -> None:
 
 
 def test_overfitting_one_batch_decreases_loss() -> None:
-    from crowdnav_mesrnn.training import masked_loss
+    from crowdnav_mesrnn.training.trainer import masked_loss
 
     net = make_net("mesrnn").train()
     pos, mask = random_batch(b=4, n=4, seed=1)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from crowdnav_mesrnn.data.constants import SPLITS
-from crowdnav_mesrnn.report import compare, ordering, render, render_seeds
+from crowdnav_mesrnn.studies.report import compare
+from crowdnav_mesrnn.studies.report_render import ordering, render, render_seeds
 
 
 def fake_errors(offset: dict[str, float], windows: int = 60, seed: int = 0) -> dict[str, dict[str, np.ndarray]]:
@@ -145,7 +146,7 @@ def test_candidates_on_test_are_marked_where_selected() -> None:
 
 
 def test_candidate_confounds_name_the_splits_where_selections_differ() -> None:
-    from crowdnav_mesrnn.report import candidate_confounds
+    from crowdnav_mesrnn.studies.report_render import candidate_confounds
 
     rows = {f"{m}/{s}": {"selected": "residual"} for m in ("vlstm", "srnn", "mesrnn") for s in SPLITS}
     rows["mesrnn/hotel"]["selected"] = "residual_rotation"
@@ -180,7 +181,7 @@ def test_plan_only_page_reads_the_ordering_from_the_plan_seeds(tmp_path, capsys)
     import json
 
     from crowdnav_mesrnn.cli import main
-    from crowdnav_mesrnn.report import render_plan
+    from crowdnav_mesrnn.studies.report_render import render_plan
 
     errors, results = fake_results()
     base = dict.fromkeys(SPLITS, 0.0)

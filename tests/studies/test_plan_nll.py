@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from crowdnav_mesrnn.config import ConfigError
-from crowdnav_mesrnn.plan import candidate_runs, load_plan, run_dir, selected_candidate, summary
-from crowdnav_mesrnn.training import load_configs
+from crowdnav_mesrnn.studies.plan import candidate_runs, load_plan, run_dir, selected_candidate, summary
+from crowdnav_mesrnn.training.trainer import load_configs
 
 GAUSSIAN = Path(__file__).resolve().parents[2] / "configs" / "predictor" / "gaussian.yaml"
 

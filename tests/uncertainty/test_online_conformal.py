@@ -10,13 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crowdnav_mesrnn.calibration import Calibration, Forecaster, conformal_quantile
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
 from crowdnav_mesrnn.data.recordings import Recording
 from crowdnav_mesrnn.data.windows import Window, windows_from_recording
-from crowdnav_mesrnn.evaluation import ScoredForecasts
-from crowdnav_mesrnn.online_conformal import (
+from crowdnav_mesrnn.evaluation.metrics import ScoredForecasts
+from crowdnav_mesrnn.uncertainty.calibration import Forecaster
+from crowdnav_mesrnn.uncertainty.conformal import Calibration, conformal_quantile
+from crowdnav_mesrnn.uncertainty.online_conformal import (
     GAMMA_GRID,
     REVEAL_RULES,
     Feedback,
@@ -258,7 +259,7 @@ def test_online_cli_reports_coverage_sizes_and_split_conformal_beside(
 
 
 def test_reveal_applies_to_the_online_method_only(data_dir: Path) -> None:
-    from crowdnav_mesrnn.calibration import calibrate_model
+    from crowdnav_mesrnn.uncertainty.calibration import calibrate_model
 
     with pytest.raises(ValueError, match="reveal='step' applies to method 'online' only"):
         calibrate_model("cv", "zara1", reveal="step")
@@ -337,7 +338,7 @@ def test_online_cli_with_experts_reports_their_weights(data_dir: Path, capsys: p
     assert main([*args, "--method", "online"]) == 0
     chosen = json.loads(capsys.readouterr().out)
     assert "gamma_rule" not in chosen and "expert_weights_end" not in chosen["splits"]["zara1"]
-    from crowdnav_mesrnn.calibration import calibrate_model
+    from crowdnav_mesrnn.uncertainty.calibration import calibrate_model
 
     with pytest.raises(ValueError, match="gamma_rule='experts' applies to method 'online' only"):
         calibrate_model("cv", "zara1", gamma_rule="experts")
@@ -348,7 +349,7 @@ def test_online_cli_with_experts_reports_their_weights(data_dir: Path, capsys: p
 def observed_stream(rec: Recording) -> tuple[Stream, list[Window]]:
     """The scored stream of ``rec`` (windows with a scored pedestrian; constant-velocity distance scores) with its
     :class:`Feedback` (every window, every pedestrian present through the observation, NaN where not observed)."""
-    from crowdnav_mesrnn.evaluation import collect_forecasts, cv_predict_batch
+    from crowdnav_mesrnn.evaluation.metrics import collect_forecasts, cv_predict_batch
 
     scored_windows = windows_from_recording(rec)
     every = windows_from_recording(rec, min_scored=0)
@@ -366,7 +367,7 @@ def observed_stream(rec: Recording) -> tuple[Stream, list[Window]]:
 def test_observed_rows_are_everyone_present_through_the_observation_marked_while_they_stay() -> None:
     """Pedestrian 2 misses frame 40: in the window whose observation ends at frame 35 it is a feedback row (present
     in all 8 observed frames) observed at steps 1-4 only, not a scored one; the scored rows are all observed."""
-    from crowdnav_mesrnn.evaluation import collect_forecasts, cv_predict_batch
+    from crowdnav_mesrnn.evaluation.metrics import collect_forecasts, cv_predict_batch
 
     rec = membership_recording(gone=(40, 2))
     every = windows_from_recording(rec, min_scored=0)
@@ -408,7 +409,7 @@ def test_observed_rule_uses_nothing_before_it_is_observed() -> None:
 def test_observed_rule_runs_with_experts_only_and_the_cli_records_it(
     data_dir: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from crowdnav_mesrnn.calibration import calibrate_model
+    from crowdnav_mesrnn.uncertainty.calibration import calibrate_model
 
     with pytest.raises(ValueError, match=r"reveal='observed' runs with the step-size experts only: .*--gamma experts"):
         calibrate_model("cv", "zara1", method="online", reveal="observed")
@@ -430,8 +431,8 @@ def test_feedback_refuses_a_nan_score_at_an_observed_step() -> None:
     step is not observed is what the mask says and passes."""
     import dataclasses
 
-    from crowdnav_mesrnn.evaluation import collect_forecasts, cv_predict_batch
-    from crowdnav_mesrnn.online_conformal import feedback_stream
+    from crowdnav_mesrnn.evaluation.metrics import collect_forecasts, cv_predict_batch
+    from crowdnav_mesrnn.uncertainty.online_conformal import feedback_stream
 
     rec = membership_recording(gone=(40, 2))
     every = windows_from_recording(rec, min_scored=0)
@@ -456,7 +457,7 @@ def observed_thresholds(
 ) -> tuple[list[tuple[str, int]], np.ndarray, np.ndarray]:
     """The ``"observed"`` rule's expert-mixture thresholds over every window of ``recordings``: ``((recording, first
     frame) of each window, (W, P) thresholds used, (W,) forecast times)``."""
-    from crowdnav_mesrnn.online_conformal import feedback_stream
+    from crowdnav_mesrnn.uncertainty.online_conformal import feedback_stream
 
     every = [w for rec in recordings for w in windows_from_recording(rec, min_scored=0)]
     scored = [w for rec in recordings for w in windows_from_recording(rec, min_scored=2)]
@@ -495,8 +496,8 @@ def future_changed(rec: Recording, last: int, truncate: bool, seed: int) -> Reco
 def test_observed_rule_on_zara1_uses_nothing_after_the_forecast_time(data_dir: Path) -> None:
     """Brute force on a real scene: change (or cut off) everything in ZARA1's test recording after annotation T;
     every threshold used at a forecast time <= T stays bit-identical, and thresholds used soon after T change."""
-    from crowdnav_mesrnn.calibration import fit_calibration, forecaster_for
     from crowdnav_mesrnn.data.recordings import load_split
+    from crowdnav_mesrnn.uncertainty.calibration import fit_calibration, forecaster_for
 
     forecaster = forecaster_for("cv", "zara1")
     cal = fit_calibration(forecaster, "zara1", data_dir=data_dir)
@@ -518,8 +519,8 @@ def test_calibrate_learns_the_observed_rule_from_every_window_of_the_test_scene(
     """The feedback windows are every start of the test recording, those without a scored pedestrian included
     (whether a window has one is settled only at t + 12: keeping only those would make the clock's windows depend on
     the future), with their forecasts collected over every pedestrian present through the observation."""
-    from crowdnav_mesrnn.calibration import _feedback_forecasts, forecaster_for
     from crowdnav_mesrnn.data.recordings import load_split
+    from crowdnav_mesrnn.uncertainty.calibration import _feedback_forecasts, forecaster_for
 
     (rec,) = load_split("zara1", "test", data_dir)
     windows, rows = _feedback_forecasts(forecaster_for("cv", "zara1"), "zara1", data_dir)

@@ -1,4 +1,9 @@
-"""Batched, seeded, resumable training of the structural RNN predictors."""
+"""Batched, seeded, resumable training of the structural RNN predictors (``crowdnav-mesrnn predictor train``).
+
+:func:`load_configs` merges ``configs/predictor/<model>.yaml`` onto the defaults of :class:`ModelConfig` and
+:class:`TrainConfig`; a :class:`Trainer` trains on the split's ``train`` part, selects the epoch on ``val`` (never
+``test``) and writes ``last.pt`` / ``best.pt`` checkpoints that resume to the same weights as an uninterrupted run.
+"""
 
 from __future__ import annotations
 
@@ -17,14 +22,15 @@ from crowdnav_mesrnn.data.constants import OBS_LEN, check_split
 from crowdnav_mesrnn.data.normalization import MinMax
 from crowdnav_mesrnn.data.recordings import load_split
 from crowdnav_mesrnn.data.windows import Window, collate, split_windows
-from crowdnav_mesrnn.evaluation import batches, collect_forecasts, evaluate_windows
+from crowdnav_mesrnn.evaluation.metrics import batches, collect_forecasts, evaluate_windows
 from crowdnav_mesrnn.models import gaussian
+from crowdnav_mesrnn.models.architecture import ModelConfig
 from crowdnav_mesrnn.models.gaussian import params_from_raw
 from crowdnav_mesrnn.models.learned import CHECKPOINT_FORMAT, LearnedPredictor, lean_state
-from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
 from crowdnav_mesrnn.utils import atomic_write, code_version
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "predictor"
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs" / "predictor"
 
 
 #: Values of :attr:`TrainConfig.precision`.
@@ -65,8 +71,8 @@ class TrainConfig:
     """Use only the first N training windows (0 = all); for smoke tests."""
     precision: str = "fp32"
     """Arithmetic of the training forward pass: ``fp32``, or ``bf16`` (``torch.autocast`` on the CPU: the
-    matmuls in bfloat16 with float32 states, positions and loss; about twice the throughput on CPUs with
-    AVX-512 BF16). Validation and the shipped weights are always float32."""
+    matmuls in bfloat16 with float32 states, positions and loss; faster on CPUs with AVX-512 BF16, figures in
+    ``docs/results/speed.md``). Validation and the shipped weights are always float32."""
     mean_loss: str = "nll"
     """For a distribution head, what trains the means: ``nll`` (the negative log-likelihood, as the scales) or
     ``mse`` (the point head's squared error, :func:`masked_loss`; the likelihood then trains only the scales and
@@ -131,8 +137,8 @@ def keep_freed_memory() -> None:
     """Ask glibc to keep freed memory in the process instead of returning it to the system.
 
     Training allocates and frees tensors of several MB every step; by default glibc serves them
-    with fresh ``mmap`` pages, and the page faults cost a noticeable share of CPU time (about 15 %
-    at paper sizes in ``benchmarks/predictor_speed.py``). A no-op where glibc is not the allocator.
+    with fresh ``mmap`` pages, and the page faults cost a noticeable share of CPU time
+    (``docs/results/speed.md``). A no-op where glibc is not the allocator.
     """
     import ctypes
     import ctypes.util

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from crowdnav_mesrnn.training import load_configs
+from crowdnav_mesrnn.training.trainer import load_configs
 
 REPO = Path(__file__).resolve().parents[2]
 

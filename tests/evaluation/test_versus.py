@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from crowdnav_mesrnn.cli import main
-from crowdnav_mesrnn.evaluation import evaluate_model, evaluate_versus, paired_differences
-from crowdnav_mesrnn.stats import PairedErrors, block_bootstrap_ci
+from crowdnav_mesrnn.evaluation.protocol import evaluate_model, evaluate_versus, paired_differences
+from crowdnav_mesrnn.evaluation.statistics import PairedErrors, block_bootstrap_ci
 
 
 def sums(values: np.ndarray, count: np.ndarray) -> PairedErrors:

@@ -10,22 +10,23 @@ import numpy as np
 import pytest
 import torch
 
-from crowdnav_mesrnn.calibration import (
-    Calibration,
-    ErrorModel,
-    conformal_quantile,
-    fit_calibration,
-    forecaster_for,
-    measure_coverage,
-    region_scores,
-)
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data import MinMax
 from crowdnav_mesrnn.data.windows import Window
-from crowdnav_mesrnn.evaluation import ScoredForecasts, collect_forecasts, evaluate_model
+from crowdnav_mesrnn.evaluation.metrics import ScoredForecasts, collect_forecasts
+from crowdnav_mesrnn.evaluation.protocol import evaluate_model
 from crowdnav_mesrnn.models import gaussian
+from crowdnav_mesrnn.models.architecture import ModelConfig
 from crowdnav_mesrnn.models.learned import LearnedPredictor, lean_state
-from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
+from crowdnav_mesrnn.uncertainty.calibration import fit_calibration, forecaster_for
+from crowdnav_mesrnn.uncertainty.conformal import (
+    Calibration,
+    ErrorModel,
+    conformal_quantile,
+    measure_coverage,
+    region_scores,
+)
 
 
 def synthetic_scored(m: int, seed: int, a: float = 0.1, b: float = 0.8, windows: int = 0) -> ScoredForecasts:

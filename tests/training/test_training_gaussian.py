@@ -10,7 +10,7 @@ import torch
 
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.models.learned import load_predictor
-from crowdnav_mesrnn.training import Trainer, load_configs
+from crowdnav_mesrnn.training.trainer import Trainer, load_configs
 
 TINY = {"node_embed": 8, "node_hidden": 16, "edge_embed": 4, "edge_hidden": 8, "max_windows": 24, "batch_size": 8}
 DECOUPLED = {"head": "gaussian", "scale_detach": True, "mean_loss": "mse", "scale_lr": 0.01, "select_on": "nll"}

@@ -1,245 +1,34 @@
-"""ADE/FDE of predictors on the leave-one-out test parts, with a true autoregressive rollout."""
+"""The evaluation protocol: ADE/FDE of a predictor on the leave-one-out test (or val) parts with a true
+autoregressive rollout, per split and averaged, the distribution metrics of a distribution head, and paired
+differences between predictors with block-bootstrap intervals.
+
+:func:`evaluate_model` is what ``crowdnav-mesrnn predictor evaluate`` runs; its result is a JSON-ready dict.
+"""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
-from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, SPLITS, check_split
+from crowdnav_mesrnn.data.constants import SPLITS, check_split
 from crowdnav_mesrnn.data.normalization import MinMax
 from crowdnav_mesrnn.data.recordings import load_split
-from crowdnav_mesrnn.data.windows import Window, collate, split_windows
-from crowdnav_mesrnn.models import gaussian
-from crowdnav_mesrnn.models.gaussian import GaussianForecast
-from crowdnav_mesrnn.stats import PairedErrors, average_ci, block_bootstrap_ci
-
-#: ``(positions (B, T, N, 2) metres, mask (B, T, N)) -> (B, pred_len, N, 2) metres``; must read only
-#: the first ``OBS_LEN`` steps.
-BatchPredictFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
-
-METRIC_KEYS = ("ade_m", "fde_m", "ade_norm", "fde_norm")
-
-
-def batches(windows: Sequence[Window], batch_size: int, order: np.ndarray | None = None) -> Iterator[list[int]]:
-    """Index batches of windows bucketed by size (less padding); ``order`` permutes the batches."""
-    idx = np.argsort([w.num_peds for w in windows], kind="stable")
-    chunks = [idx[i : i + batch_size].tolist() for i in range(0, len(idx), batch_size)]
-    if order is not None:
-        chunks = [chunks[i] for i in order[: len(chunks)]]
-    yield from chunks
-
-
-def cv_predict_batch(positions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Constant velocity for a batch: last observed displacement extrapolated (0 if unknown)."""
-    last, prev = positions[:, OBS_LEN - 1], positions[:, OBS_LEN - 2]
-    both = (mask[:, OBS_LEN - 1] & mask[:, OBS_LEN - 2]).unsqueeze(-1)
-    vel = torch.where(both, last - prev, torch.zeros_like(last))
-    k = torch.arange(1, PRED_LEN + 1, dtype=positions.dtype).view(1, PRED_LEN, 1, 1)
-    return last.unsqueeze(1) + k * vel.unsqueeze(1)
-
-
-def predicted_batches(
-    predict: BatchPredictFn, windows: Sequence[Window], batch_size: int = 64
-) -> Iterator[tuple[list[int], torch.Tensor, torch.Tensor, np.ndarray, torch.Tensor]]:
-    """Roll ``predict`` out on ``windows`` in size-bucketed batches.
-
-    Yields:
-        ``(chunk, positions, present, scored, pred)``: the indices into ``windows``; positions
-        ``(B, T, N, 2)`` metres and present ``(B, T, N)`` (tensors, :func:`collate`); scored ``(B, N)``
-        bool array; the forecast ``(B, pred_len, N, 2)`` metres.
-    """
-    for chunk in batches(windows, batch_size):
-        pos, pres, scored = collate([windows[i] for i in chunk])
-        pos_t, pres_t = torch.from_numpy(pos), torch.from_numpy(pres)
-        with torch.no_grad():
-            pred = predict(pos_t, pres_t)
-        yield chunk, pos_t, pres_t, scored, pred
-
-
-def window_errors(
-    predict: BatchPredictFn, windows: Sequence[Window], norm: MinMax, batch_size: int = 64
-) -> dict[str, np.ndarray]:
-    """Per-window sums over the scored pedestrians, in the order of ``windows``.
-
-    Returns:
-        ``{"ade_m", "fde_m", "ade_norm", "fde_norm"}``: ``(W,)`` float64 sums of each scored
-        pedestrian's error (metres / min-max-normalised units), and ``"pedestrians"``: ``(W,)`` counts.
-        Dividing a sum by the count total gives the split's ADE/FDE; paired differences of the sums
-        feed :mod:`crowdnav_mesrnn.stats`.
-    """
-    out = {k: np.zeros(len(windows), np.float64) for k in METRIC_KEYS}
-    out["pedestrians"] = np.zeros(len(windows), np.int64)
-    scale = torch.as_tensor(norm.scale, dtype=torch.float32)
-    for chunk, pos_t, _, scored, pred in predicted_batches(predict, windows, batch_size):
-        err = pred.float() - pos_t[:, OBS_LEN:].float()
-        d_m = err.norm(dim=-1)  # (B, P, N)
-        d_n = (err * scale).norm(dim=-1)
-        s = torch.from_numpy(scored).to(d_m.dtype)
-        sums = {
-            "ade_m": d_m.mean(1),
-            "fde_m": d_m[:, -1],
-            "ade_norm": d_n.mean(1),
-            "fde_norm": d_n[:, -1],
-        }
-        for key, per_ped in sums.items():
-            out[key][chunk] = (per_ped * s).sum(1).double().numpy()
-        out["pedestrians"][chunk] = scored.sum(1)
-    return out
-
-
-#: ``(positions (B, T, N, 2) metres, mask (B, T, N)) -> GaussianForecast`` of the ``PRED_LEN`` future steps
-#: (metres); must read only the first ``OBS_LEN`` steps.
-DistributionFn = Callable[[torch.Tensor, torch.Tensor], GaussianForecast]
-#: ``(positions, mask, samples) -> (B, samples, PRED_LEN, N, 2)`` metres; must read only the first ``OBS_LEN`` steps.
-SampleFn = Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
-
-
-@dataclass(frozen=True)
-class ScoredForecasts:
-    """Forecasts of every scored pedestrian of a list of windows, one row per pedestrian (window order, then column
-    order within a window), as :func:`collect_forecasts` gathers them.
-
-    Attributes:
-        error: ``(M, P, 2)`` float64 forecast (mean) minus true position, metres.
-        speed: ``(M,)`` float64 length of the last observed displacement ``p(t) − p(t−1)``, metres per annotation
-            step (0 when ``t−1`` is unobserved, as constant velocity assumes).
-        window: ``(M,)`` int64 index of each row's window.
-        num_windows: the number of windows (windows without a scored pedestrian have no row).
-        sigma: ``(M, P, 2)`` float64 scales of each step's Gaussian, metres (None without a distribution).
-        rho: ``(M, P)`` float64 correlations (None without a distribution).
-        min_ade: ``(M,)`` float64 best-of-K ADE of each pedestrian, metres (None without samples).
-        min_fde: ``(M,)`` float64 best-of-K FDE, metres, the sample chosen independently of ``min_ade``'s.
-        observed: ``(M, P)`` bool, with ``rows="observed"`` (:func:`collect_forecasts`) only: step ``h``'s true
-            position is observed with the pedestrian present in every frame through it (``error`` is 0 elsewhere);
-            None when every row is scored (every step observed).
-    """
-
-    error: np.ndarray
-    speed: np.ndarray
-    window: np.ndarray
-    num_windows: int
-    sigma: np.ndarray | None = None
-    rho: np.ndarray | None = None
-    min_ade: np.ndarray | None = None
-    min_fde: np.ndarray | None = None
-    observed: np.ndarray | None = None
-
-    @property
-    def counts(self) -> np.ndarray:
-        """``(W,)`` scored pedestrians per window."""
-        return np.bincount(self.window, minlength=self.num_windows)
-
-    def window_sums(self, values: np.ndarray) -> np.ndarray:
-        """Per-window sums ``(W,)`` (or ``(W, P)``) of per-row values ``(M,)`` (or ``(M, P)``)."""
-        values = np.asarray(values, dtype=np.float64)
-        if values.ndim == 1:
-            return np.bincount(self.window, weights=values, minlength=self.num_windows)
-        return np.stack([self.window_sums(values[:, j]) for j in range(values.shape[1])], axis=1)
-
-
-def collect_forecasts(
-    windows: Sequence[Window],
-    predict: BatchPredictFn | None = None,
-    distribution: DistributionFn | None = None,
-    sample: SampleFn | None = None,
-    samples: int = 0,
-    batch_size: int = 64,
-    rows: str = "scored",
-) -> ScoredForecasts:
-    """Run a point forecast (``predict``) or a distribution (``distribution``; its means are the forecast) over
-    ``windows`` and keep, per scored pedestrian, the error, the last observed speed, the Gaussians and, with
-    ``sample`` and ``samples > 0``, the best-of-``samples`` ADE/FDE (per pedestrian, over its own samples).
-
-    ``rows="observed"`` keeps every pedestrian present in all ``OBS_LEN`` observed frames instead (the scored ones
-    and those who leave before the window ends), with ``observed`` marking the steps through which each stays
-    present; the online conformal rule ``--reveal observed`` learns from them (no samples with this option)."""
-    if (predict is None) == (distribution is None):
-        raise ValueError("give exactly one of predict and distribution")
-    if samples and sample is None:
-        raise ValueError("samples > 0 needs a sample function")
-    if rows not in ("scored", "observed"):
-        raise ValueError(f"unknown rows {rows!r}; valid: scored, observed")
-    if rows == "observed" and samples:
-        raise ValueError("rows='observed' takes no samples")
-    parts_observed: list[np.ndarray] = []
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("error", "speed", "window", "sigma", "rho", "ade", "fde")}
-    for chunk in batches(windows, batch_size):
-        pos, pres, scored = collate([windows[i] for i in chunk])
-        pos_t, pres_t = torch.from_numpy(pos), torch.from_numpy(pres)
-        with torch.no_grad():
-            if distribution is not None:
-                dist = distribution(pos_t, pres_t)
-                mean = dist.mean
-            else:
-                assert predict is not None
-                mean = predict(pos_t, pres_t)
-            sampled = sample(pos_t, pres_t, samples) if samples and sample is not None else None
-        if rows == "observed":
-            through = np.cumprod(pres[:, OBS_LEN:], axis=1).astype(bool)  # (B, P, N): present at every step so far
-            b_idx, n_idx = np.nonzero(pres[:, :OBS_LEN].all(axis=1))
-            parts_observed.append(through.transpose(0, 2, 1)[b_idx, n_idx])
-        else:
-            b_idx, n_idx = np.nonzero(scored)
-        truth = pos[:, OBS_LEN:]  # (B, P, N, 2)
-        parts["error"].append((mean.double().numpy() - truth)[b_idx, :, n_idx])
-        last, prev = pos[:, OBS_LEN - 1], pos[:, OBS_LEN - 2]
-        both = pres[:, OBS_LEN - 1] & pres[:, OBS_LEN - 2]
-        parts["speed"].append(np.where(both, np.hypot(*(last - prev).transpose(2, 0, 1)), 0.0)[b_idx, n_idx])
-        parts["window"].append(np.asarray(chunk, dtype=np.int64)[b_idx])
-        if distribution is not None:
-            parts["sigma"].append(dist.sigma.double().numpy()[b_idx, :, n_idx])
-            parts["rho"].append(dist.rho.double().numpy()[b_idx, :, n_idx])
-        if sampled is not None:
-            d = (sampled.double() - torch.from_numpy(truth).double()[:, None]).norm(dim=-1)  # (B, K, P, N)
-            parts["ade"].append(d.mean(2).min(1).values.numpy()[b_idx, n_idx])
-            parts["fde"].append(d[:, :, -1].min(1).values.numpy()[b_idx, n_idx])
-    window = np.concatenate(parts["window"]) if parts["window"] else np.zeros(0, np.int64)
-    order = np.argsort(window, kind="stable")
-
-    def cat(key: str) -> np.ndarray | None:
-        return np.concatenate(parts[key])[order] if parts[key] else None
-
-    error = cat("error")
-    speed = cat("speed")
-    observed = np.concatenate(parts_observed)[order] if parts_observed else None
-    if rows == "observed":
-        if observed is None:
-            observed = np.zeros((0, PRED_LEN), bool)
-        assert error is not None or not len(observed)
-        if error is not None:
-            error = np.where(observed[..., None], error, 0.0)
-    return ScoredForecasts(
-        error if error is not None else np.zeros((0, PRED_LEN, 2)),
-        speed if speed is not None else np.zeros(0),
-        window[order],
-        len(windows),
-        cat("sigma"),
-        cat("rho"),
-        cat("ade"),
-        cat("fde"),
-        observed,
-    )
-
-
-def summarise(errors: dict[str, np.ndarray]) -> dict[str, float]:
-    """ADE/FDE of a split from :func:`window_errors` (pedestrian-weighted means)."""
-    peds = int(errors["pedestrians"].sum())
-    out: dict[str, float] = {k: float(errors[k].sum()) / max(peds, 1) for k in METRIC_KEYS}
-    out["windows"] = len(errors["pedestrians"])
-    out["pedestrians"] = peds
-    return out
-
-
-def evaluate_windows(
-    predict: BatchPredictFn, windows: Sequence[Window], norm: MinMax, batch_size: int = 64
-) -> dict[str, float]:
-    """ADE/FDE over the scored pedestrians of ``windows`` (metres, and min-max-normalised units)."""
-    return summarise(window_errors(predict, windows, norm, batch_size))
+from crowdnav_mesrnn.data.windows import split_windows
+from crowdnav_mesrnn.evaluation.metrics import (
+    DISTRIBUTION_KEYS,
+    METRIC_KEYS,
+    BatchPredictFn,
+    collect_forecasts,
+    cv_predict_batch,
+    distribution_metrics,
+    summarise,
+    window_errors,
+)
+from crowdnav_mesrnn.evaluation.statistics import PairedErrors, average_ci, block_bootstrap_ci
 
 
 def resolve_splits(splits: Sequence[str] | str) -> list[str]:
@@ -265,32 +54,8 @@ def split_norm(split: str, data_dir: str | os.PathLike[str] | None = None) -> Mi
 #: draw per sample shared by all steps (``coherent``: whole trajectories at one quantile of every step's Gaussian),
 #: or every draw fed back as the next input (``feedback``).
 SAMPLINGS: tuple[str, ...] = ("marginal", "coherent", "feedback")
-#: Metrics of a distribution added by :func:`evaluate_model`, each with a ``_ci`` interval.
-DISTRIBUTION_KEYS = ("nll_m", "min_ade_m", "min_fde_m")
 #: Metrics whose paired differences :func:`paired_differences` gives (the point forecast's, then the distribution's).
 PAIRED_KEYS = ("ade_m", "fde_m", *DISTRIBUTION_KEYS)
-
-
-def distribution_metrics(
-    scored: ScoredForecasts, block_len: int = 20, n_resamples: int = 10_000
-) -> tuple[dict[str, float], dict[str, PairedErrors]]:
-    """NLL (nats per position, metres, averaged over every scored pedestrian and step) and best-of-K ADE/FDE of
-    one split, whichever ``scored`` holds, each with its block-bootstrap interval (``KEY_ci``), and the per-window
-    sums behind them (for intervals of averages over splits)."""
-    counts = scored.counts
-    keep = counts > 0
-    sums: dict[str, PairedErrors] = {}
-    if scored.sigma is not None and scored.rho is not None:
-        per_ped = gaussian.nll(scored.error, scored.sigma, scored.rho).mean(1)
-        sums["nll_m"] = PairedErrors(scored.window_sums(per_ped)[keep], counts[keep])
-    if scored.min_ade is not None and scored.min_fde is not None:
-        sums["min_ade_m"] = PairedErrors(scored.window_sums(scored.min_ade)[keep], counts[keep])
-        sums["min_fde_m"] = PairedErrors(scored.window_sums(scored.min_fde)[keep], counts[keep])
-    out: dict[str, float] = {}
-    for key, e in sums.items():
-        out[key] = e.estimate
-        out[f"{key}_ci"] = list(block_bootstrap_ci(e, block_len, n_resamples))  # type: ignore[assignment]
-    return out, sums
 
 
 def evaluate_model(
@@ -322,14 +87,14 @@ def evaluate_model(
         sampling: how samples are drawn (:data:`SAMPLINGS`).
         seed: seeds the samples (one stream per split).
         head: which shipped weights to load when ``checkpoint_for`` is None (``point`` or ``gaussian``).
-        block_len: block length of the block bootstrap, in windows (:mod:`crowdnav_mesrnn.stats`).
+        block_len: block length of the block bootstrap, in windows (:mod:`crowdnav_mesrnn.evaluation.statistics`).
         n_resamples: resamples of the block bootstrap.
         distribution_sums: if given, filled with ``split -> metric ->`` the per-window sums behind each metric of
             :data:`DISTRIBUTION_KEYS` (windows in time order), for :func:`paired_differences`.
 
     A model with a distribution head also gets ``nll_m``: the negative log-likelihood of the true positions under
     its Gaussians (nats per position, densities per m²), with its interval. Intervals of ``splits.average`` resample
-    each split independently (:func:`crowdnav_mesrnn.stats.average_ci`).
+    each split independently (:func:`crowdnav_mesrnn.evaluation.statistics.average_ci`).
     """
     splits = resolve_splits(splits)
     if sampling not in SAMPLINGS:
@@ -416,7 +181,7 @@ def paired_differences(
         nats per position for ``nll_m``); the windows are resampled
         together, so the interval is of the paired difference. Over two or more splits where every split holds the
         metric, ``average`` is the unweighted mean over the splits, its interval resampling each split
-        independently (:func:`crowdnav_mesrnn.stats.average_ci`).
+        independently (:func:`crowdnav_mesrnn.evaluation.statistics.average_ci`).
 
     Raises:
         ValueError: the two evaluations cover different splits or score different pedestrians in some window.

@@ -11,7 +11,7 @@ import pytest
 import crowdnav_mesrnn.models.pretrained as pretrained
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.models.base import LEARNED_MODELS
-from crowdnav_mesrnn.plan import (
+from crowdnav_mesrnn.studies.plan import (
     REPO_ROOT,
     candidate_runs,
     execute,
@@ -25,7 +25,7 @@ from crowdnav_mesrnn.plan import (
     status,
     summary,
 )
-from crowdnav_mesrnn.training import load_configs
+from crowdnav_mesrnn.training.trainer import load_configs
 
 SHIPPED = REPO_ROOT / "configs" / "predictor" / "candidates.yaml"
 
@@ -170,8 +170,9 @@ def test_execute_is_resumable_and_exports_the_best_seed(
 
     # The report's seed section, end to end on these runs: every seed and candidate on test, and the
     # comparison over seeds against constant velocity.
-    from crowdnav_mesrnn.evaluation import evaluate_model
-    from crowdnav_mesrnn.report import render_seeds, seed_results
+    from crowdnav_mesrnn.evaluation.protocol import evaluate_model
+    from crowdnav_mesrnn.studies.report import seed_results
+    from crowdnav_mesrnn.studies.report_render import render_seeds
 
     cv: dict = {}
     evaluate_model("cv", ["zara1"], data_dir=str(data_dir), window_sums=cv)
@@ -192,7 +193,7 @@ def test_execute_is_resumable_and_exports_the_best_seed(
 
 
 def test_dry_run_lists_every_run_with_a_cpu_estimate(tmp_path: Path, data_dir: Path) -> None:
-    from crowdnav_mesrnn.plan import dry_run
+    from crowdnav_mesrnn.studies.plan_budget import dry_run
 
     tiny = "{node_embed: 8, node_hidden: 16, edge_embed: 4, edge_hidden: 8, epochs: 2}"
     (tmp_path / "plan.yaml").write_text(

@@ -9,16 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from crowdnav_mesrnn.claims import compute
-from crowdnav_mesrnn.claims.measure import (
-    MOTIONS,
-    colliding_pairs,
-    density_bin,
-    measure_batch,
-    motion_types,
-)
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, SPLITS
-from crowdnav_mesrnn.stats import combine_interval, ratio_differences
+from crowdnav_mesrnn.evaluation.statistics import combine_interval, ratio_differences
+from crowdnav_mesrnn.studies.claims import compute
+from crowdnav_mesrnn.studies.claims.measure import MOTIONS, colliding_pairs, density_bin, measure_batch, motion_types
 
 K = np.arange(1, PRED_LEN + 1, dtype=float)
 
@@ -237,7 +231,7 @@ def test_claims_results_read_the_constructed_answers() -> None:
 
 
 def test_claims_over_seeds_and_the_page_section() -> None:
-    from crowdnav_mesrnn.claims.render import render_claims
+    from crowdnav_mesrnn.studies.claims.render import render_claims
 
     c = compute.claims_results(fake_measured(seeds=3), "seeds [0, 1, 2] of plan `p.yaml`", n_resamples=200)
     assert c["seeds"] == {"cv": 1, "vlstm": 3, "srnn": 3, "mesrnn": 3}
@@ -271,7 +265,7 @@ def test_a_bin_dominated_by_one_scene_is_named() -> None:
                 run["others"] = np.full_like(run["others"], 2.0)  # only eth has dense windows
     c = compute.claims_results(m, "synthetic", n_resamples=100)
     assert c["density"]["pooled_split_shares"]["11+"]["dominated_by"] == "eth"
-    from crowdnav_mesrnn.claims.render import render_claims
+    from crowdnav_mesrnn.studies.claims.render import render_claims
 
     assert "11+: eth 100 %" in "\n".join(render_claims(c))
 
@@ -295,7 +289,7 @@ def test_headline_check_catches_other_weights() -> None:
 # ------------------------------------------------------------------ merging into the page
 def saved_results() -> dict:
     """A saved main page's JSON (synthetic): four models, their comparisons, a plan's seeds section."""
-    from crowdnav_mesrnn.report import compare
+    from crowdnav_mesrnn.studies.report import compare
 
     m = fake_measured(windows=40)
     errors = {
@@ -331,7 +325,8 @@ def test_add_claims_keeps_every_key(tmp_path, monkeypatch) -> None:
     """``report --claims`` adds the claims object and keeps every other key of the saved JSON exactly;
     the page is re-rendered from the merged JSON."""
     from crowdnav_mesrnn.cli import main
-    from crowdnav_mesrnn.report import add_claims, render
+    from crowdnav_mesrnn.studies.report import add_claims
+    from crowdnav_mesrnn.studies.report_render import render
 
     saved = saved_results()
     saved["an_unknown_section"] = {"kept": [1, 2, 3]}
@@ -365,7 +360,7 @@ def test_add_claims_keeps_every_key(tmp_path, monkeypatch) -> None:
 def test_the_whole_report_includes_the_claims(monkeypatch) -> None:
     """``build_report`` (``predictor report [--plan]``) computes the claims with the same plan and puts
     them on the page (evaluation and measurement replaced by synthetic ones)."""
-    from crowdnav_mesrnn import report
+    from crowdnav_mesrnn.studies import report
 
     saved = saved_results()
     m = fake_measured(windows=40)
@@ -399,7 +394,7 @@ def test_the_whole_report_includes_the_claims(monkeypatch) -> None:
 def test_weights_are_the_plan_seeds_only_when_its_folders_hold_them_all(tmp_path) -> None:
     """Shipped weights without a plan, or while any (model, split) lacks a seed; the plan's seed
     checkpoints (in seed order) once every seed of every (model, split) is done."""
-    from crowdnav_mesrnn.plan import REPO_ROOT, load_plan, run_dir
+    from crowdnav_mesrnn.studies.plan import REPO_ROOT, load_plan, run_dir
 
     text = (REPO_ROOT / "configs/predictor/candidates.yaml").read_text()
     (tmp_path / "plan.yaml").write_text(text.replace("out_dir: runs/predictor/plan", f"out_dir: {tmp_path}"))

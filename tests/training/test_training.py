@@ -7,12 +7,12 @@ from pathlib import Path
 import pytest
 import torch
 
-import crowdnav_mesrnn.training as training
+import crowdnav_mesrnn.training.trainer as training
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.models.learned import load_predictor
 from crowdnav_mesrnn.models.pretrained import export_checkpoint
-from crowdnav_mesrnn.training import Trainer, TrainingDivergedError, load_configs
+from crowdnav_mesrnn.training.trainer import Trainer, TrainingDivergedError, load_configs
 
 TINY = {"node_embed": 8, "node_hidden": 16, "edge_embed": 4, "edge_hidden": 8, "max_windows": 24, "batch_size": 8}
 

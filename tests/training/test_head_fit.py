@@ -1,4 +1,4 @@
-"""``predictor fit-head``: the gaussian head fitted on point weights with the trunk frozen (crowdnav_mesrnn.head_fit)."""
+"""``predictor fit-head``: the gaussian head fitted on point weights with the trunk frozen (crowdnav_mesrnn.training.head_fit)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,12 @@ from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import PRED_LEN
 from crowdnav_mesrnn.data.windows import collate, split_windows
-from crowdnav_mesrnn.evaluation import split_norm
-from crowdnav_mesrnn.head_fit import (
+from crowdnav_mesrnn.evaluation.protocol import split_norm
+from crowdnav_mesrnn.models import gaussian
+from crowdnav_mesrnn.models.architecture import ModelConfig
+from crowdnav_mesrnn.models.learned import CHECKPOINT_FORMAT, CheckpointError, lean_state, load_predictor
+from crowdnav_mesrnn.models.structural_rnn import StructuralRNN
+from crowdnav_mesrnn.training.head_fit import (
     HEAD_KEYS,
     HeadFitConfig,
     HeadRows,
@@ -23,9 +27,6 @@ from crowdnav_mesrnn.head_fit import (
     gaussian_network,
     head_rows,
 )
-from crowdnav_mesrnn.models import gaussian
-from crowdnav_mesrnn.models.learned import CHECKPOINT_FORMAT, CheckpointError, lean_state, load_predictor
-from crowdnav_mesrnn.models.structural_rnn import ModelConfig, StructuralRNN
 from crowdnav_mesrnn.utils import file_sha256
 
 TINY = {"node_embed": 8, "node_hidden": 16, "edge_embed": 4, "edge_hidden": 8}

@@ -1,34 +1,12 @@
-"""The ``crowdnav-mesrnn`` command line."""
+"""``crowdnav-mesrnn data ...``: download, inspect and verify the ETH/UCY data."""
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import sys
-from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
-
-#: subcommand -> ("module:function" adding its parser to argparse sub-parsers, one-line help). The module is
-#: imported only when its subcommand runs, so no lower package imports a higher one and ``--help`` stays fast.
-COMMANDS: dict[str, tuple[str, str]] = {
-    "data": ("crowdnav_mesrnn.cli:add_data", "download, inspect and verify the ETH/UCY data"),
-    "predictor": ("crowdnav_mesrnn.cli_predictor:add_parser", "train, evaluate, export and plot trajectory predictors"),
-    "forecasts": ("envs.cli:add_forecasts", "build and inspect the shared on-disk forecast cache"),
-    "demo": ("agents.cli:add_demo", "a policy crosses a held-out ETH/UCY scene with forecasts; metrics and a GIF"),
-    "agent": ("agents.cli:add_agent", "train and evaluate navigation policies (PPO, SAC, planners)"),
-    "ablation": ("agents.cli:add_ablation", "run the planning-aid ablation grid and summarise it"),
-    "bench": ("agents.bench:add_parser", "benchmark any predictor: ADE/FDE vs CV and the planner cells, one page"),
-}
-
-
-def _resolve(target: str) -> Callable[[Any], None]:
-    module, _, func = target.partition(":")
-    return getattr(importlib.import_module(module), func)
-
-
-# ---------------------------------------------------------------------------- data
 
 
 def _data_summary(args: argparse.Namespace) -> int:
@@ -71,7 +49,7 @@ def _data_download(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_data(sub: Any) -> None:
+def add_parser(sub: Any) -> None:
     from crowdnav_mesrnn.data.download import DEFAULT_DEST, DEFAULT_TIMEOUT_S
     from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
 
@@ -104,47 +82,3 @@ def add_data(sub: Any) -> None:
     )
     d.add_argument("--force", action="store_true", help="replace an existing --dest that does not verify")
     d.set_defaults(func=_data_download)
-
-
-def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The parser; only ``command``'s module is imported (every other subcommand is a stub that lists its help)."""
-    from crowdnav_mesrnn import __version__
-
-    parser = argparse.ArgumentParser(
-        prog="crowdnav-mesrnn", description="MESRNN trajectory prediction and robot crowd navigation on ETH/UCY."
-    )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, (target, help_text) in COMMANDS.items():
-        if name == command:
-            _resolve(target)(sub)
-        else:
-            sub.add_parser(name, help=help_text)
-    return parser
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    from crowdnav_mesrnn.config import ConfigError
-    from crowdnav_mesrnn.data.paths import DataNotFoundError
-    from crowdnav_mesrnn.data.recordings import DataFormatError
-
-    argv = list(sys.argv[1:] if argv is None else argv)
-    command = next((a for a in argv if not a.startswith("-")), None)
-    parser = build_parser(command if command in COMMANDS else None)
-    args = parser.parse_args(argv)
-    try:
-        if getattr(args, "data_dir_env", None):  # commands whose workers find the data through the variable
-            from crowdnav_mesrnn.data.paths import use_data_dir
-
-            use_data_dir(args.data_dir_env)
-        return int(args.func(args) or 0)
-    except (DataNotFoundError, DataFormatError, ConfigError, FileNotFoundError, ValueError) as exc:
-        print(f"crowdnav-mesrnn: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("crowdnav-mesrnn: interrupted", file=sys.stderr)
-        return 130
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from crowdnav_mesrnn.stats import (
+from crowdnav_mesrnn.evaluation.statistics import (
     PairedErrors,
     SeededErrors,
     average_ci,
