@@ -6,11 +6,14 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
 
-#: Model names accepted by :func:`crowdnav_mesrnn.models.get_predictor`.
-LEARNED_MODELS: tuple[str, ...] = ("mesrnn", "srnn", "vlstm")
-MODELS: tuple[str, ...] = ("cv", *LEARNED_MODELS)
+#: The shipped predictors with weights per split (``mesrnn``, ``srnn``, ``vlstm``), from the registry
+#: (:mod:`crowdnav_mesrnn.predictors`).
+LEARNED_MODELS: tuple[str, ...] = predictors.names(predictors.PRETRAINED, plugins=False)
+#: Every shipped predictor: constant velocity and :data:`LEARNED_MODELS`.
+MODELS: tuple[str, ...] = predictors.names(predictors.BASELINE, predictors.PRETRAINED, plugins=False)
 
 
 @runtime_checkable
