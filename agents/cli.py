@@ -52,7 +52,7 @@ def _demo(args: argparse.Namespace) -> int:
     from agents.planners import PLANNERS
     from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, data_available
     from envs.crowd_nav import CrowdNavEnv
-    from envs.forecasts import PredictorUnavailableError
+    from envs.forecasting.factory import PredictorUnavailableError
     from envs.rendering import save_gif
 
     started = time.perf_counter()

@@ -288,13 +288,13 @@ def check_spaces(policy: Any, env: Any) -> None:
 
 def prepare_forecasts(env_kwargs: Mapping[str, Any], progress: bool = False) -> dict[str, Any] | None:
     """Fill the shared on-disk forecast cache for the recordings environments of ``env_kwargs`` replay, so that no
-    worker computes forecasts (:func:`envs.forecasts.build_forecast_cache`); None when there is nothing to build
+    worker computes forecasts (:func:`envs.forecasting.build.build_forecast_cache`); None when there is nothing to build
     (no learned predictor, no disk cache, or a crowd that is not replayed from ETH/UCY).
 
     Raises:
         DataNotFoundError: the environments would replay ETH/UCY scenes and the data is not found (as they would).
     """
-    from envs import forecasts
+    import envs.forecasting.build as forecasts
     from envs.config import LEARNED_SOURCES, crowd_source, is_plugin_source, names_scene
 
     cfg = config_from(dict(env_kwargs), {})

@@ -562,7 +562,7 @@ def predictor_weights(cfg: TrainConfig) -> dict[str, str]:
     if cfg.predictor not in LEARNED_SOURCES:
         return {}
     from crowdnav_mesrnn.models.pretrained import pretrained_path
-    from envs.forecasts import split_of_recording
+    from envs.forecasting.sources import split_of_recording
 
     out: dict[str, str] = {}
     for rec in episode_recordings(cfg.split, "train"):

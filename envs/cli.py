@@ -18,7 +18,7 @@ from envs.config import FORECAST_MEMORIES, LEARNED_SOURCES
 def _build(args: argparse.Namespace) -> int:
     import torch
 
-    from envs.forecasts import build_forecast_cache
+    from envs.forecasting.build import build_forecast_cache
 
     torch.set_num_threads(args.threads)
     summary = build_forecast_cache(
@@ -42,7 +42,7 @@ def _build(args: argparse.Namespace) -> int:
 
 
 def _info(args: argparse.Namespace) -> int:
-    from envs.forecast_cache import cache_root, describe
+    from envs.forecasting.cache import cache_root, describe
 
     rows = describe(args.cache_dir)
     if args.json:

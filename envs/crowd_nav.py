@@ -31,15 +31,11 @@ from envs.config import (
     resolve_scenes,
 )
 from envs.episodes import Episode, EpisodeSampler, episode_time_window
-from envs.forecast_cache import ForecastStore, cache_root
-from envs.forecasts import (
-    ForecastModel,
-    ForecastSource,
-    PredictorForecast,
-    TrueFuture,
-    fill_forward,
-    make_forecast_source,
-)
+from envs.forecasting.cache import ForecastStore, cache_root
+from envs.forecasting.factory import make_forecast_source
+from envs.forecasting.sources import ForecastModel, ForecastSource, TrueFuture, fill_forward
+from envs.forecasting.uncertainty import UncertaintySource, make_uncertainty_source
+from envs.forecasting.window import PredictorForecast
 from envs.observation import ObservationBuilder, nearest_visible, observation_space
 from envs.popin import POPIN_MARGIN_M, PopInRule
 from envs.recordings import empty_recording, overlay_recording, synthetic_recording
@@ -47,7 +43,6 @@ from envs.rendering import HUMAN_NEEDS_PYGAME
 from envs.replay import Replay
 from envs.rewards import EpisodeMetrics, reward_components, total_reward
 from envs.timing import PhaseTimer, timed
-from envs.uncertainty import UncertaintySource, make_uncertainty_source
 from envs.world import World
 
 #: Default of ``CrowdNavEnv(predictor=...)``: the config's ``predictor`` (an explicit None is an error).

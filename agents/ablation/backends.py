@@ -338,10 +338,10 @@ def build_forecast_caches(
     """Build the shared on-disk forecast cache once for every (learned source, split) the cells need (an
     uncertainty arm uses its source's forecasts, so ``mesrnn`` and ``mesrnn_unc`` share one cache).
 
-    Uses ``envs.forecasts.build_forecast_cache`` when the environment provides it (otherwise each process
+    Uses ``envs.forecasting.build.build_forecast_cache`` when the environment provides it (otherwise each process
     computes the forecasts it needs). Returns the pairs built.
     """
-    import envs.forecasts as forecasts
+    import envs.forecasting.build as forecasts
     from envs.config import is_plugin_source
 
     wanted = sorted(
@@ -355,7 +355,9 @@ def build_forecast_caches(
     if not wanted:
         return []
     if build is None:
-        out("note: envs.forecasts.build_forecast_cache is not available; every worker computes its own forecasts")
+        out(
+            "note: envs.forecasting.build.build_forecast_cache is not available; every worker computes its own forecasts"
+        )
         return []
     for predictor, split in wanted:
         t0 = time.perf_counter()

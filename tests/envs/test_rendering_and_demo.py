@@ -84,12 +84,12 @@ def test_demo_with_an_explicit_missing_predictor_is_an_error(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     from crowdnav_mesrnn import models
-    from envs import forecasts
+    from envs.forecasting import factory
 
     def missing(name: str, split: str | None = None) -> None:
         raise FileNotFoundError("no weights here")
 
     monkeypatch.setattr(models, "get_predictor", missing)
-    monkeypatch.setattr(forecasts, "_LOADED", {})
+    monkeypatch.setattr(factory, "_LOADED", {})
     assert main(["demo", "--synthetic", "--predictor", "srnn", "--no-gif"]) == 2
     assert "no weights here" in capsys.readouterr().err

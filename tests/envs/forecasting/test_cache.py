@@ -19,10 +19,9 @@ from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data import load_recording
 from crowdnav_mesrnn.data.recordings import Recording
 from crowdnav_mesrnn.models import ConstantVelocity
-from envs import forecasts
 from envs.crowd_nav import CrowdNavEnv
-from envs.forecast_cache import CACHE_ENV_VAR, CacheWarning, num_chunks
-from envs.forecasts import PredictorForecast, clear_shared_tables
+from envs.forecasting.cache import CACHE_ENV_VAR, CacheWarning, clear_shared_tables, num_chunks
+from envs.forecasting.window import PredictorForecast
 
 REPO = Path(__file__).resolve().parents[2]
 EPISODES = [{"t0_s": t0, "start": (1.0, 1.0), "goal": (7.0, 3.0), "time_limit_s": 6.0} for t0 in (14.0, 40.0)]
@@ -278,7 +277,7 @@ def test_constant_velocity_forecasts_are_computed_once_per_process(
     assert lockstep(envs[2], CrowdNavEnv(predictor="cv", crowd=rec, cache_forecasts=False), EPISODES) > 20
     assert not files(tmp_path)  # never written to disk
     # another recording under the same name is another table; beyond SHARED_RECORDINGS the oldest is forgotten
-    monkeypatch.setattr(forecasts, "SHARED_RECORDINGS", 1)
+    monkeypatch.setattr("envs.forecasting.cache.SHARED_RECORDINGS", 1)
     positions = rec.positions.copy()
     positions[100] += 0.1
     moved = CrowdNavEnv(predictor="cv", crowd=replace(rec, positions=positions))
@@ -340,7 +339,7 @@ def test_info_skips_files_it_did_not_write(tmp_path: Path, capsys: pytest.Captur
 def test_the_online_arithmetic_revision_keys_carried_tables_only(monkeypatch: pytest.MonkeyPatch) -> None:
     """A change of the online forecast's arithmetic (CARRIED_REVISION) gives carried tables a new key, so tables
     computed by the old arithmetic are rebuilt, and leaves window tables' keys as they were."""
-    from envs import forecast_cache
+    from envs.forecasting import cache as forecast_cache
 
     def digests() -> dict[str, str]:
         keys = {
