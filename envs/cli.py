@@ -10,9 +10,10 @@ import argparse
 import json
 from typing import Any
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
-from envs.config import FORECAST_MEMORIES, LEARNED_SOURCES
+from envs.config import FORECAST_MEMORIES
 
 
 def _build(args: argparse.Namespace) -> int:
@@ -77,7 +78,7 @@ def add_forecasts(sub: Any) -> None:
         "--predictor",
         required=True,
         metavar="PREDICTOR",
-        help=f"{', '.join(LEARNED_SOURCES)}, an installed predictor plug-in or an import path package.module:Factory",
+        help=f"{', '.join(predictors.names(predictors.PRETRAINED, plugins=False))}, an installed predictor plug-in or an import path package.module:Factory",
     )
     b.add_argument("--split", default=None, choices=SPLITS, help="default: every replayable recording")
     b.add_argument("--part", default="all", choices=("train", "test", "all"), help="default: all")

@@ -36,7 +36,6 @@ from agents.ablation.config import (
     BACKENDS,
     CELL_JSON,
     DONE,
-    LEARNED_SOURCES,
     TRAIN_RUN,
     AblationConfig,
     training_overrides,
@@ -342,15 +341,9 @@ def build_forecast_caches(
     computes the forecasts it needs). Returns the pairs built.
     """
     import envs.forecasting.build as forecasts
-    from envs.config import is_plugin_source
+    from crowdnav_mesrnn import predictors
 
-    wanted = sorted(
-        {
-            (c.arm.predictor, c.split)
-            for c in cells
-            if c.arm.predictor in LEARNED_SOURCES or is_plugin_source(c.arm.predictor)
-        }
-    )
+    wanted = sorted({(c.arm.predictor, c.split) for c in cells if predictors.per_split(c.arm.predictor)})
     build = getattr(forecasts, "build_forecast_cache", None)
     if not wanted:
         return []

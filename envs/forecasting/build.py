@@ -8,8 +8,9 @@ from __future__ import annotations
 
 from typing import Any, Final
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import SPLIT_TEST_RECORDINGS
-from envs.config import FORECAST_MEMORIES, LEARNED_SOURCES, is_plugin_source
+from envs.config import FORECAST_MEMORIES, CrowdNavConfig
 from envs.forecasting.cache import ForecastStore, cache_root, num_chunks
 from envs.forecasting.factory import make_forecast_source
 from envs.forecasting.window import PredictorForecast
@@ -50,7 +51,8 @@ def build_forecast_cache(
     written. Call it before starting vectorised environments or grid workers, so none of them computes forecasts.
 
     Args:
-        predictor: ``mesrnn``, ``srnn`` or ``vlstm``.
+        predictor: a name loaded per split (:data:`crowdnav_mesrnn.predictors.SPLIT_KINDS`): ``mesrnn``, ``srnn``,
+            ``vlstm``, an installed plug-in or an import path.
         split: leave-one-out split (None: all recordings).
         part: ``train``, ``test`` or ``all``.
         memory: ``window`` or ``carried`` (see ``forecast_memory``).
@@ -65,10 +67,12 @@ def build_forecast_cache(
 
     from crowdnav_mesrnn.data.recordings import load_recording
 
-    if predictor not in LEARNED_SOURCES and not is_plugin_source(predictor):
+    if not predictors.per_split(predictor):
+        weightless = predictors.names(*(k for k in predictors.KINDS if k not in predictors.SPLIT_KINDS), plugins=False)
         raise ValueError(
-            f"unknown predictor {predictor!r} for the forecast cache; valid: {', '.join(LEARNED_SOURCES)}, an installed "
-            "predictor plug-in or an import path 'package.module:Factory' (none, cv, oracle and noisy_oracle need no cache)"
+            f"unknown predictor {predictor!r} for the forecast cache; valid: "
+            f"{', '.join(predictors.names(predictors.PRETRAINED, plugins=False))}, an installed predictor plug-in or an "
+            f"import path 'package.module:Factory' ({', '.join(weightless[:-1])} and {weightless[-1]} need no cache)"
         )
     if memory not in FORECAST_MEMORIES:
         raise ValueError(f"unknown forecast memory {memory!r}; valid: {', '.join(FORECAST_MEMORIES)}")
@@ -76,13 +80,20 @@ def build_forecast_cache(
     names = cache_recordings(split, part)
     recordings = [load_recording(n, "all_data", data_dir) for n in names]
     root = cache_root(cache_dir)
-    store = ForecastStore(root)
-    problem = store.write_problem()
+    problem = ForecastStore(root).write_problem()
     if problem is not None:
         raise ValueError(f"the forecast cache folder {root} cannot be written ({problem}); choose another one")
-    default_split = split if split is not None else "zara1"
-    source = make_forecast_source(predictor, list(names), default_split, 0.4, 12, True, 0.0, memory, store)
-    assert isinstance(source, PredictorForecast)
+    config = CrowdNavConfig(
+        predictor=predictor,
+        split=split if split is not None else "zara1",
+        cache_forecasts=True,
+        forecast_disk_cache=True,
+        forecast_cache_dir=str(root),
+        forecast_memory=memory,
+    )
+    source = make_forecast_source(config, names)
+    assert isinstance(source, PredictorForecast) and source.store is not None
+    store = source.store
     source.progress = False  # this function's own bar counts the chunks
     source.threads = None  # the caller's torch threads (``forecasts build --threads``)
     total = sum(num_chunks(r) for r in recordings)

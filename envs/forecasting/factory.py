@@ -1,17 +1,20 @@
-"""Building a forecast source: the name asked of the predictor registry, the predictors loaded per split.
+"""Building a forecast source from the env config and the predictor registry.
 
-:func:`make_forecast_source` asks :mod:`crowdnav_mesrnn.predictors` what the configured name is and builds the
-matching source; a recording is forecast by the predictor of the split holding it out (never one trained on it).
-A predictor that cannot be loaded is a :class:`PredictorUnavailableError` saying what was needed and how to get it.
+:func:`make_forecast_source` asks :mod:`crowdnav_mesrnn.predictors` what the configured name is (its kind) and
+builds the matching source, loading a predictor per split where the kind asks for it: a recording is forecast by
+the predictor of the split holding it out (never one trained on it). A predictor that cannot be loaded is a
+:class:`PredictorUnavailableError` saying what was needed and how to get it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any, Final
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError
-from envs.config import FORECAST_MEMORIES, FORECAST_SOURCES, LEARNED_SOURCES, check_predictor_name, is_plugin_source
-from envs.forecasting.cache import ForecastStore
+from envs.config import FORECAST_MEMORIES, CrowdNavConfig
+from envs.forecasting.cache import ForecastStore, cache_root
 from envs.forecasting.carried import CarriedPredictorForecast
 from envs.forecasting.sources import (
     ForecastModel,
@@ -31,16 +34,24 @@ class PredictorUnavailableError(FileNotFoundError):
 
 _LOADED: dict[tuple[str, str], Any] = {}
 
+
+def _without_weights() -> str:
+    """The forecast sources that need no weights, quoted: ``'cv', 'oracle', 'noisy_oracle' or 'none'``."""
+    kinds = (predictors.BASELINE, predictors.TRUTH, predictors.NOISY_TRUTH)
+    quoted = [repr(n) for n in (*predictors.names(*kinds, plugins=False), *predictors.names(predictors.NO_FORECAST))]
+    return f"{', '.join(quoted[:-1])} or {quoted[-1]}"
+
+
 WEIGHTS_HELP: Final[str] = (
     "Pretrained weights are looked up by crowdnav_mesrnn.models.pretrained.load_pretrained (package data in "
     "crowdnav_mesrnn/pretrained/); train them with the predictor commands of `crowdnav-mesrnn --help`. To run "
-    "without them choose predictor='cv', 'oracle', 'noisy_oracle' or 'none' (e.g. gymnasium.make('CrowdNav-CV-v0')), "
+    f"without them choose predictor={_without_weights()} (e.g. gymnasium.make('CrowdNav-CV-v0')), "
     "or pass your own predictor object as predictor=..."
 )
 
 
 def load_learned(name: str, split: str, needed_for: str) -> Any:
-    """The pretrained ``name`` predictor of ``split`` (cached per process).
+    """The predictor ``name`` of ``split`` (:func:`crowdnav_mesrnn.predictors.load`), one object per process.
 
     Raises:
         PredictorUnavailableError: naming the model, the split, the recording it was needed for,
@@ -48,12 +59,10 @@ def load_learned(name: str, split: str, needed_for: str) -> Any:
     """
     key = (name, split)
     if key not in _LOADED:
-        from crowdnav_mesrnn import models
-
         try:
-            _LOADED[key] = models.get_predictor(name, split)
+            _LOADED[key] = predictors.load(name, split)
         except Exception as exc:  # any failure to load is reported the same way, with its cause
-            shipped = name in LEARNED_SOURCES
+            shipped = predictors.kind(name) == predictors.PRETRAINED
             raise PredictorUnavailableError(
                 f"the {'pretrained ' if shipped else 'plug-in '}{name!r} predictor for split {split!r} (needed to "
                 f"forecast {needed_for}) could not be loaded: {type(exc).__name__}: {str(exc).rstrip('.')}. "
@@ -62,64 +71,64 @@ def load_learned(name: str, split: str, needed_for: str) -> Any:
     return _LOADED[key]
 
 
+def forecast_store(config: CrowdNavConfig) -> ForecastStore | None:
+    """The shared disk cache ``config`` asks for (``forecast_disk_cache``, in ``forecast_cache_dir``), or None."""
+    return ForecastStore(cache_root(config.forecast_cache_dir)) if config.forecast_disk_cache else None
+
+
 def make_forecast_source(
-    predictor: str | ForecastModel,
-    recordings: list[str],
-    default_split: str,
-    dt_s: float,
-    horizon: int,
-    cache: bool,
-    noisy_oracle_ade_m: float,
-    memory: str = "window",
-    store: ForecastStore | None = None,
+    config: CrowdNavConfig, recordings: Sequence[str], predictor: ForecastModel | None = None
 ) -> ForecastSource:
-    """The forecast source for a set of recordings.
+    """The forecast source of ``config`` for a set of recordings.
+
+    The kind of ``config.predictor`` (:func:`crowdnav_mesrnn.predictors.kind`) chooses the source: none, the oracle,
+    the noisy oracle (``noisy_oracle_ade_m``), a weightless baseline loaded once, or a predictor loaded per split
+    (the pretrained and the plug-ins), window or carried (``forecast_memory``; the baseline is always window) and
+    shared through the disk cache (:func:`forecast_store`). Forecasts are on the grid ``dt_s`` x
+    ``horizon_steps`` and kept in memory with ``cache_forecasts``.
 
     Args:
-        predictor: a source name or a predictor object (used for every recording).
-        recordings: names of the recordings episodes may replay.
-        default_split: split whose predictor forecasts recordings that belong to no split's test
-            part (synthetic, scripted crowds).
-        dt_s: environment step, seconds.
-        horizon: H.
-        cache: keep forecasts (per chunk of annotation frames, and resampled per time).
-        noisy_oracle_ade_m: target ADE of ``noisy_oracle``.
-        memory: ``window`` or ``carried`` (see :attr:`envs.config.CrowdNavConfig.forecast_memory`); ignored by
-            ``none``, ``cv``, ``oracle`` and ``noisy_oracle``.
-        store: the shared disk cache for predictors with weights (None: memory only).
+        config: the environment's configuration.
+        recordings: names of the recordings episodes may replay; each is forecast by the predictor of the split
+            holding it out, a recording outside every split's test part (synthetic, scripted crowds) by that of
+            ``config.split``.
+        predictor: a predictor object used for every recording instead of ``config.predictor``.
 
     Raises:
-        ConfigError: ``carried`` with a predictor object (or loaded predictor) without ``online(num_slots)``.
+        ConfigError: an unknown ``forecast_memory`` or ``predictor`` name; ``predictor`` without a ``forecast``
+            method; ``carried`` with a predictor object (or loaded predictor) without ``online(num_slots)``.
+        PredictorUnavailableError: a predictor of a split could not be loaded.
     """
+    memory = config.forecast_memory
     if memory not in FORECAST_MEMORIES:
         raise ConfigError(f"unknown forecast_memory {memory!r}; valid: {', '.join(FORECAST_MEMORIES)}")
     fork_safe_torch()
+    dt_s, horizon, cache = config.dt_s, config.horizon_steps, config.cache_forecasts
     learned_cls = CarriedPredictorForecast if memory == "carried" else PredictorForecast
-    if not isinstance(predictor, str):
+    if predictor is not None:
         if not callable(getattr(predictor, "forecast", None)):
             raise ConfigError(
-                f"predictor must be one of {', '.join(FORECAST_SOURCES)} or an object with a forecast(history, mask) "
-                f"method, got {predictor!r}"
+                f"predictor must be one of {', '.join(predictors.names(plugins=False))} or an object with a "
+                f"forecast(history, mask) method, got {predictor!r}"
             )
-        return learned_cls(str(getattr(predictor, "name", "custom")), {}, predictor, dt_s, horizon, cache, store)
-    if predictor == "none":
+        name = str(getattr(predictor, "name", "custom"))
+        return learned_cls(name, {}, predictor, dt_s, horizon, cache, forecast_store(config))
+    name = config.predictor
+    kind = predictors.kind(name)  # raises ConfigError listing the valid names
+    if kind == predictors.NO_FORECAST:
         return NoForecast()
-    if predictor == "oracle":
+    if kind == predictors.TRUTH:
         return OracleForecast()
-    if predictor == "noisy_oracle":
-        return NoisyOracleForecast(noisy_oracle_ade_m, horizon)
-    if predictor == "cv":
-        from crowdnav_mesrnn.models import get_predictor
-
-        return PredictorForecast("cv", {}, get_predictor("cv"), dt_s, horizon, cache)
-    if predictor in LEARNED_SOURCES or is_plugin_source(predictor):  # a plug-in loads per split like MESRNN
-        per_recording: dict[str, ForecastModel] = {}
-        default: ForecastModel | None = None
-        for rec in recordings:
-            split = split_of_recording(rec)
-            if split is None:
-                default = load_learned(predictor, default_split, rec)
-            else:
-                per_recording[rec] = load_learned(predictor, split, rec)
-        return learned_cls(predictor, per_recording, default, dt_s, horizon, cache, store)
-    raise ValueError(check_predictor_name(predictor))  # raises ConfigError listing the valid names
+    if kind == predictors.NOISY_TRUTH:
+        return NoisyOracleForecast(config.noisy_oracle_ade_m, horizon)
+    if kind == predictors.BASELINE:
+        return PredictorForecast(name, {}, predictors.load(name), dt_s, horizon, cache)
+    per_recording: dict[str, ForecastModel] = {}
+    default: ForecastModel | None = None
+    for rec in recordings:
+        split = split_of_recording(rec)
+        if split is None:
+            default = load_learned(name, config.split, rec)
+        else:
+            per_recording[rec] = load_learned(name, split, rec)
+    return learned_cls(name, per_recording, default, dt_s, horizon, cache, forecast_store(config))

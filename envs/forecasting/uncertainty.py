@@ -25,9 +25,11 @@ from typing import Any
 
 import numpy as np
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.utils import atomic_write_json, file_lock
-from envs.forecasting.cache import predictor_fingerprint, recording_fingerprint
+from envs.config import CrowdNavConfig
+from envs.forecasting.cache import cache_root, predictor_fingerprint, recording_fingerprint
 from envs.forecasting.resampling import resample_matrix, time_key
 from envs.forecasting.sources import NoisyOracleForecast, split_of_recording
 from envs.replay import Replay
@@ -124,12 +126,10 @@ def calibration_key(name: str, split: str, levels: tuple[float, ...], data_dir: 
     from crowdnav_mesrnn.data.recordings import load_split
 
     h = hashlib.sha256()
-    if name == "cv":
-        h.update(b"cv")
+    if predictors.kind(name) == predictors.BASELINE:  # no weights: the name is the predictor
+        h.update(name.encode())
     else:
-        from crowdnav_mesrnn.models.pretrained import load_pretrained
-
-        h.update(str(predictor_fingerprint(load_pretrained(name, split))).encode())
+        h.update(str(predictor_fingerprint(predictors.load(name, split))).encode())
     for part in ("train", "val"):
         for rec in load_split(split, part, data_dir):
             h.update(f"{part}:{rec.name}:{recording_fingerprint(rec)}".encode())
@@ -177,33 +177,35 @@ def load_or_fit_calibration(
     return held
 
 
-def make_uncertainty_source(
-    forecaster: Any,
-    predictor: Any,
-    default_split: str,
-    level: float,
-    dt_s: float,
-    horizon: int,
-    cache_dir: Path | None,
-    data_dir: str | None = None,
-) -> UncertaintySource:
-    """The uncertainty of a forecast source (:class:`~envs.forecasting.sources.ForecastSource`) built from ``predictor`` (a name or
-    an object); raises :class:`ConfigError` for sources without one."""
-    name = getattr(forecaster, "name", None)
-    if not isinstance(predictor, str):
+def make_uncertainty_source(config: CrowdNavConfig, forecaster: Any, predictor: Any = None) -> UncertaintySource:
+    """The uncertainty of the forecast source ``forecaster`` that ``config`` (or the predictor object
+    ``predictor``) built: by the kind of ``config.predictor`` (:func:`crowdnav_mesrnn.predictors.kind`), zero for
+    the oracle, the noisy oracle's own noise, or calibrated radii (level ``forecast_uncertainty_level``) for the
+    shipped point predictors, the calibrations kept beside the forecast cache (``forecast_disk_cache``).
+
+    Raises:
+        ConfigError: a predictor object, a plug-in or ``none`` (no calibration), or ``carried`` forecasts.
+    """
+    level, dt_s, horizon = config.forecast_uncertainty_level, config.dt_s, config.horizon_steps
+    calibrated = (predictors.BASELINE, predictors.PRETRAINED)
+    if predictor is not None:
+        named = predictors.names(*calibrated, predictors.TRUTH, predictors.NOISY_TRUTH, plugins=False)
         raise ConfigError(
-            "forecast_uncertainty needs a named forecast source (cv, mesrnn, srnn, vlstm, oracle, noisy_oracle); "
-            f"a predictor object ({name!r}) has no calibration"
+            f"forecast_uncertainty needs a named forecast source ({', '.join(named)}); "
+            f"a predictor object ({getattr(forecaster, 'name', None)!r}) has no calibration"
         )
-    if predictor == "oracle":
+    name = config.predictor
+    kind = predictors.kind(name)
+    if kind == predictors.TRUTH:
         return ZeroUncertainty(horizon)
-    if predictor == "noisy_oracle":
+    if kind == predictors.NOISY_TRUTH:
         assert isinstance(forecaster, NoisyOracleForecast)
         return NoisyOracleUncertainty(forecaster, level)
-    if predictor in ("cv", "mesrnn", "srnn", "vlstm"):
+    if kind in calibrated:
         if getattr(forecaster, "memory", None) == "carried":
             raise ConfigError(
                 "forecast_uncertainty is calibrated for window forecasts (forecast_memory 'window'), not 'carried'"
             )
-        return CalibratedUncertainty(predictor, default_split, level, dt_s, horizon, cache_dir, data_dir)
-    raise ConfigError(f"forecast_uncertainty has nothing to measure for predictor {predictor!r} (no forecasts)")
+        cache_dir = cache_root(config.forecast_cache_dir) if config.forecast_disk_cache else None
+        return CalibratedUncertainty(name, config.split, level, dt_s, horizon, cache_dir, config.data_dir)
+    raise ConfigError(f"forecast_uncertainty has nothing to measure for predictor {name!r} (no forecasts)")

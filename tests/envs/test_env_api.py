@@ -258,13 +258,13 @@ def test_missing_data_is_explained(tmp_path: Path, monkeypatch: pytest.MonkeyPat
 
 
 def test_missing_weights_give_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
-    from crowdnav_mesrnn import models
+    from crowdnav_mesrnn import predictors
     from envs.forecasting import factory
 
     def missing(name: str, split: str | None = None) -> Any:
         raise FileNotFoundError(f"no file {name}_{split}.pt")
 
-    monkeypatch.setattr(models, "get_predictor", missing)
+    monkeypatch.setattr(predictors, "load", missing)
     monkeypatch.setattr(factory, "_LOADED", {})
     with pytest.raises(PredictorUnavailableError) as info:
         CrowdNavEnv(predictor="srnn", crowd="synthetic", split="hotel")

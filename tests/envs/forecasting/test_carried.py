@@ -165,10 +165,10 @@ def test_forecast_memory_options(
         CrowdNavEnv(predictor="cv", crowd="empty", forecast_memory="carried").forecaster, PredictorForecast
     )
     # named learned sources: the out-of-sample predictor of each recording, carried
-    from crowdnav_mesrnn import models
+    from crowdnav_mesrnn import predictors
     from envs.forecasting import factory
 
-    monkeypatch.setattr(models, "get_predictor", lambda name, split=None: tiny_learned_predictor(name))
+    monkeypatch.setattr(predictors, "load", lambda name, split=None: tiny_learned_predictor(name))
     monkeypatch.setattr(factory, "_LOADED", {})
     # scripted recordings under the scenes' names stand in for the files (no data folder needed: any path will do)
     monkeypatch.setattr("envs.config.find_data_dir", lambda data_dir=None: Path("<scripted>"))

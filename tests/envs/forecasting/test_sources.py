@@ -139,10 +139,10 @@ def test_noisy_oracle_reaches_the_target_ade() -> None:
 
 
 def test_learned_forecasts_are_out_of_sample(monkeypatch: pytest.MonkeyPatch, fake_predictor: Callable) -> None:
-    from crowdnav_mesrnn import models
+    from crowdnav_mesrnn import predictors
     from envs.forecasting import factory
 
-    monkeypatch.setattr(models, "get_predictor", lambda name, split=None: fake_predictor(f"{name}-{split}"))
+    monkeypatch.setattr(predictors, "load", lambda name, split=None: fake_predictor(f"{name}-{split}"))
     monkeypatch.setattr(factory, "_LOADED", {})
     # scripted recordings under the scenes' names stand in for the files (no data folder needed: any path will do)
     monkeypatch.setattr("envs.config.find_data_dir", lambda data_dir=None: Path("<scripted>"))
