@@ -23,7 +23,7 @@ from envs.crowd_nav import CrowdNavEnv
 from envs.forecasting.cache import CACHE_ENV_VAR, CacheWarning, clear_shared_tables, num_chunks
 from envs.forecasting.window import PredictorForecast
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 EPISODES = [{"t0_s": t0, "start": (1.0, 1.0), "goal": (7.0, 3.0), "time_limit_s": 6.0} for t0 in (14.0, 40.0)]
 
 
