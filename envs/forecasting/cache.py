@@ -6,7 +6,8 @@ Replayed pedestrians ignore the robot, so the forecasts at a recording's annotat
 recording and a digest of a :class:`TableKey`:
 
 - ``predictor_hash``: SHA-256 of the predictor's weights (every tensor of its state dict, with names, dtypes
-  and shapes), its normalisation and its model config (:func:`predictor_fingerprint`);
+  and shapes), its normalisation and its model config as saved in checkpoints (:func:`predictor_fingerprint`,
+  :func:`config_text`);
 - ``recording_hash``: SHA-256 of the recording's annotation times, ids, presence and positions
   (:func:`recording_fingerprint`);
 - the settings: forecast memory (``window``/``carried``), ``obs_len``, ``pred_len``, the perception rule
@@ -75,6 +76,31 @@ def cache_root(configured: str | os.PathLike[str] | None = None) -> Path:
     return Path.home() / ".cache" / "crowdnav-mesrnn" / "forecasts"
 
 
+def config_text(config: Any) -> str:
+    """The text a predictor's model config enters its cache key as.
+
+    It is built from ``config.to_dict()`` (the config as saved in checkpoints), never from the config's repr, so how
+    a config prints changes no key. It reads ``ModelConfig(model='mesrnn', node_embed=128, ...)``: the class name,
+    then every entry of ``to_dict()`` in order as ``key=value`` with Python literals (lists as tuples), the text the
+    keys have hashed since the cache exists, so files written before stay valid. A config without ``to_dict`` enters
+    by its repr, and None as ``None``.
+    """
+    to_dict = getattr(config, "to_dict", None)
+    if not callable(to_dict):
+        return repr(config)
+    entries = ", ".join(f"{key}={_literal(value)!r}" for key, value in to_dict().items())
+    return f"{type(config).__name__}({entries})"
+
+
+def _literal(value: Any) -> Any:
+    """``value`` with its lists turned into tuples, recursively (how a frozen config holds them)."""
+    if isinstance(value, list | tuple):
+        return tuple(_literal(v) for v in value)
+    if isinstance(value, dict):
+        return {k: _literal(v) for k, v in value.items()}
+    return value
+
+
 _FINGERPRINTS: dict[int, tuple[Any, str | None]] = {}
 
 
@@ -105,7 +131,7 @@ def predictor_fingerprint(model: Any) -> str | None:
             getattr(model, "obs_len", ""),
             getattr(model, "pred_len", ""),
         ]
-        h.update(repr((head, getattr(net, "cfg", None))).encode())
+        h.update(f"({head!r}, {config_text(getattr(net, 'cfg', None))})".encode())
         for name, tensor in sorted(net.state_dict().items()):
             arr = np.ascontiguousarray(tensor.detach().cpu().numpy())
             h.update(f"{name}:{arr.dtype}:{arr.shape}".encode())

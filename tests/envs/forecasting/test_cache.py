@@ -352,3 +352,42 @@ def test_the_online_arithmetic_revision_keys_carried_tables_only(monkeypatch: py
     after = digests()
     assert after["window"] == before["window"]
     assert after["carried"] != before["carried"]
+
+
+@pytest.mark.parametrize("changes", [{}, {"head": "gaussian"}, {"head": "gaussian", "scale_detach": True}])
+def test_the_model_config_enters_the_key_from_to_dict_as_it_always_read(changes: dict) -> None:
+    """The key hashes :func:`config_text`, built from ``to_dict()``: the text earlier versions hashed (the repr of
+    the config then), so caches written before stay valid, and independent of how the config prints now."""
+    from crowdnav_mesrnn.models.structural_rnn import ModelConfig
+    from envs.forecasting.cache import config_text
+
+    cfg = ModelConfig(model="srnn", **changes)
+    assert config_text(cfg) == repr(cfg)
+    fields = ", ".join(f"{k}={(tuple(v) if isinstance(v, list) else v)!r}" for k, v in cfg.to_dict().items())
+    assert config_text(cfg) == f"ModelConfig({fields})"
+    assert config_text(None) == "None"
+
+
+def test_the_key_does_not_depend_on_how_a_config_prints(
+    monkeypatch: pytest.MonkeyPatch, tiny_learned_predictor: Callable
+) -> None:
+    from crowdnav_mesrnn.models.structural_rnn import ModelConfig
+    from envs.forecasting.cache import predictor_fingerprint
+
+    before = predictor_fingerprint(tiny_learned_predictor(seed=3))
+    monkeypatch.setattr(ModelConfig, "__repr__", lambda self: "printed otherwise")
+    assert predictor_fingerprint(tiny_learned_predictor(seed=3)) == before
+    other = tiny_learned_predictor(seed=3)
+    other.net.cfg = replace(other.net.cfg, dropout=0.5)  # same weights, another config
+    assert predictor_fingerprint(other) != before
+
+
+def test_the_shipped_predictors_keep_their_cache_keys() -> None:
+    """SHA-256 of the shipped zara1 weights + config, as every version of the cache has computed it (so the files
+    users have cached stay valid)."""
+    from crowdnav_mesrnn import predictors
+    from envs.forecasting.cache import predictor_fingerprint
+
+    assert predictor_fingerprint(predictors.load("srnn", "zara1")) == (
+        "6270c154e20e1ed2e053067c2b1b21e90fdd5d35d1552f1d551e32e80af70b0a"
+    )
