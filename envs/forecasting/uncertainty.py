@@ -69,7 +69,8 @@ class CalibratedUncertainty(UncertaintySource):
         name: ``cv``, ``mesrnn``, ``srnn`` or ``vlstm``.
         default_split: split for recordings outside every split's test part (synthetic crowds).
         level: coverage level of the regions.
-        dt_s, horizon: the environment's grid.
+        dt_s: the environment's step, seconds.
+        horizon: H, the environment's forecast steps.
         cache_dir: folder of the calibration files (None: memory only).
         data_dir: ETH/UCY folder (default: the usual search).
     """
