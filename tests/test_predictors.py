@@ -100,3 +100,12 @@ def test_the_installed_example_plugin_is_listed() -> None:
     predictors.refresh()
     assert "kalman" in predictors.names()
     assert predictors.kind("kalman") == predictors.PLUGIN
+
+
+def test_every_pretrained_name_is_an_architecture_with_weights_files() -> None:
+    from crowdnav_mesrnn.models.pretrained import pretrained_path
+    from crowdnav_mesrnn.models.structural_rnn import MODEL_TYPES
+
+    assert predictors.names(predictors.PRETRAINED, plugins=False) == tuple(MODEL_TYPES)
+    for name in predictors.names(predictors.PRETRAINED, plugins=False):
+        assert pretrained_path(name, "zara1").is_file()

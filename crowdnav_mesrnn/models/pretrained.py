@@ -16,10 +16,9 @@ from typing import Any
 
 import torch
 
-from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import SPLITS, check_split
 from crowdnav_mesrnn.models.learned import CHECKPOINT_FORMAT, CheckpointError, LearnedPredictor, load_predictor
-from crowdnav_mesrnn.models.structural_rnn import HEADS
+from crowdnav_mesrnn.models.structural_rnn import HEADS, MODEL_TYPES
 from crowdnav_mesrnn.utils import atomic_write
 
 PRETRAINED_DIR = Path(__file__).resolve().parent.parent / "pretrained"
@@ -31,9 +30,8 @@ class PretrainedNotFoundError(FileNotFoundError):
 
 def pretrained_path(model: str, split: str, head: str = "point") -> Path:
     """Where the shipped weights of ``model``/``split`` with ``head`` (``point`` or ``gaussian``) live."""
-    shipped = predictors.names(predictors.PRETRAINED, plugins=False)
-    if model not in shipped:
-        raise ValueError(f"unknown learned model {model!r}; valid: {', '.join(shipped)}")
+    if model not in MODEL_TYPES:  # one weights file per architecture and split
+        raise ValueError(f"unknown learned model {model!r}; valid: {', '.join(MODEL_TYPES)}")
     check_split(split)
     if head not in HEADS:
         raise ValueError(f"unknown head {head!r}; valid: {', '.join(HEADS)}")
@@ -72,10 +70,7 @@ def load_pretrained(model: str, split: str, threads: int | None = None, head: st
 
 def available(head: str = "point") -> dict[str, list[str]]:
     """``model -> splits`` with shipped weights of ``head``."""
-    return {
-        m: [s for s in SPLITS if pretrained_path(m, s, head).is_file()]
-        for m in predictors.names(predictors.PRETRAINED, plugins=False)
-    }
+    return {m: [s for s in SPLITS if pretrained_path(m, s, head).is_file()] for m in MODEL_TYPES}
 
 
 def export_checkpoint(
