@@ -740,8 +740,8 @@ def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
         "--predictor",
         default="mesrnn",
         metavar="PREDICTOR",
-        help=f"forecast arm: {', '.join(predictors.names(plugins=False))}, an installed predictor plug-in or an import path "
-        "package.module:Factory (default: mesrnn)",
+        help=f"forecast arm: {', '.join(predictors.names(plugins=False))}, an installed predictor plug-in or an "
+        "import path package.module:Factory (default: mesrnn)",
     )
     p.add_argument("--split", default="zara1", choices=SPLITS, help="its held-out scene is replayed (default: zara1)")
     p.add_argument("--data-dir", dest="data_dir_env", metavar="DIR", default=None, help=DATA_DIR_ENV_HELP)

@@ -1103,8 +1103,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         "--predictor",
         default=None,
         metavar="PREDICTOR",
-        help=f"forecast arm: {', '.join(predictors.names(plugins=False))}, an installed predictor plug-in or an import path "
-        "package.module:Factory (default: mesrnn)",
+        help=f"forecast arm: {', '.join(predictors.names(plugins=False))}, an installed predictor plug-in or an "
+        "import path package.module:Factory (default: mesrnn)",
     )
     p.add_argument("--split", default=None, choices=SPLITS, help="train on its four training scenes (default: zara1)")
     p.add_argument("--data-dir", dest="data_dir_env", metavar="DIR", default=None, help=DATA_DIR_ENV_HELP)

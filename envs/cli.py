@@ -78,7 +78,8 @@ def add_forecasts(sub: Any) -> None:
         "--predictor",
         required=True,
         metavar="PREDICTOR",
-        help=f"{', '.join(predictors.names(predictors.PRETRAINED, plugins=False))}, an installed predictor plug-in or an import path package.module:Factory",
+        help=f"{', '.join(predictors.names(predictors.PRETRAINED, plugins=False))}, an installed predictor plug-in or "
+        "an import path package.module:Factory",
     )
     b.add_argument("--split", default=None, choices=SPLITS, help="default: every replayable recording")
     b.add_argument("--part", default="all", choices=("train", "test", "all"), help="default: all")

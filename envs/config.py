@@ -122,7 +122,8 @@ class CrowdNavConfig:
     forecast_uncertainty: bool = False
     """Add ``forecast_uncertainty`` ``(K, H)`` to the observation (arms with forecasts): per forecast step, the
     radius (m) of a disc around the forecast holding the true position with probability
-    ``forecast_uncertainty_level``, calibrated on the split's validation windows (:mod:`envs.forecasting.uncertainty`)."""
+    ``forecast_uncertainty_level``, calibrated on the split's validation windows
+    (:mod:`envs.forecasting.uncertainty`)."""
     forecast_uncertainty_level: float = 0.9
     """Coverage level of the ``forecast_uncertainty`` radii, in (0, 1)."""
 

@@ -275,8 +275,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if predictor is None:
             raise ConfigError(
                 "predictor=None is not a forecast source: pass 'none' for no forecasts, one of "
-                f"{', '.join(predictors.names(plugins=False))}, or a predictor object (gymnasium.make(id) without predictor= uses "
-                "the id's source; CrowdNavEnv() without it uses the config's)"
+                f"{', '.join(predictors.names(plugins=False))}, or a predictor object (gymnasium.make(id) without "
+                "predictor= uses the id's source; CrowdNavEnv() without it uses the config's)"
             )
         if isinstance(predictor, str):
             overrides["predictor"] = predictor

@@ -349,7 +349,8 @@ def build_forecast_caches(
         return []
     if build is None:
         out(
-            "note: envs.forecasting.build.build_forecast_cache is not available; every worker computes its own forecasts"
+            "note: envs.forecasting.build.build_forecast_cache is not available; every worker computes its own "
+            "forecasts"
         )
         return []
     for predictor, split in wanted:

@@ -27,9 +27,9 @@ LEARNED_SOURCES: Final[tuple[str, ...]] = predictors.names(predictors.PRETRAINED
 UNCERTAINTY_SUFFIX: Final[str] = "_unc"
 
 
-#: Sources with an uncertainty arm: those whose regions are calibrated (:mod:`envs.forecasting.uncertainty`). Not ``none`` (no
-#: forecast), ``oracle`` (its regions are 0: the arm would be the oracle arm again), ``noisy_oracle`` (its regions
-#: are the known noise, not a calibration) or plug-ins (no calibration).
+#: Sources with an uncertainty arm: those whose regions are calibrated (:mod:`envs.forecasting.uncertainty`). Not
+#: ``none`` (no forecast), ``oracle`` (its regions are 0: the arm would be the oracle arm again), ``noisy_oracle``
+#: (its regions are the known noise, not a calibration) or plug-ins (no calibration).
 UNCERTAINTY_SOURCES: Final[tuple[str, ...]] = predictors.names(
     predictors.BASELINE, predictors.PRETRAINED, plugins=False
 )
