@@ -14,10 +14,9 @@ import time
 from pathlib import Path
 from typing import Any, Final
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
-
-_PREDICTORS = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
 
 
 def _fmt(value: Any) -> str:
@@ -52,7 +51,7 @@ def _demo(args: argparse.Namespace) -> int:
     from agents.planners import PLANNERS
     from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, data_available
     from envs.crowd_nav import CrowdNavEnv
-    from envs.forecasts import PredictorUnavailableError
+    from envs.forecasting.factory import PredictorUnavailableError
     from envs.rendering import save_gif
 
     started = time.perf_counter()
@@ -139,7 +138,7 @@ def add_demo(sub: Any) -> None:
     p.add_argument(
         "--predictor",
         default=None,
-        choices=_PREDICTORS,
+        choices=predictors.names(plugins=False),
         help="forecast source (default: the policy's own, else mesrnn; cv when the MESRNN weights are missing)",
     )
     p.add_argument("--seed", type=int, default=0, help="episode seed (default: 0)")

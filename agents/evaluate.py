@@ -35,11 +35,12 @@ import numpy as np
 
 from agents.planners import PLANNERS, make_planner
 from agents.stats import bootstrap_mean_ci, wilson_interval
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
-from envs.config import FORECAST_SOURCES, CrowdNavConfig, check_predictor_name, config_from
+from envs.config import CrowdNavConfig, config_from
 
 #: Outcomes of an episode, each reported as a rate with a Wilson interval.
 OUTCOMES: Final[tuple[str, ...]] = ("success", "collision", "timeout")
@@ -288,18 +289,18 @@ def check_spaces(policy: Any, env: Any) -> None:
 
 def prepare_forecasts(env_kwargs: Mapping[str, Any], progress: bool = False) -> dict[str, Any] | None:
     """Fill the shared on-disk forecast cache for the recordings environments of ``env_kwargs`` replay, so that no
-    worker computes forecasts (:func:`envs.forecasts.build_forecast_cache`); None when there is nothing to build
+    worker computes forecasts (:func:`envs.forecasting.build.build_forecast_cache`); None when there is nothing to build
     (no learned predictor, no disk cache, or a crowd that is not replayed from ETH/UCY).
 
     Raises:
         DataNotFoundError: the environments would replay ETH/UCY scenes and the data is not found (as they would).
     """
-    from envs import forecasts
-    from envs.config import LEARNED_SOURCES, crowd_source, is_plugin_source, names_scene
+    import envs.forecasting.build as forecasts
+    from envs.config import crowd_source, names_scene
 
     cfg = config_from(dict(env_kwargs), {})
     build = getattr(forecasts, "build_forecast_cache", None)
-    learned = cfg.predictor in LEARNED_SOURCES or is_plugin_source(cfg.predictor)
+    learned = predictors.per_split(cfg.predictor)
     if build is None or not learned:
         return None
     if not (getattr(cfg, "cache_forecasts", True) and getattr(cfg, "forecast_disk_cache", True)):
@@ -610,7 +611,7 @@ def evaluate(
     """
     from envs.crowd_nav import ENV_REVISION, CrowdNavEnv
 
-    check_predictor_name(predictor)
+    predictors.check(predictor)
     if n_envs < 1:
         raise ValueError(f"n_envs must be >= 1, got {n_envs!r}")
     started = time.perf_counter()
@@ -739,8 +740,8 @@ def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
         "--predictor",
         default="mesrnn",
         metavar="PREDICTOR",
-        help=f"forecast arm: {', '.join(FORECAST_SOURCES)}, an installed predictor plug-in or an import path "
-        "package.module:Factory (default: mesrnn)",
+        help=f"forecast arm: {', '.join(predictors.names(plugins=False))}, an installed predictor plug-in or an "
+        "import path package.module:Factory (default: mesrnn)",
     )
     p.add_argument("--split", default="zara1", choices=SPLITS, help="its held-out scene is replayed (default: zara1)")
     p.add_argument("--data-dir", dest="data_dir_env", metavar="DIR", default=None, help=DATA_DIR_ENV_HELP)

@@ -72,18 +72,12 @@ from agents.evaluate import SB3Policy, evaluation_seeds, parse_set, prepare_fore
 from agents.pretrain import PretrainConfig
 from agents.scoring import GeometryCachingBuffer, action_geometry_kwargs, attach_geometry_cache, is_scoring_policy
 from agents.stats import wilson_interval
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
-from envs.config import (
-    FORECAST_SOURCES,
-    LEARNED_SOURCES,
-    check_predictor_name,
-    config_from,
-    crowd_source,
-    episode_recordings,
-)
+from envs.config import config_from, crowd_source, episode_recordings
 
 #: Top-level key of the project's own settings in a config file (RL Zoo ignores it).
 PROJECT_KEY: Final[str] = "crowdnav_mesrnn"
@@ -263,7 +257,7 @@ def action_set(action: Mapping[str, Any] | None, env_config: Any) -> Any:
 def env_id_for(predictor: str) -> str:
     """The config entry (environment id) of a forecast arm."""
     if predictor not in ENV_ID_OF:
-        check_predictor_name(predictor)
+        predictors.check(predictor)
         return ENV_ID_OF["mesrnn"]  # a plug-in: the learned arms' entry, with its own predictor
     return ENV_ID_OF[predictor]
 
@@ -316,7 +310,7 @@ def load_train_config(
     split = str(over.pop("split", None) or run.get("split") or "zara1")
     seed_value = over.pop("seed", None)
     seed = int(seed_value if seed_value is not None else run.get("seed", 0))
-    check_predictor_name(predictor)
+    predictors.check(predictor)
     if split not in SPLITS:
         raise ConfigError(f"unknown split {split!r}; valid: {', '.join(SPLITS)}")
     env_id = env_id or env_id_for(predictor)
@@ -559,10 +553,10 @@ def prepare_training_forecasts(cfg: TrainConfig, progress: bool = False) -> None
 
 def predictor_weights(cfg: TrainConfig) -> dict[str, str]:
     """sha256 of every pretrained predictor file the run's forecasts come from (training recordings)."""
-    if cfg.predictor not in LEARNED_SOURCES:
+    if cfg.predictor not in predictors.names(predictors.PRETRAINED, plugins=False):
         return {}
     from crowdnav_mesrnn.models.pretrained import pretrained_path
-    from envs.forecasts import split_of_recording
+    from envs.forecasting.sources import split_of_recording
 
     out: dict[str, str] = {}
     for rec in episode_recordings(cfg.split, "train"):
@@ -1109,8 +1103,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         "--predictor",
         default=None,
         metavar="PREDICTOR",
-        help=f"forecast arm: {', '.join(FORECAST_SOURCES)}, an installed predictor plug-in or an import path "
-        "package.module:Factory (default: mesrnn)",
+        help=f"forecast arm: {', '.join(predictors.names(plugins=False))}, an installed predictor plug-in or an "
+        "import path package.module:Factory (default: mesrnn)",
     )
     p.add_argument("--split", default=None, choices=SPLITS, help="train on its four training scenes (default: zara1)")
     p.add_argument("--data-dir", dest="data_dir_env", metavar="DIR", default=None, help=DATA_DIR_ENV_HELP)

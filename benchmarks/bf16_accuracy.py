@@ -28,7 +28,7 @@ import torch
 import yaml
 
 from agents.stats import welch_seed_test
-from crowdnav_mesrnn.models.base import LEARNED_MODELS
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.studies.plan import Candidate, Run, parse_shard, read_done, run_lock, train_run, yaml_scalar
 from crowdnav_mesrnn.studies.plan_budget import epoch_rates
 
@@ -128,7 +128,7 @@ def report(runs: dict[str, list[Run]]) -> dict:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--model", choices=LEARNED_MODELS, default="mesrnn")
+    p.add_argument("--model", choices=predictors.names(predictors.PRETRAINED, plugins=False), default="mesrnn")
     p.add_argument("--split", default="univ")
     p.add_argument("--config", default="configs/predictor/mesrnn.yaml", help="YAML (may contain {model})")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="extra model/train keys (YAML values)")

@@ -44,7 +44,8 @@ except ImportError:  # pragma: no cover
     torch = None  # type: ignore[assignment]
 
 from envs.crowd_nav import TIMING_KEYS, CrowdNavEnv
-from envs.forecasts import PredictorUnavailableError, build_forecast_cache
+from envs.forecasting.build import build_forecast_cache
+from envs.forecasting.factory import PredictorUnavailableError
 
 #: (label, predictor, cache, warm the cache first, forecast memory, share of --steps)
 ARMS: tuple[tuple[str, str, bool, bool, str, float], ...] = (

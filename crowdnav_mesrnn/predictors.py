@@ -1,4 +1,17 @@
-"""Predictors as plug-ins: the forecast protocol, registration by entry point or import path, and loading.
+"""The one registry of forecast source names and the one loader of predictors.
+
+Every name the project accepts where a forecast source is chosen (``predictor=`` of the environment, an ablation
+arm, ``forecasts build --predictor``, ``bench``) is known here and nowhere else; other modules ask:
+
+- :func:`names` lists them (in the order shown to users: ``none``, ``cv``, ``mesrnn``, ``srnn``, ``vlstm``,
+  ``oracle``, ``noisy_oracle``, then the installed plug-ins);
+- :func:`kind` says what a name is (:data:`KINDS`): no forecast, the replay's true future (with or without
+  noise), a weightless shipped baseline, shipped weights per leave-one-out split, or a plug-in;
+- :func:`check` accepts a name or raises :class:`PluginError` listing the valid ones;
+- :func:`load` returns a ready predictor, ``factory(split=SPLIT)`` of a registered name or an import path.
+
+A name goes from here to its user and does not come back: the environment asks :func:`kind` which forecast source
+to build and :func:`load` for the predictor of each split.
 
 **The protocol** (:class:`crowdnav_mesrnn.models.Predictor`). A predictor is any object with
 
@@ -37,8 +50,8 @@ or any user passes an import path ``package.module:Factory`` where a predictor n
 called as ``factory(split=SPLIT)``: ``SPLIT`` is the leave-one-out split whose held-out scene will be forecast
 (a learned plug-in returns weights trained without that scene; others ignore it), or None. The shipped models
 register the same way (``pyproject.toml``); :data:`SHIPPED` is used for them when the package runs from a source
-tree without installed metadata. Names ``none``, ``oracle`` and ``noisy_oracle`` are forecast sources of the
-environment, not predictors, and cannot be registered.
+tree without installed metadata. The names in :data:`RESERVED` (``none``, ``oracle``, ``noisy_oracle``) are forecast
+sources of the environment, not predictors: they cannot be registered and :func:`load` refuses them.
 """
 
 from __future__ import annotations
@@ -51,26 +64,54 @@ import importlib.util
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Final, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Final, Protocol, runtime_checkable
 
 import numpy as np
 
 from crowdnav_mesrnn.config import ConfigError
-from crowdnav_mesrnn.models.base import ConstantVelocity, Predictor
+
+if TYPE_CHECKING:
+    from crowdnav_mesrnn.models.base import Predictor
 
 #: Entry-point group predictors register under.
 ENTRY_POINT_GROUP: Final[str] = "crowdnav_mesrnn.predictors"
 
-#: The shipped predictors: name -> factory (the same entries as in pyproject.toml).
-SHIPPED: Final[dict[str, str]] = {
-    "cv": "crowdnav_mesrnn.predictors:constant_velocity",
-    "mesrnn": "crowdnav_mesrnn.predictors:mesrnn",
-    "srnn": "crowdnav_mesrnn.predictors:srnn",
-    "vlstm": "crowdnav_mesrnn.predictors:vlstm",
+# ---------------------------------------------------------------------------- names and kinds
+
+#: Kind of ``none``: no forecasts in the observation.
+NO_FORECAST: Final[str] = "none"
+#: Kind of ``oracle``: the replay's true future (not a predictor).
+TRUTH: Final[str] = "truth"
+#: Kind of ``noisy_oracle``: the true future plus noise of a set expected ADE (not a predictor).
+NOISY_TRUTH: Final[str] = "noisy_truth"
+#: Kind of ``cv``: a shipped predictor without weights, the same for every split (loaded with ``split=None``).
+BASELINE: Final[str] = "baseline"
+#: Kind of ``mesrnn``, ``srnn``, ``vlstm``: shipped weights per leave-one-out split.
+PRETRAINED: Final[str] = "pretrained"
+#: Kind of an installed plug-in or an import path ``package.module:Factory``: loaded per split like the pretrained.
+PLUGIN: Final[str] = "plugin"
+#: Every kind, in the order above.
+KINDS: Final[tuple[str, ...]] = (NO_FORECAST, TRUTH, NOISY_TRUTH, BASELINE, PRETRAINED, PLUGIN)
+#: Kinds loaded per leave-one-out split (a recording is forecast by the predictor of the split holding it out); their
+#: forecasts are what the shared disk cache keeps.
+SPLIT_KINDS: Final[tuple[str, ...]] = (PRETRAINED, PLUGIN)
+
+#: The project's own names in the order shown to users: name -> (kind, factory or None for the non-predictors).
+_BUILTIN: Final[dict[str, tuple[str, str | None]]] = {
+    "none": (NO_FORECAST, None),
+    "cv": (BASELINE, "crowdnav_mesrnn.predictors:constant_velocity"),
+    "mesrnn": (PRETRAINED, "crowdnav_mesrnn.predictors:mesrnn"),
+    "srnn": (PRETRAINED, "crowdnav_mesrnn.predictors:srnn"),
+    "vlstm": (PRETRAINED, "crowdnav_mesrnn.predictors:vlstm"),
+    "oracle": (TRUTH, None),
+    "noisy_oracle": (NOISY_TRUTH, None),
 }
 
+#: The shipped predictors: name -> factory (the same entries as in pyproject.toml).
+SHIPPED: Final[dict[str, str]] = {name: target for name, (_, target) in _BUILTIN.items() if target is not None}
+
 #: Forecast sources of the environment that are not predictors (never registrable names).
-RESERVED: Final[tuple[str, ...]] = ("none", "oracle", "noisy_oracle")
+RESERVED: Final[tuple[str, ...]] = tuple(name for name, (_, target) in _BUILTIN.items() if target is None)
 
 
 @runtime_checkable
@@ -92,6 +133,8 @@ class PluginError(ConfigError):
 
 def constant_velocity(split: str | None = None) -> Predictor:
     """The constant-velocity baseline (no weights; ``split`` is ignored)."""
+    from crowdnav_mesrnn.models.base import ConstantVelocity
+
     return ConstantVelocity()
 
 
@@ -217,7 +260,7 @@ def registered() -> dict[str, PredictorSpec]:
 
 
 def _own_version() -> str:
-    from crowdnav_mesrnn import __version__
+    from crowdnav_mesrnn._version import __version__
 
     return __version__
 
@@ -259,6 +302,64 @@ def is_known(name: str) -> bool:
     except PluginError:
         return False
     return True
+
+
+def names(*kinds: str, plugins: bool = True) -> tuple[str, ...]:
+    """Every forecast source name of the given kinds (all kinds when none is given), in the order shown to users:
+    the project's own names (``none``, ``cv``, ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, ``noisy_oracle``), then
+    the installed plug-ins sorted (with ``plugins=True`` and when :data:`PLUGIN` is asked for).
+
+    Raises:
+        PluginError: an unknown kind; or (reading the plug-ins) a bad registration, see :func:`registered`.
+    """
+    for k in kinds:
+        if k not in KINDS:
+            raise PluginError(f"unknown predictor kind {k!r}; valid: {', '.join(KINDS)}")
+    own = tuple(name for name, (k, _) in _BUILTIN.items() if not kinds or k in kinds)
+    if plugins and (not kinds or PLUGIN in kinds):
+        return (*own, *plugin_names())
+    return own
+
+
+def _unknown(name: Any) -> PluginError:
+    return PluginError(
+        f"unknown predictor {name!r}; valid: {', '.join(names())}, or an import path 'package.module:Factory' (see "
+        "crowdnav_mesrnn.predictors)"
+    )
+
+
+def kind(name: str) -> str:
+    """What the forecast source ``name`` is: one of :data:`KINDS`.
+
+    Raises:
+        PluginError: an unknown name (listing the valid ones: :func:`check`).
+    """
+    held = _BUILTIN.get(name) if isinstance(name, str) else None
+    if held is not None:
+        return held[0]
+    if not is_known(name):
+        raise _unknown(name)
+    return PLUGIN
+
+
+def check(name: Any) -> str:
+    """``name`` when it is a forecast source (:func:`names`) or an import path ``package.module:Factory`` (not
+    imported here); else :class:`PluginError` (a :class:`~crowdnav_mesrnn.config.ConfigError`) listing the valid
+    names."""
+    kind(name)
+    return name
+
+
+def is_plugin(name: Any) -> bool:
+    """True for an installed plug-in's name or an import path (False for the project's own names and unknown ones)."""
+    return isinstance(name, str) and name not in _BUILTIN and is_known(name)
+
+
+def per_split(name: Any) -> bool:
+    """True when ``name`` is loaded per leave-one-out split (:data:`SPLIT_KINDS`: the pretrained and the plug-ins),
+    so its forecasts go to the shared disk cache; False for the others and for unknown names."""
+    held = _BUILTIN.get(name) if isinstance(name, str) else None
+    return held[0] in SPLIT_KINDS if held is not None else is_plugin(name)
 
 
 _IDENTITIES: dict[int, tuple[Any, str]] = {}

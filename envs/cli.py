@@ -10,15 +10,16 @@ import argparse
 import json
 from typing import Any
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
-from envs.config import FORECAST_MEMORIES, LEARNED_SOURCES
+from envs.config import FORECAST_MEMORIES
 
 
 def _build(args: argparse.Namespace) -> int:
     import torch
 
-    from envs.forecasts import build_forecast_cache
+    from envs.forecasting.build import build_forecast_cache
 
     torch.set_num_threads(args.threads)
     summary = build_forecast_cache(
@@ -42,7 +43,7 @@ def _build(args: argparse.Namespace) -> int:
 
 
 def _info(args: argparse.Namespace) -> int:
-    from envs.forecast_cache import cache_root, describe
+    from envs.forecasting.cache import cache_root, describe
 
     rows = describe(args.cache_dir)
     if args.json:
@@ -77,7 +78,8 @@ def add_forecasts(sub: Any) -> None:
         "--predictor",
         required=True,
         metavar="PREDICTOR",
-        help=f"{', '.join(LEARNED_SOURCES)}, an installed predictor plug-in or an import path package.module:Factory",
+        help=f"{', '.join(predictors.names(predictors.PRETRAINED, plugins=False))}, an installed predictor plug-in or "
+        "an import path package.module:Factory",
     )
     b.add_argument("--split", default=None, choices=SPLITS, help="default: every replayable recording")
     b.add_argument("--part", default="all", choices=("train", "test", "all"), help="default: all")

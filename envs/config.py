@@ -12,49 +12,17 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from collections.abc import Mapping
+import warnings
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
 import numpy as np
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import RECORDINGS, SPLIT_TEST_RECORDINGS, SPLITS
 from crowdnav_mesrnn.data.paths import DataNotFoundError, find_data_dir
-
-#: Forecast sources accepted by ``predictor=``.
-FORECAST_SOURCES: Final[tuple[str, ...]] = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
-#: Forecast sources that load a pretrained predictor per split.
-LEARNED_SOURCES: Final[tuple[str, ...]] = ("mesrnn", "srnn", "vlstm")
-
-
-def is_plugin_source(name: Any) -> bool:
-    """True for an installed predictor plug-in's name or an import path ``package.module:Factory``
-    (:mod:`crowdnav_mesrnn.predictors`): loaded per split like the learned sources."""
-    if not isinstance(name, str) or name in FORECAST_SOURCES:
-        return False
-    from crowdnav_mesrnn.predictors import is_known
-
-    return is_known(name)
-
-
-def forecast_source_names() -> tuple[str, ...]:
-    """Every forecast source name: :data:`FORECAST_SOURCES` and the installed plug-ins."""
-    from crowdnav_mesrnn.predictors import plugin_names
-
-    return (*FORECAST_SOURCES, *plugin_names())
-
-
-def check_predictor_name(name: Any) -> str:
-    """``name`` if it is a forecast source, an installed plug-in or an import path; else :class:`ConfigError`
-    listing them."""
-    if isinstance(name, str) and (name in FORECAST_SOURCES or is_plugin_source(name)):
-        return name
-    raise ConfigError(
-        f"unknown predictor {name!r}; valid: {', '.join(forecast_source_names())}, or an import path "
-        "'package.module:Factory' (see crowdnav_mesrnn.predictors)"
-    )
-
 
 #: Crowd sources accepted by ``crowd=`` (or a :class:`~crowdnav_mesrnn.data.Recording` object).
 CROWDS: Final[tuple[str, ...]] = ("auto", "replay", "synthetic", "empty")
@@ -154,7 +122,8 @@ class CrowdNavConfig:
     forecast_uncertainty: bool = False
     """Add ``forecast_uncertainty`` ``(K, H)`` to the observation (arms with forecasts): per forecast step, the
     radius (m) of a disc around the forecast holding the true position with probability
-    ``forecast_uncertainty_level``, calibrated on the split's validation windows (:mod:`envs.uncertainty`)."""
+    ``forecast_uncertainty_level``, calibrated on the split's validation windows
+    (:mod:`envs.forecasting.uncertainty`)."""
     forecast_uncertainty_level: float = 0.9
     """Coverage level of the ``forecast_uncertainty`` radii, in (0, 1)."""
 
@@ -263,7 +232,7 @@ def check_value(key: str, value: Any) -> None:
     """Raise :class:`ConfigError` unless ``value`` is allowed for ``key`` on its own (type, finiteness, range;
     how keys go together is checked by :meth:`CrowdNavConfig.validate`)."""
     if key == "predictor":
-        check_predictor_name(value)
+        predictors.check(value)
     elif key in _CHOICES:
         _one_of(key, value, _CHOICES[key])
     elif key == "scenes":
@@ -515,3 +484,30 @@ def names_scene(config: Mapping[str, Any] | str | os.PathLike[str] | None, overr
 def default_config() -> dict[str, Any]:
     """The defaults as a flat dict (tuples as lists, YAML-ready)."""
     return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(CrowdNavConfig()).items()}
+
+
+#: Names this module used to define, now asked of the predictor registry: name -> (replacement, value).
+_MOVED: Final[dict[str, tuple[str, Callable[[], Any]]]] = {
+    "FORECAST_SOURCES": ("names(plugins=False)", lambda: predictors.names(plugins=False)),
+    "LEARNED_SOURCES": (
+        "names(PRETRAINED, plugins=False)",
+        lambda: predictors.names(predictors.PRETRAINED, plugins=False),
+    ),
+    "is_plugin_source": ("is_plugin", lambda: predictors.is_plugin),
+    "forecast_source_names": ("names", lambda: predictors.names),
+    "check_predictor_name": ("check", lambda: predictors.check),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """The predictor names this module used to define, with a DeprecationWarning: the registry
+    (:mod:`crowdnav_mesrnn.predictors`) is the one place that knows them."""
+    moved = _MOVED.get(name)
+    if moved is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    warnings.warn(
+        f"envs.config.{name} is deprecated; use crowdnav_mesrnn.predictors.{moved[0]}",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return moved[1]()

@@ -16,12 +16,12 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.error import DependencyNotInstalled
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError, check_keys
 from crowdnav_mesrnn.data.constants import OBS_LEN
 from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA
 from crowdnav_mesrnn.data.recordings import Recording, load_recording
 from envs.config import (
-    FORECAST_SOURCES,
     CrowdNavConfig,
     CrowdSource,
     config_from,
@@ -31,15 +31,10 @@ from envs.config import (
     resolve_scenes,
 )
 from envs.episodes import Episode, EpisodeSampler, episode_time_window
-from envs.forecast_cache import ForecastStore, cache_root
-from envs.forecasts import (
-    ForecastModel,
-    ForecastSource,
-    PredictorForecast,
-    TrueFuture,
-    fill_forward,
-    make_forecast_source,
-)
+from envs.forecasting.factory import make_forecast_source
+from envs.forecasting.sources import ForecastModel, ForecastSource, TrueFuture, fill_forward
+from envs.forecasting.uncertainty import UncertaintySource, make_uncertainty_source
+from envs.forecasting.window import PredictorForecast
 from envs.observation import ObservationBuilder, nearest_visible, observation_space
 from envs.popin import POPIN_MARGIN_M, PopInRule
 from envs.recordings import empty_recording, overlay_recording, synthetic_recording
@@ -47,7 +42,6 @@ from envs.rendering import HUMAN_NEEDS_PYGAME
 from envs.replay import Replay
 from envs.rewards import EpisodeMetrics, reward_components, total_reward
 from envs.timing import PhaseTimer, timed
-from envs.uncertainty import UncertaintySource, make_uncertainty_source
 from envs.world import World
 
 #: Default of ``CrowdNavEnv(predictor=...)``: the config's ``predictor`` (an explicit None is an error).
@@ -281,8 +275,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if predictor is None:
             raise ConfigError(
                 "predictor=None is not a forecast source: pass 'none' for no forecasts, one of "
-                f"{', '.join(FORECAST_SOURCES)}, or a predictor object (gymnasium.make(id) without predictor= uses "
-                "the id's source; CrowdNavEnv() without it uses the config's)"
+                f"{', '.join(predictors.names(plugins=False))}, or a predictor object (gymnasium.make(id) without "
+                "predictor= uses the id's source; CrowdNavEnv() without it uses the config's)"
             )
         if isinstance(predictor, str):
             overrides["predictor"] = predictor
@@ -312,31 +306,12 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 
         self.crowd_source: CrowdSource = CrowdSource("custom") if crowd_obj else crowd_source(cfg, scene_named)
         self.recordings = self._recordings(crowd_obj)
-        self.forecaster: ForecastSource = make_forecast_source(
-            predictor_obj if predictor_obj is not None else cfg.predictor,
-            [r.name for r in self.recordings],
-            cfg.split,
-            cfg.dt_s,
-            cfg.horizon_steps,
-            cfg.cache_forecasts,
-            cfg.noisy_oracle_ade_m,
-            cfg.forecast_memory,
-            ForecastStore(cache_root(cfg.forecast_cache_dir)) if cfg.forecast_disk_cache else None,
-        )
+        self.forecaster: ForecastSource = make_forecast_source(cfg, [r.name for r in self.recordings], predictor_obj)
         self.predictor_name = self.forecaster.name
         self.with_forecasts = self.forecaster.active
         self.uncertainty: UncertaintySource | None = None
         if cfg.forecast_uncertainty and self.with_forecasts:  # the none arm has no forecasts to be uncertain about
-            self.uncertainty = make_uncertainty_source(
-                self.forecaster,
-                predictor_obj if predictor_obj is not None else cfg.predictor,
-                cfg.split,
-                cfg.forecast_uncertainty_level,
-                cfg.dt_s,
-                cfg.horizon_steps,
-                cache_root(cfg.forecast_cache_dir) if cfg.forecast_disk_cache else None,
-                cfg.data_dir,
-            )
+            self.uncertainty = make_uncertainty_source(cfg, self.forecaster, predictor_obj)
         self.sampler = EpisodeSampler(
             self.recordings,
             dt_s=cfg.dt_s,

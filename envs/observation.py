@@ -32,7 +32,7 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
         relative to the robot's current position (m) at ``t + h * dt_s``, h = 1..H.
         ``forecast_uncertainty`` (with ``forecast_uncertainty`` and forecasts): ``(K, H)`` float32 radius (m) of
         the disc around each forecast position holding the true one with probability ``forecast_uncertainty_level``
-        (0 on empty rows; :mod:`envs.uncertainty`).
+        (0 on empty rows; :mod:`envs.forecasting.uncertainty`).
     """
     k, h = cfg.num_pedestrians, cfg.horizon_steps
     v = cfg.robot_pref_speed_mps

@@ -36,7 +36,6 @@ from agents.ablation.config import (
     BACKENDS,
     CELL_JSON,
     DONE,
-    LEARNED_SOURCES,
     TRAIN_RUN,
     AblationConfig,
     training_overrides,
@@ -338,24 +337,21 @@ def build_forecast_caches(
     """Build the shared on-disk forecast cache once for every (learned source, split) the cells need (an
     uncertainty arm uses its source's forecasts, so ``mesrnn`` and ``mesrnn_unc`` share one cache).
 
-    Uses ``envs.forecasts.build_forecast_cache`` when the environment provides it (otherwise each process
+    Uses ``envs.forecasting.build.build_forecast_cache`` when the environment provides it (otherwise each process
     computes the forecasts it needs). Returns the pairs built.
     """
-    import envs.forecasts as forecasts
-    from envs.config import is_plugin_source
+    import envs.forecasting.build as forecasts
+    from crowdnav_mesrnn import predictors
 
-    wanted = sorted(
-        {
-            (c.arm.predictor, c.split)
-            for c in cells
-            if c.arm.predictor in LEARNED_SOURCES or is_plugin_source(c.arm.predictor)
-        }
-    )
+    wanted = sorted({(c.arm.predictor, c.split) for c in cells if predictors.per_split(c.arm.predictor)})
     build = getattr(forecasts, "build_forecast_cache", None)
     if not wanted:
         return []
     if build is None:
-        out("note: envs.forecasts.build_forecast_cache is not available; every worker computes its own forecasts")
+        out(
+            "note: envs.forecasting.build.build_forecast_cache is not available; every worker computes its own "
+            "forecasts"
+        )
         return []
     for predictor, split in wanted:
         t0 = time.perf_counter()

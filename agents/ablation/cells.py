@@ -146,11 +146,11 @@ def weights_fingerprint(predictor: str) -> dict[str, str]:
     split's predictor, each training scene by the predictor of the split holding that scene out.
     A missing file is recorded as ``"missing"``.
     """
-    from envs.config import is_plugin_source
+    from crowdnav_mesrnn import predictors
 
-    if is_plugin_source(predictor):  # a plug-in: the forecast cache's key of the predictor each split loads
+    if predictors.is_plugin(predictor):  # a plug-in: the forecast cache's key of the predictor each split loads
         from crowdnav_mesrnn.predictors import load
-        from envs.forecast_cache import predictor_fingerprint
+        from envs.forecasting.cache import predictor_fingerprint
 
         return {f"{predictor}@{s}": predictor_fingerprint(load(predictor, s)) or "unhashable" for s in SPLITS}
     if predictor not in LEARNED_SOURCES:

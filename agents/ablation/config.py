@@ -10,15 +10,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
 
-#: Forecast sources an arm may use.
-ARM_SOURCES: Final[tuple[str, ...]] = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
+#: Forecast sources an arm may use (besides predictor plug-ins), from the registry (:mod:`crowdnav_mesrnn.predictors`).
+ARM_SOURCES: Final[tuple[str, ...]] = predictors.names(plugins=False)
 
 
 #: Sources that load shipped predictor weights (their sha256 is recorded per cell).
-LEARNED_SOURCES: Final[tuple[str, ...]] = ("mesrnn", "srnn", "vlstm")
+LEARNED_SOURCES: Final[tuple[str, ...]] = predictors.names(predictors.PRETRAINED, plugins=False)
 
 
 #: Suffix of an uncertainty arm: ``<source>_unc`` plans with the source's forecasts and their calibrated uncertainty
@@ -26,10 +27,12 @@ LEARNED_SOURCES: Final[tuple[str, ...]] = ("mesrnn", "srnn", "vlstm")
 UNCERTAINTY_SUFFIX: Final[str] = "_unc"
 
 
-#: Sources with an uncertainty arm: those whose regions are calibrated (:mod:`envs.uncertainty`). Not ``none`` (no
-#: forecast), ``oracle`` (its regions are 0: the arm would be the oracle arm again), ``noisy_oracle`` (its regions
-#: are the known noise, not a calibration) or plug-ins (no calibration).
-UNCERTAINTY_SOURCES: Final[tuple[str, ...]] = ("cv", "mesrnn", "srnn", "vlstm")
+#: Sources with an uncertainty arm: those whose regions are calibrated (:mod:`envs.forecasting.uncertainty`). Not
+#: ``none`` (no forecast), ``oracle`` (its regions are 0: the arm would be the oracle arm again), ``noisy_oracle``
+#: (its regions are the known noise, not a calibration) or plug-ins (no calibration).
+UNCERTAINTY_SOURCES: Final[tuple[str, ...]] = predictors.names(
+    predictors.BASELINE, predictors.PRETRAINED, plugins=False
+)
 
 
 #: Policy kinds with the ``uncertainty`` option (:mod:`agents.planners`), the only ones uncertainty arms run.
@@ -454,11 +457,9 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
         raise _bad("name", name, "a non-empty name without slashes or spaces")
     splits = _str_list(raw, "splits", SPLITS)
     sources = _str_list(raw, "arms")
-    from envs.config import is_plugin_source
-
     unc_names = ", ".join(s + UNCERTAINTY_SUFFIX for s in UNCERTAINTY_SOURCES)
     for src in sources:  # a forecast source, an uncertainty arm, or a predictor plug-in (crowdnav-mesrnn bench's arm)
-        if src in ARM_SOURCES or is_plugin_source(src):
+        if src in ARM_SOURCES or predictors.is_plugin(src):
             continue
         base = src.removesuffix(UNCERTAINTY_SUFFIX)
         if base != src and base not in UNCERTAINTY_SOURCES:

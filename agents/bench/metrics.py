@@ -65,10 +65,10 @@ def protocol_batch_fn(model: Predictor) -> Callable[[torch.Tensor, torch.Tensor]
 
 def predictor_identity(name: str, split: str) -> tuple[Predictor, str]:
     """The loaded predictor for ``split`` and a digest of what determines its forecasts: the forecast cache's key
-    (:func:`envs.forecast_cache.predictor_fingerprint`: weights and, for a plug-in, its identity), or the spec's
+    (:func:`envs.forecasting.cache.predictor_fingerprint`: weights and, for a plug-in, its identity), or the spec's
     identity for a shipped predictor without weights (constant velocity)."""
     from crowdnav_mesrnn.predictors import load, resolve
-    from envs.forecast_cache import predictor_fingerprint
+    from envs.forecasting.cache import predictor_fingerprint
 
     model = load(name, split)
     return model, predictor_fingerprint(model) or resolve(name).identity()

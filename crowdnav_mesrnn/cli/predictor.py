@@ -15,9 +15,14 @@ from typing import Any
 
 import yaml
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
-from crowdnav_mesrnn.models.base import LEARNED_MODELS, MODELS
+
+#: The shipped structural RNNs (weights per split), as the registry lists them.
+LEARNED_MODELS: tuple[str, ...] = predictors.names(predictors.PRETRAINED, plugins=False)
+#: Every shipped predictor: constant velocity and :data:`LEARNED_MODELS`.
+MODELS: tuple[str, ...] = predictors.names(predictors.BASELINE, predictors.PRETRAINED, plugins=False)
 
 
 def _parse_sets(items: list[str] | None) -> dict[str, Any]:

@@ -8,9 +8,26 @@ import numpy as np
 
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
 
-#: Model names accepted by :func:`crowdnav_mesrnn.models.get_predictor`.
-LEARNED_MODELS: tuple[str, ...] = ("mesrnn", "srnn", "vlstm")
-MODELS: tuple[str, ...] = ("cv", *LEARNED_MODELS)
+#: Deprecated name lists, answered by the registry (:func:`crowdnav_mesrnn.predictors.names`) when read.
+_DEPRECATED_LISTS = {"LEARNED_MODELS": ("PRETRAINED",), "MODELS": ("BASELINE", "PRETRAINED")}
+
+
+def __getattr__(name: str) -> tuple[str, ...]:
+    """``LEARNED_MODELS`` and ``MODELS``, deprecated: ask :func:`crowdnav_mesrnn.predictors.names`. The registry
+    imports this module, so it is looked up by name here (a deprecated alias is not an import edge)."""
+    if name not in _DEPRECATED_LISTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+    import warnings
+
+    warnings.warn(
+        f"crowdnav_mesrnn.models.{name} is deprecated; use crowdnav_mesrnn.predictors.names(...)",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    registry = importlib.import_module("crowdnav_mesrnn.predictors")
+    kinds = [getattr(registry, k) for k in _DEPRECATED_LISTS[name]]
+    return registry.names(*kinds, plugins=False)
 
 
 @runtime_checkable

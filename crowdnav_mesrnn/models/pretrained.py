@@ -17,8 +17,7 @@ from typing import Any
 import torch
 
 from crowdnav_mesrnn.data.constants import SPLITS, check_split
-from crowdnav_mesrnn.models.architecture import HEADS
-from crowdnav_mesrnn.models.base import LEARNED_MODELS
+from crowdnav_mesrnn.models.architecture import HEADS, MODEL_TYPES
 from crowdnav_mesrnn.models.learned import CHECKPOINT_FORMAT, CheckpointError, LearnedPredictor, load_predictor
 from crowdnav_mesrnn.utils import atomic_write
 
@@ -31,8 +30,8 @@ class PretrainedNotFoundError(FileNotFoundError):
 
 def pretrained_path(model: str, split: str, head: str = "point") -> Path:
     """Where the shipped weights of ``model``/``split`` with ``head`` (``point`` or ``gaussian``) live."""
-    if model not in LEARNED_MODELS:
-        raise ValueError(f"unknown learned model {model!r}; valid: {', '.join(LEARNED_MODELS)}")
+    if model not in MODEL_TYPES:  # one weights file per architecture and split
+        raise ValueError(f"unknown learned model {model!r}; valid: {', '.join(MODEL_TYPES)}")
     check_split(split)
     if head not in HEADS:
         raise ValueError(f"unknown head {head!r}; valid: {', '.join(HEADS)}")
@@ -71,7 +70,7 @@ def load_pretrained(model: str, split: str, threads: int | None = None, head: st
 
 def available(head: str = "point") -> dict[str, list[str]]:
     """``model -> splits`` with shipped weights of ``head``."""
-    return {m: [s for s in SPLITS if pretrained_path(m, s, head).is_file()] for m in LEARNED_MODELS}
+    return {m: [s for s in SPLITS if pretrained_path(m, s, head).is_file()] for m in MODEL_TYPES}
 
 
 def export_checkpoint(

@@ -31,10 +31,13 @@ from typing import Any
 
 import yaml
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS, check_split
-from crowdnav_mesrnn.models.base import LEARNED_MODELS
 from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text, code_version, file_lock
+
+#: The shipped structural RNNs (weights per split), as the registry lists them.
+LEARNED_MODELS: tuple[str, ...] = predictors.names(predictors.PRETRAINED, plugins=False)
 
 STAGES = ("candidates", "seeds", "all", "export")
 REPO_ROOT = Path(__file__).resolve().parents[2]

@@ -746,11 +746,11 @@ def test_json_has_no_nan(tmp_path: Path, fakes: Fakes) -> None:
 def test_forecast_cache_built_once_per_learned_source_and_split(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import envs.forecasts
+    import envs.forecasting.build
 
     calls: list[tuple[str, str | None, str]] = []
     monkeypatch.setattr(
-        envs.forecasts,
+        envs.forecasting.build,
         "build_forecast_cache",
         lambda predictor, split=None, part="all": calls.append((predictor, split, part)),
         raising=False,

@@ -148,11 +148,11 @@ def test_the_uncertainty_grid_shares_the_planner_grids_point_cells() -> None:
 def test_the_forecast_cache_of_an_uncertainty_arm_is_its_sources(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import envs.forecasts
+    import envs.forecasting.build
 
     calls: list[tuple[str, str | None]] = []
     monkeypatch.setattr(
-        envs.forecasts,
+        envs.forecasting.build,
         "build_forecast_cache",
         lambda predictor, split=None, part="all": calls.append((predictor, split)),
         raising=False,

@@ -14,7 +14,7 @@ import pytest
 @pytest.fixture(scope="session", autouse=True)
 def forecast_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     """Every env test writes its forecast cache into a fresh temporary folder (never ``~/.cache``)."""
-    from envs.forecast_cache import CACHE_ENV_VAR
+    from envs.forecasting.cache import CACHE_ENV_VAR
 
     path = tmp_path_factory.mktemp("forecast-cache")
     with pytest.MonkeyPatch.context() as mp:

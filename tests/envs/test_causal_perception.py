@@ -12,7 +12,7 @@ import pytest
 from crowdnav_mesrnn.data import load_recording
 from crowdnav_mesrnn.data.recordings import Recording
 from envs.crowd_nav import CrowdNavEnv
-from envs.forecasts import PredictorForecast
+from envs.forecasting.window import PredictorForecast
 
 #: one recording per scene: eth, hotel, univ, zara1, zara2
 SCENES = ("biwi_eth", "biwi_hotel", "students003", "crowds_zara01", "crowds_zara02")

@@ -22,7 +22,7 @@ from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data import ENV_VAR, SPLIT_TEST_RECORDINGS, DataNotFoundError
 from envs.config import CrowdNavConfig, default_config
 from envs.crowd_nav import CrowdNavEnv
-from envs.forecasts import PredictorUnavailableError, load_learned
+from envs.forecasting.factory import PredictorUnavailableError, load_learned
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -258,14 +258,14 @@ def test_missing_data_is_explained(tmp_path: Path, monkeypatch: pytest.MonkeyPat
 
 
 def test_missing_weights_give_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
-    from crowdnav_mesrnn import models
-    from envs import forecasts
+    from crowdnav_mesrnn import predictors
+    from envs.forecasting import factory
 
     def missing(name: str, split: str | None = None) -> Any:
         raise FileNotFoundError(f"no file {name}_{split}.pt")
 
-    monkeypatch.setattr(models, "get_predictor", missing)
-    monkeypatch.setattr(forecasts, "_LOADED", {})
+    monkeypatch.setattr(predictors, "load", missing)
+    monkeypatch.setattr(factory, "_LOADED", {})
     with pytest.raises(PredictorUnavailableError) as info:
         CrowdNavEnv(predictor="srnn", crowd="synthetic", split="hotel")
     msg = str(info.value)

@@ -83,13 +83,13 @@ def test_demo_on_a_held_out_scene(data_dir: Path, tmp_path: Path, capsys: pytest
 def test_demo_with_an_explicit_missing_predictor_is_an_error(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from crowdnav_mesrnn import models
-    from envs import forecasts
+    from crowdnav_mesrnn import predictors
+    from envs.forecasting import factory
 
     def missing(name: str, split: str | None = None) -> None:
         raise FileNotFoundError("no weights here")
 
-    monkeypatch.setattr(models, "get_predictor", missing)
-    monkeypatch.setattr(forecasts, "_LOADED", {})
+    monkeypatch.setattr(predictors, "load", missing)
+    monkeypatch.setattr(factory, "_LOADED", {})
     assert main(["demo", "--synthetic", "--predictor", "srnn", "--no-gif"]) == 2
     assert "no weights here" in capsys.readouterr().err

@@ -92,7 +92,7 @@ def test_coherent_draws_keep_each_steps_gaussian_and_one_quantile_along_the_traj
 def test_point_configs_read_and_hash_as_before() -> None:
     """A point config's repr and saved dict are those of the code before the head existed: the forecast cache's
     keys (which hash the repr) and the shipped checkpoints' configs stay valid."""
-    from envs.forecast_cache import predictor_fingerprint
+    from envs.forecasting.cache import predictor_fingerprint
 
     cfg = ModelConfig(model="srnn")
     assert "head" not in repr(cfg) and "head" not in cfg.to_dict()

@@ -86,7 +86,7 @@ def test_entry_point_plugin_loads_by_name(monkeypatch: pytest.MonkeyPatch, plugi
 
 
 def test_identity_changes_with_version_and_source(monkeypatch: pytest.MonkeyPatch, plugin_module: str) -> None:
-    from envs.forecast_cache import predictor_fingerprint
+    from envs.forecasting.cache import predictor_fingerprint
 
     fake_entry_points(monkeypatch, ("still", f"{plugin_module}:StandStill", "still-dist", "1.0"))
     a = load("still", "zara1")

@@ -66,18 +66,18 @@ def test_a_slow_chunk_shows_a_labelled_progress_bar(capsys: pytest.CaptureFixtur
 
 
 def test_building_the_cache_keeps_the_callers_threads(monkeypatch: pytest.MonkeyPatch, tmp_path: Any) -> None:
-    from envs import forecasts
+    from envs.forecasting import build, factory
 
     seen = ThreadsSeen()
-    monkeypatch.setattr(forecasts, "load_learned", lambda name, split, needed_for: seen)
-    monkeypatch.setattr(forecasts, "_LOADED", {})
+    monkeypatch.setattr(factory, "load_learned", lambda name, split, needed_for: seen)
+    monkeypatch.setattr(factory, "_LOADED", {})
     monkeypatch.setattr(
         "crowdnav_mesrnn.data.recordings.load_recording", lambda name, part="all_data", data_dir=None: _crowd(70, name)
     )
     before = torch.get_num_threads()
     torch.set_num_threads(2)  # as `forecasts build --threads 2` sets
     try:
-        forecasts.build_forecast_cache("mesrnn", "zara1", "test", cache_dir=str(tmp_path), progress=False)
+        build.build_forecast_cache("mesrnn", "zara1", "test", cache_dir=str(tmp_path), progress=False)
     finally:
         torch.set_num_threads(before)
     assert seen.threads and set(seen.threads) == {2}

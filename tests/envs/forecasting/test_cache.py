@@ -19,12 +19,11 @@ from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data import load_recording
 from crowdnav_mesrnn.data.recordings import Recording
 from crowdnav_mesrnn.models import ConstantVelocity
-from envs import forecasts
 from envs.crowd_nav import CrowdNavEnv
-from envs.forecast_cache import CACHE_ENV_VAR, CacheWarning, num_chunks
-from envs.forecasts import PredictorForecast, clear_shared_tables
+from envs.forecasting.cache import CACHE_ENV_VAR, CacheWarning, clear_shared_tables, num_chunks
+from envs.forecasting.window import PredictorForecast
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 EPISODES = [{"t0_s": t0, "start": (1.0, 1.0), "goal": (7.0, 3.0), "time_limit_s": 6.0} for t0 in (14.0, 40.0)]
 
 
@@ -278,7 +277,7 @@ def test_constant_velocity_forecasts_are_computed_once_per_process(
     assert lockstep(envs[2], CrowdNavEnv(predictor="cv", crowd=rec, cache_forecasts=False), EPISODES) > 20
     assert not files(tmp_path)  # never written to disk
     # another recording under the same name is another table; beyond SHARED_RECORDINGS the oldest is forgotten
-    monkeypatch.setattr(forecasts, "SHARED_RECORDINGS", 1)
+    monkeypatch.setattr("envs.forecasting.cache.SHARED_RECORDINGS", 1)
     positions = rec.positions.copy()
     positions[100] += 0.1
     moved = CrowdNavEnv(predictor="cv", crowd=replace(rec, positions=positions))
@@ -340,7 +339,7 @@ def test_info_skips_files_it_did_not_write(tmp_path: Path, capsys: pytest.Captur
 def test_the_online_arithmetic_revision_keys_carried_tables_only(monkeypatch: pytest.MonkeyPatch) -> None:
     """A change of the online forecast's arithmetic (CARRIED_REVISION) gives carried tables a new key, so tables
     computed by the old arithmetic are rebuilt, and leaves window tables' keys as they were."""
-    from envs import forecast_cache
+    from envs.forecasting import cache as forecast_cache
 
     def digests() -> dict[str, str]:
         keys = {
@@ -353,3 +352,42 @@ def test_the_online_arithmetic_revision_keys_carried_tables_only(monkeypatch: py
     after = digests()
     assert after["window"] == before["window"]
     assert after["carried"] != before["carried"]
+
+
+@pytest.mark.parametrize("changes", [{}, {"head": "gaussian"}, {"head": "gaussian", "scale_detach": True}])
+def test_the_model_config_enters_the_key_from_to_dict_as_it_always_read(changes: dict) -> None:
+    """The key hashes :func:`config_text`, built from ``to_dict()``: the text earlier versions hashed (the repr of
+    the config then), so caches written before stay valid, and independent of how the config prints now."""
+    from crowdnav_mesrnn.models.architecture import ModelConfig
+    from envs.forecasting.cache import config_text
+
+    cfg = ModelConfig(model="srnn", **changes)
+    assert config_text(cfg) == repr(cfg)
+    fields = ", ".join(f"{k}={(tuple(v) if isinstance(v, list) else v)!r}" for k, v in cfg.to_dict().items())
+    assert config_text(cfg) == f"ModelConfig({fields})"
+    assert config_text(None) == "None"
+
+
+def test_the_key_does_not_depend_on_how_a_config_prints(
+    monkeypatch: pytest.MonkeyPatch, tiny_learned_predictor: Callable
+) -> None:
+    from crowdnav_mesrnn.models.architecture import ModelConfig
+    from envs.forecasting.cache import predictor_fingerprint
+
+    before = predictor_fingerprint(tiny_learned_predictor(seed=3))
+    monkeypatch.setattr(ModelConfig, "__repr__", lambda self: "printed otherwise")
+    assert predictor_fingerprint(tiny_learned_predictor(seed=3)) == before
+    other = tiny_learned_predictor(seed=3)
+    other.net.cfg = replace(other.net.cfg, dropout=0.5)  # same weights, another config
+    assert predictor_fingerprint(other) != before
+
+
+def test_the_shipped_predictors_keep_their_cache_keys() -> None:
+    """SHA-256 of the shipped zara1 weights + config, as every version of the cache has computed it (so the files
+    users have cached stay valid)."""
+    from crowdnav_mesrnn import predictors
+    from envs.forecasting.cache import predictor_fingerprint
+
+    assert predictor_fingerprint(predictors.load("srnn", "zara1")) == (
+        "6270c154e20e1ed2e053067c2b1b21e90fdd5d35d1552f1d551e32e80af70b0a"
+    )

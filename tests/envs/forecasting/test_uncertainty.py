@@ -11,8 +11,8 @@ import pytest
 
 from crowdnav_mesrnn.config import ConfigError
 from envs.crowd_nav import CrowdNavEnv
-from envs.forecasts import NoisyOracleForecast
-from envs.uncertainty import CalibratedUncertainty, NoisyOracleUncertainty
+from envs.forecasting.sources import NoisyOracleForecast
+from envs.forecasting.uncertainty import CalibratedUncertainty, NoisyOracleUncertainty
 
 
 def first_obs(predictor: str, steps: int = 3, **kw: Any) -> tuple[CrowdNavEnv, dict[str, np.ndarray]]:

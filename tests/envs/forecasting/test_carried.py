@@ -17,7 +17,8 @@ from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data import load_recording
 from crowdnav_mesrnn.data.recordings import Recording
 from envs.crowd_nav import CrowdNavEnv
-from envs.forecasts import CarriedPredictorForecast, PredictorForecast
+from envs.forecasting.carried import CarriedPredictorForecast
+from envs.forecasting.window import PredictorForecast
 from envs.recordings import make_recording, scripted_recording
 
 #: Robot far from the crowd, seeing everybody, never ending the episode on contact.
@@ -164,11 +165,11 @@ def test_forecast_memory_options(
         CrowdNavEnv(predictor="cv", crowd="empty", forecast_memory="carried").forecaster, PredictorForecast
     )
     # named learned sources: the out-of-sample predictor of each recording, carried
-    from crowdnav_mesrnn import models
-    from envs import forecasts
+    from crowdnav_mesrnn import predictors
+    from envs.forecasting import factory
 
-    monkeypatch.setattr(models, "get_predictor", lambda name, split=None: tiny_learned_predictor(name))
-    monkeypatch.setattr(forecasts, "_LOADED", {})
+    monkeypatch.setattr(predictors, "load", lambda name, split=None: tiny_learned_predictor(name))
+    monkeypatch.setattr(factory, "_LOADED", {})
     # scripted recordings under the scenes' names stand in for the files (no data folder needed: any path will do)
     monkeypatch.setattr("envs.config.find_data_dir", lambda data_dir=None: Path("<scripted>"))
     monkeypatch.setattr(

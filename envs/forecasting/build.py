@@ -1,0 +1,124 @@
+"""Filling the shared forecast cache ahead of training (``crowdnav-mesrnn forecasts build``).
+
+Vectorised environments and grid workers then load every chunk instead of computing it; chunks already on disk
+are checked and kept.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Final
+
+from crowdnav_mesrnn import predictors
+from crowdnav_mesrnn.data.constants import SPLIT_TEST_RECORDINGS
+from envs.config import FORECAST_MEMORIES, CrowdNavConfig
+from envs.forecasting.cache import ForecastStore, cache_root, num_chunks
+from envs.forecasting.factory import make_forecast_source
+from envs.forecasting.window import PredictorForecast
+
+#: Parts accepted by :func:`build_forecast_cache`.
+CACHE_PARTS: Final[tuple[str, ...]] = ("train", "test", "all")
+
+
+def cache_recordings(split: str | None = None, part: str = "all") -> tuple[str, ...]:
+    """Recordings whose forecasts an env of ``split``/``part`` may need: ``part="all"`` = train and test;
+    ``split=None`` = every replayable recording (the five scenes' held-out recordings)."""
+    from envs.config import episode_recordings
+
+    if part not in CACHE_PARTS:
+        raise ValueError(f"unknown part {part!r}; valid: {', '.join(CACHE_PARTS)}")
+    if split is None:
+        return tuple(r for recs in SPLIT_TEST_RECORDINGS.values() for r in recs)
+    if split not in SPLIT_TEST_RECORDINGS:
+        raise ValueError(f"unknown split {split!r}; valid: {', '.join(SPLIT_TEST_RECORDINGS)}")
+    parts = ("train", "test") if part == "all" else (part,)
+    return tuple(r for p in parts for r in episode_recordings(split, p))
+
+
+def build_forecast_cache(
+    predictor: str,
+    split: str | None = None,
+    part: str = "all",
+    *,
+    memory: str = "window",
+    data_dir: str | None = None,
+    cache_dir: str | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Fill the shared disk cache with a learned predictor's forecasts for the recordings an env of ``split``/``part``
+    replays (every replayable recording when ``split`` is None), each by its out-of-sample predictor.
+
+    Chunks already on disk are checked and kept; missing, unreadable or stale ones are computed and
+    written. Call it before starting vectorised environments or grid workers, so none of them computes forecasts.
+
+    Args:
+        predictor: a name loaded per split (:data:`crowdnav_mesrnn.predictors.SPLIT_KINDS`): ``mesrnn``, ``srnn``,
+            ``vlstm``, an installed plug-in or an import path.
+        split: leave-one-out split (None: all recordings).
+        part: ``train``, ``test`` or ``all``.
+        memory: ``window`` or ``carried`` (see ``forecast_memory``).
+        data_dir: ETH/UCY folder (default: the usual search).
+        cache_dir: cache folder (default: ``$CROWDNAV_MESRNN_CACHE`` or ``~/.cache/crowdnav-mesrnn/forecasts``).
+        progress: show a progress bar (tqdm) over chunks.
+
+    Returns:
+        ``{"predictor", "memory", "cache_dir", "recordings", "chunks", "loaded", "computed", "seconds"}``.
+    """
+    import time
+
+    from crowdnav_mesrnn.data.recordings import load_recording
+
+    if not predictors.per_split(predictor):
+        weightless = predictors.names(*(k for k in predictors.KINDS if k not in predictors.SPLIT_KINDS), plugins=False)
+        raise ValueError(
+            f"unknown predictor {predictor!r} for the forecast cache; valid: "
+            f"{', '.join(predictors.names(predictors.PRETRAINED, plugins=False))}, an installed predictor plug-in or an "
+            f"import path 'package.module:Factory' ({', '.join(weightless[:-1])} and {weightless[-1]} need no cache)"
+        )
+    if memory not in FORECAST_MEMORIES:
+        raise ValueError(f"unknown forecast memory {memory!r}; valid: {', '.join(FORECAST_MEMORIES)}")
+    started = time.perf_counter()
+    names = cache_recordings(split, part)
+    recordings = [load_recording(n, "all_data", data_dir) for n in names]
+    root = cache_root(cache_dir)
+    problem = ForecastStore(root).write_problem()
+    if problem is not None:
+        raise ValueError(f"the forecast cache folder {root} cannot be written ({problem}); choose another one")
+    config = CrowdNavConfig(
+        predictor=predictor,
+        split=split if split is not None else "zara1",
+        cache_forecasts=True,
+        forecast_disk_cache=True,
+        forecast_cache_dir=str(root),
+        forecast_memory=memory,
+    )
+    source = make_forecast_source(config, names)
+    assert isinstance(source, PredictorForecast) and source.store is not None
+    store = source.store
+    source.progress = False  # this function's own bar counts the chunks
+    source.threads = None  # the caller's torch threads (``forecasts build --threads``)
+    total = sum(num_chunks(r) for r in recordings)
+    bar: Any = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc=f"{predictor} forecasts", unit="chunk")
+    for rec in recordings:
+        for c in range(num_chunks(rec)):
+            source.chunk(rec, c)
+            if bar is not None:
+                bar.set_postfix_str(rec.name, refresh=False)
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    if store.unwritable is not None:
+        raise ValueError(f"the forecast cache folder {root} could not be written ({store.unwritable})")
+    return {
+        "predictor": predictor,
+        "memory": memory,
+        "cache_dir": str(root),
+        "recordings": list(names),
+        "chunks": total,
+        "loaded": source.chunks_loaded,
+        "computed": source.chunks_computed,
+        "seconds": round(time.perf_counter() - started, 2),
+    }
