@@ -184,6 +184,7 @@ class ReactiveCrowd(ABC):
             raise ValueError(f"{type(self).__name__}.step at t_s = {t_s!r} s, but the crowd is at {self._t!r} s")
         if not (dt_s > 0.0):
             raise ValueError(f"{type(self).__name__}.step: dt_s must be > 0 seconds, got {dt_s!r}")
+        self._t = float(t_s)  # the caller's clock is the reference (no drift from summing steps)
         n = self._num
         for what, arr, shape in (
             ("recorded_now", recorded_now, (n, 2)),
@@ -227,7 +228,7 @@ class ReactiveCrowd(ABC):
         """:meth:`step` ``S`` times (a control step's physics substeps of ``dt_s``), at once.
 
         Args:
-            t_s: the current time, seconds (:attr:`time_s`).
+            t_s: the current time, seconds (:attr:`time_s`); step ``k`` starts at ``t_s + k dt_s``.
             dt_s: the length of each step, seconds.
             recorded: ``(S + 1, N, 2)`` recorded positions at ``t_s + k dt_s``, metres.
             present: ``(S + 1, N)`` recorded presence there.
@@ -248,12 +249,17 @@ class ReactiveCrowd(ABC):
         pres = np.empty((steps + 1, self._num), dtype=bool)
         positions[0], pres[0] = self._pos, self._present
         last = None
-        t = float(t_s)
-        for k in range(steps):
+        for k in range(steps):  # at t_s + k dt_s, as the environment's substep times
             last = self.step(
-                t, dt_s, recorded[k], present[k], recorded[k + 1], present[k + 1], robot_path[k], robot_velocities[k]
+                t_s + k * dt_s,
+                dt_s,
+                recorded[k],
+                present[k],
+                recorded[k + 1],
+                present[k + 1],
+                robot_path[k],
+                robot_velocities[k],
             )
-            t = self._t
             positions[k + 1], pres[k + 1] = last.positions, last.present
         assert last is not None
         return CrowdPath(positions, pres, last)

@@ -120,7 +120,7 @@ def simulate(
     for k in range(num):
         p, v = where(times[k])
         robot_path[k] = p
-        out = crowd.step(crowd.time_s, dt_s, rec[k], rec_present[k], rec[k + 1], rec_present[k + 1], p, v)
+        out = crowd.step(times[k], dt_s, rec[k], rec_present[k], rec[k + 1], rec_present[k + 1], p, v)
         steps.append(out)
         positions[k + 1], present[k + 1] = out.positions, out.present
         velocities[k], reacting[k], shift[k] = out.velocities, out.reacting, out.shift_s

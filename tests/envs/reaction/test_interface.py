@@ -56,26 +56,33 @@ def test_an_unknown_model_lists_the_valid_ones() -> None:
 
 @pytest.mark.parametrize("model", REACTION_MODELS)
 def test_advance_is_the_substeps_one_by_one_and_runs_repeat(kit, model: str) -> None:
-    """One call per control step (4 substeps) equals four calls per substep, bit for bit; and a second run of the
-    same episode is the same (no randomness)."""
+    """One call per control step (4 substeps) equals four calls per substep at the same times, bit for bit; and a
+    second run of the same episode is the same (no randomness)."""
     rec = kit.head_on_recording(num=10)
     robot = kit.moving_robot((6.0, 0.0), (-1.0, 0.0))
-    by_step = kit.simulate(model, rec, robot, seconds=12.0)
+    first = kit.simulate(model, rec, robot, seconds=12.0)
     again = kit.simulate(model, rec, robot, seconds=12.0)
-    assert np.array_equal(by_step.positions[by_step.present], again.positions[again.present])
+    assert np.array_equal(first.present, again.present)
+    assert np.array_equal(first.positions[first.present], again.positions[again.present])
+    assert first.reacted.any() or model == "none"
     replay = Replay(rec)
-    crowd = make_reactive_crowd(model, robot_radius_m=0.3, pedestrian_radius_m=0.3)
-    crowd.reset(replay, by_step.times[0])
-    rec_pos, rec_present = replay.positions_at(by_step.times)
-    velocities = np.array([robot(t)[1] for t in by_step.times])
-    for c in range(0, len(by_step.times) - 1, 4):
-        rows = slice(c, c + 5)
-        path = crowd.advance(
-            by_step.times[c], kit.dt_s, rec_pos[rows], rec_present[rows], by_step.robot[rows], velocities[rows]
-        )
-        assert np.array_equal(path.present, by_step.present[rows])
-        assert np.array_equal(path.positions[path.present], by_step.positions[rows][path.present])
-    assert by_step.reacted.any() or model == "none"
+    by_call, by_step = (make_reactive_crowd(model, robot_radius_m=0.3, pedestrian_radius_m=0.3) for _ in range(2))
+    by_call.reset(replay, 0.0)
+    by_step.reset(replay, 0.0)
+    dt = kit.dt_s
+    for c in range(30):
+        t = c * 4 * dt
+        times = t + dt * np.arange(5)
+        rec_pos, rec_present = replay.positions_at(times)
+        path = np.array([robot(x)[0] for x in times])
+        seen = np.array([robot(x)[1] for x in times[:4]])
+        got = by_call.advance(t, dt, rec_pos, rec_present, path, seen)
+        for k in range(4):
+            out = by_step.step(
+                times[k], dt, rec_pos[k], rec_present[k], rec_pos[k + 1], rec_present[k + 1], path[k], seen[k]
+            )
+            assert np.array_equal(got.present[k + 1], out.present)
+            assert np.array_equal(got.positions[k + 1][out.present], out.positions[out.present])
 
 
 def test_misuse_is_a_clear_error(kit) -> None:
