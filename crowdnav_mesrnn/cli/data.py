@@ -37,7 +37,12 @@ def _data_download(args: argparse.Namespace) -> int:
 
     try:
         result = download_data(
-            args.dest, args.url, timeout_s=args.timeout, force=args.force, progress=lambda m: print(m, flush=True)
+            args.dest,
+            args.url,
+            timeout_s=args.timeout,
+            deadline_s=args.deadline,
+            force=args.force,
+            progress=lambda m: print(m, flush=True),
         )
     except DownloadError as exc:
         print(f"crowdnav-mesrnn: error: {exc}", file=sys.stderr)
@@ -50,7 +55,7 @@ def _data_download(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: Any) -> None:
-    from crowdnav_mesrnn.data.download import DEFAULT_DEST, DEFAULT_TIMEOUT_S
+    from crowdnav_mesrnn.data.download import DEFAULT_DEADLINE_S, DEFAULT_DEST, DEFAULT_TIMEOUT_S, seconds_option
     from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
 
     p = sub.add_parser("data", help="download, inspect and verify the ETH/UCY data")
@@ -72,13 +77,26 @@ def add_parser(sub: Any) -> None:
         "--url",
         default=None,
         help="a .zip in the Social-GAN datasets layout, or a base URL serving the project's layout "
-        "(BASE/all_data/biwi_eth.txt, BASE/train/..., BASE/val/...); default: the Social-GAN datasets archive",
+        "(BASE/all_data/biwi_eth.txt, BASE/train/..., BASE/val/...); http(s)://, file:// or a local path; "
+        "default: the Social-GAN datasets archive",
     )
     d.add_argument(
         "--timeout",
-        type=float,
+        type=seconds_option,
         default=DEFAULT_TIMEOUT_S,
         help=f"seconds a connection or read may stall before failing (default: {DEFAULT_TIMEOUT_S:g})",
     )
-    d.add_argument("--force", action="store_true", help="replace an existing --dest that does not verify")
+    d.add_argument(
+        "--deadline",
+        type=seconds_option,
+        default=DEFAULT_DEADLINE_S,
+        help="seconds the whole download may take, however slowly the server sends "
+        f"(default: {DEFAULT_DEADLINE_S:g} = {DEFAULT_DEADLINE_S / 60:g} min)",
+    )
+    d.add_argument(
+        "--force",
+        action="store_true",
+        help="in an existing --dest that does not verify, replace the project's files (the pinned recordings and "
+        "SHA256SUMS); nothing else in it is touched",
+    )
     d.set_defaults(func=_data_download)

@@ -7,11 +7,16 @@ requests and is shut down by its fixture.
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import hashlib
 import http.server
+import math
+import os
 import shutil
 import socket
+import subprocess
+import sys
 import threading
 import time
 import zipfile
@@ -22,15 +27,22 @@ import pytest
 
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data.download import (
+    CHUNK_BYTES,
+    ETH_UCY_BYTES,
     ETH_UCY_SHA256,
     ChecksumError,
+    DestinationError,
     DownloadError,
+    SourceError,
     archive_member_for,
     download_data,
     found_by_default,
+    lock_path,
+    verify_folder,
 )
 from crowdnav_mesrnn.data.paths import ENV_VAR, HOW_TO_GET_DATA
 
+ROOT = Path(__file__).resolve().parents[2]
 TRUNCATE: set[str] = set()
 
 
@@ -55,9 +67,9 @@ class _Handler(http.server.SimpleHTTPRequestHandler):
 
 
 @contextlib.contextmanager
-def serve(root: Path) -> Iterator[str]:
-    """``http://127.0.0.1:PORT`` serving ``root`` until the block ends."""
-    handler = functools.partial(_Handler, directory=str(root))
+def serve(root: Path, handler_class: type[http.server.BaseHTTPRequestHandler] = _Handler) -> Iterator[str]:
+    """``http://127.0.0.1:PORT`` serving ``root`` (with ``handler_class``) until the block ends."""
+    handler = functools.partial(handler_class, directory=str(root))
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     server.timeout = 5
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
@@ -90,6 +102,7 @@ def test_pinned_sums_match_the_shared_copy(data_dir: Path) -> None:
     assert listed == ETH_UCY_SHA256
     for rel, digest in ETH_UCY_SHA256.items():
         assert hashlib.sha256((data_dir / rel).read_bytes()).hexdigest() == digest, rel
+    assert {rel: (data_dir / rel).stat().st_size for rel in ETH_UCY_SHA256} == ETH_UCY_BYTES
 
 
 def test_download_then_check_passes(served_copy: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -134,6 +147,11 @@ def test_unreachable_url_fails_fast(tmp_path: Path, capsys: pytest.CaptureFixtur
     err = capsys.readouterr().err
     assert "unreachable" in err and f"127.0.0.1:{port}/all_data/biwi_eth.txt" in err
     assert time.perf_counter() - started < 30  # bounded, far below a default TCP time-out
+    # ... and says what else works: a mirror or local copy, the variable, the layout, the places searched
+    for alternative in ("--url https://", "--url /path/to/datasets.zip", "--url file:///", f"export {ENV_VAR}="):
+        assert alternative in err
+    assert "all_data/<recording>.txt, train/<recording>_train.txt and val/<recording>_val.txt" in err
+    assert str(Path.cwd() / "data" / "eth_ucy") in err and str(Path.home() / ".cache/crowdnav-mesrnn/eth_ucy") in err
 
 
 def test_silent_server_times_out(tmp_path: Path) -> None:
@@ -199,16 +217,211 @@ def test_archive_member_mapping_prefers_raw() -> None:
     assert archive_member_for("val/biwi_eth_val.txt", members) == []
 
 
-def test_existing_unverified_dest_needs_force(served_copy: Path, tmp_path: Path) -> None:
-    dest = tmp_path / "eth_ucy"
-    dest.mkdir()
+def _snapshot(root: Path) -> dict[str, bytes | None]:
+    """Every entry under ``root``: a file's bytes, ``None`` for a folder."""
+    return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None) for p in sorted(root.rglob("*"))}
+
+
+def _user_folder(dest: Path) -> None:
+    """A data folder a user also keeps other things in, with one of the project's files edited."""
+    (dest / "runs" / "r1").mkdir(parents=True)
+    (dest / "runs" / "r1" / "log.txt").write_text("a run")
     (dest / "note.txt").write_text("mine")
+    (dest / "all_data").mkdir()
+    (dest / "all_data" / "my_scene.txt").write_text("my own recording")
+    (dest / "all_data" / "biwi_eth.txt").write_text("edited")
+
+
+def test_force_replaces_only_the_projects_files(served_copy: Path, tmp_path: Path) -> None:
+    dest = tmp_path / "eth_ucy"
+    _user_folder(dest)
+    before = _snapshot(dest)
     with pytest.raises(DownloadError, match="--force"):
         download_data(dest, "http://127.0.0.1:9/", timeout_s=1)
-    assert (dest / "note.txt").read_text() == "mine"
+    assert _snapshot(dest) == before
     with serve(served_copy) as base:
         download_data(dest, base, timeout_s=10, force=True)
-    assert not (dest / "note.txt").exists() and (dest / "all_data" / "biwi_eth.txt").is_file()
+    assert verify_folder(dest) == [] and (dest / "SHA256SUMS").is_file()
+    after = _snapshot(dest)
+    for rel in ("runs", "runs/r1", "runs/r1/log.txt", "note.txt", "all_data/my_scene.txt"):
+        assert after[rel] == before[rel], rel  # the user's files and folders are all there, unchanged
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eth_ucy", "served"]  # no staging folder, no lock
+
+
+def test_an_empty_dest_is_filled_without_force(served_copy: Path, tmp_path: Path) -> None:
+    dest = tmp_path / "eth_ucy"
+    dest.mkdir()
+    with serve(served_copy) as base:
+        assert not download_data(dest, base, timeout_s=10).already_present
+    assert verify_folder(dest) == []
+
+
+def test_dest_that_is_a_file_is_refused_even_with_force(
+    served_copy: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    dest = tmp_path / "thesis.tex"
+    dest.write_text("months of work")
+    with serve(served_copy) as base:
+        assert main(["data", "download", "--url", base, "--dest", str(dest), "--force"]) == 1
+    assert f"--dest {dest} is a file, not a folder" in capsys.readouterr().err
+    assert dest.read_text() == "months of work"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["served", "thesis.tex"]
+
+
+def test_an_install_error_puts_the_previous_files_back(
+    served_copy: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    dest = tmp_path / "eth_ucy"
+    _user_folder(dest)
+    before = _snapshot(dest)
+    real_replace, moved = os.replace, []
+
+    def replace_failing_at_the_fifth(src: object, dst: object) -> None:
+        moved.append(dst)
+        if len(moved) == 5:
+            raise OSError(errno.ENOSPC, "No space left on device (simulated)")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace_failing_at_the_fifth)
+    with serve(served_copy) as base, pytest.raises(DownloadError, match=r"No space left .*holds what it held before"):
+        download_data(dest, base, timeout_s=10, force=True)
+    monkeypatch.undo()
+    assert len(moved) > 5  # four files were in: they were put back
+    assert _snapshot(dest) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eth_ucy", "served"]
+
+
+def test_a_second_download_into_one_destination_is_refused(served_copy: Path, tmp_path: Path) -> None:
+    """A download in another process holds the destination (its first request is held by the server): a second
+    one is refused at once, naming it, and changes nothing; the first then installs."""
+    arrived, release, taken = threading.Event(), threading.Event(), threading.Lock()
+
+    class HoldFirst(_Handler):
+        def do_GET(self) -> None:
+            if taken.acquire(blocking=False):  # the first request only
+                arrived.set()
+                release.wait(60)
+            super().do_GET()
+
+    dest = tmp_path / "eth_ucy"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    with serve(served_copy, HoldFirst) as base:
+        first = subprocess.Popen(
+            [sys.executable, "-m", "crowdnav_mesrnn.cli", "data", "download", "--url", base, "--dest", str(dest)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert arrived.wait(60), "the first download never reached the server"
+            assert lock_path(dest).is_file()
+            started = time.perf_counter()
+            with pytest.raises(
+                DestinationError, match=rf"another .*data download.* is installing there \(pid {first.pid};"
+            ):
+                download_data(dest, base, timeout_s=10)
+            assert time.perf_counter() - started < 5  # refused at once, not after a download
+            assert not dest.exists()
+        finally:
+            release.set()
+            out, err = first.communicate(timeout=120)
+    assert first.returncode == 0, err
+    assert "24 files" in out and verify_folder(dest) == []
+    assert not lock_path(dest).exists()
+
+
+class _Trickle(_Handler):
+    """Sends a 100 kB file one byte every 0.1 s — the status line and headers too when ``slow_headers`` — for at
+    most 10 s (so the test ends even against a client without a deadline)."""
+
+    slow_headers = False
+
+    def do_GET(self) -> None:
+        head = b"HTTP/1.1 200 OK\r\nContent-Length: 100000\r\n\r\n"
+        if not self.slow_headers:
+            self.wfile.write(head)
+            head = b""
+        body = head + b"1" * 100_000
+        stop = time.monotonic() + 10
+        for k in range(len(body)):
+            if time.monotonic() > stop:
+                return
+            try:
+                self.wfile.write(body[k : k + 1])
+                self.wfile.flush()
+            except OSError:
+                return  # the client went away
+            time.sleep(0.1)
+
+
+@pytest.mark.parametrize("slow_headers", [False, True], ids=["body", "headers"])
+def test_a_trickling_server_hits_the_deadline(tmp_path: Path, slow_headers: bool) -> None:
+    handler = type("Trickle", (_Trickle,), {"slow_headers": slow_headers})
+    started = time.perf_counter()
+    with serve(tmp_path, handler) as base, pytest.raises(SourceError, match=r"deadline of 1\.5 s") as exc:
+        download_data(tmp_path / "eth_ucy", base, timeout_s=1, deadline_s=1.5)
+    assert time.perf_counter() - started < 1.5 + 3  # each byte came within --timeout: only the deadline ends it
+    assert "all_data/biwi_eth.txt" in str(exc.value) and "--url" in str(exc.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("flag", ["--timeout", "--deadline"])
+@pytest.mark.parametrize("value", ["inf", "nan", "0", "-1", "soon"])
+def test_seconds_must_be_finite_and_positive(
+    flag: str, value: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["data", "download", "--url", "http://127.0.0.1:9/", "--dest", str(tmp_path / "d"), flag, value])
+    assert exc.value.code == 2
+    assert f"argument {flag}: must be a finite number of seconds > 0, got {value}" in capsys.readouterr().err
+    for name in ("timeout_s", "deadline_s"):
+        for bad in (math.inf, math.nan, 0.0):
+            with pytest.raises(ValueError, match=rf"{name} must be a finite number of seconds > 0, got {bad!r}"):
+                download_data(tmp_path / "d", "http://127.0.0.1:9/", **{name: bad})
+    assert not (tmp_path / "d").exists()
+
+
+def test_an_oversized_archive_member_is_refused_while_streaming(
+    data_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``biwi_eth.txt`` followed by 32 MiB (compressed to a few dozen kB): refused once past its pinned size,
+    having decompressed at most one chunk more."""
+    archive = tmp_path / "datasets.zip"
+    with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as zf:
+        for rel in ETH_UCY_SHA256:
+            with zf.open(f"datasets/raw/{rel}", "w", force_zip64=True) as member:
+                member.write((data_dir / rel).read_bytes())
+                if rel == "all_data/biwi_eth.txt":
+                    for _ in range(32):
+                        member.write(b"0" * (1 << 20))
+    assert archive.stat().st_size < 8 << 20
+    decompressed: list[int] = []
+    real_read = zipfile.ZipExtFile.read
+
+    def counting_read(self: zipfile.ZipExtFile, n: int | None = -1) -> bytes:
+        data = real_read(self, n)
+        decompressed.append(len(data))
+        return data
+
+    monkeypatch.setattr(zipfile.ZipExtFile, "read", counting_read)
+    pinned = ETH_UCY_BYTES["all_data/biwi_eth.txt"]
+    with pytest.raises(ChecksumError, match=rf"all_data/biwi_eth\.txt: .* is larger than the pinned {pinned} bytes"):
+        download_data(tmp_path / "eth_ucy", archive.as_uri(), timeout_s=10)
+    assert sum(decompressed) <= pinned + CHUNK_BYTES
+    assert not (tmp_path / "eth_ucy").exists()
+
+
+def test_a_local_archive_or_folder_is_a_source(
+    data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    archive = _sgan_archive(data_dir, tmp_path / "datasets.zip", with_raw_pieces=False)
+    for k, url in enumerate([str(archive), archive.as_uri(), str(data_dir)]):
+        dest = tmp_path / f"d{k}"
+        assert main(["data", "download", "--url", url, "--dest", str(dest)]) == 0, capsys.readouterr().err
+        assert verify_folder(dest) == []
+    assert main(["data", "download", "--url", str(tmp_path / "missing.zip"), "--dest", str(tmp_path / "e")]) == 1
+    assert "missing.zip: no such file or folder" in capsys.readouterr().err
 
 
 def test_default_place_is_found(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
