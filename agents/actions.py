@@ -26,7 +26,8 @@ from typing import Any, Final
 import gymnasium as gym
 import numpy as np
 
-from agents.planners import DEFAULT_HEADINGS_DEG, DEFAULT_SPEED_FRACTIONS, velocities_to_actions
+from agents.planners.base import velocities_to_actions
+from agents.planners.sampling import DEFAULT_HEADINGS_DEG, DEFAULT_SPEED_FRACTIONS
 from crowdnav_mesrnn.config import ConfigError, check_keys
 from envs.config import CrowdNavConfig
 

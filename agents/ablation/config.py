@@ -39,7 +39,7 @@ UNCERTAINTY_KINDS: Final[tuple[str, ...]] = ("planner", "search")
 #: Policy kinds: learned ones are trained per arm and seed, the others only evaluated.
 POLICY_KINDS: Final[tuple[str, ...]] = ("ppo", "sac", "planner", "search", "privileged", "straight")
 
-#: The privileged ceiling (reads the replay's true future, :mod:`agents.privileged`): a measuring stick whose
+#: The privileged ceiling (reads the replay's true future, :mod:`agents.planners.privileged`): a measuring stick whose
 #: success every other policy is also reported as a fraction of, never a competitor.
 PRIVILEGED_KIND: Final[str] = "privileged"
 

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from agents.evaluate import ceiling_fraction, evaluate, format_summary, main, read_episodes
-from agents.planners import StraightToGoal, make_planner
-from agents.privileged import PrivilegedPlanner
+from agents.planners import PrivilegedPlanner, StraightToGoal, make_planner
 from envs.crowd_nav import ENV_REVISION, CrowdNavEnv
 from envs.crowds import scripted_recording
 
