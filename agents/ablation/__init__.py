@@ -13,10 +13,10 @@ The grid
     ``privileged``), training seeds, held-out splits and the fixed evaluation episode list.
     It expands into *cells*:
 
-    - ``train/<split>/<policy>/<arm>/seed<k>``: one training run (``agents.train.train``) of a learned
+    - ``train/<split>/<policy>/<arm>/seed<k>``: one training run (:func:`agents.training.run.train`) of a learned
       policy on the split's training scenes;
     - ``eval/<split>/<policy>/<arm>[/seed<k>]``: the trained model (its ``best`` or ``final`` model) or a
-      planner evaluated with ``agents.evaluate.evaluate`` on the split's held-out scene over the fixed
+      planner evaluated with :func:`agents.evaluation.run.evaluate` on the split's held-out scene over the fixed
       episode list (``evaluation.episodes`` episodes from ``evaluation.seed``), identical in every cell.
 
 Cells and their state

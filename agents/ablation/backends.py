@@ -73,13 +73,14 @@ class CellTask:
 
 
 def train_overrides(cell: Cell, env: Mapping[str, Any]) -> dict[str, Any]:
-    """Overrides of ``agents.train.load_train_config`` for a training cell (:func:`training_overrides`)."""
+    """Overrides of ``agents.training.config.load_train_config`` for a training cell (:func:`training_overrides`)."""
     return training_overrides(cell.policy, cell.arm, cell.split, cell.seed, env)
 
 
 def _run_train(task: CellTask, folder: Path) -> dict[str, Any]:
     """Train (or resume) one learned policy into ``folder / run``; returns counts for ``cell.json``."""
-    from agents.train import load_train_config, train
+    from agents.training.config import load_train_config
+    from agents.training.run import train
 
     cfg = load_train_config(folder / AGENT_CONFIG, None, train_overrides(task.cell, task.env))
     run = folder / TRAIN_RUN
@@ -92,7 +93,7 @@ def _run_train(task: CellTask, folder: Path) -> dict[str, Any]:
 
 def _run_eval(task: CellTask, folder: Path) -> dict[str, Any]:
     """Evaluate a trained model or a planner on the held-out scene; writes episodes.csv and summary.json."""
-    from agents.evaluate import evaluate
+    from agents.evaluation.run import evaluate
 
     cell = task.cell
     spec = task.model if cell.policy.learned else cell.policy.kind

@@ -67,8 +67,8 @@ class PrivilegedPlanner(_Planner):
     """PRIVILEGED: searches the rest of the episode for the fastest contact-free route, knowing every pedestrian's
     true future.
 
-    Layers of one control step: every state is expanded by :func:`agents.planners.search.motion_candidates` (16 headings
-    around the full circle x 3 speeds, 3 goal-directed speeds — the fastest arriving exactly —, standing: 52
+    Layers of one control step: every state is expanded by :func:`agents.planners.search.motion_candidates` (16
+    headings around the full circle x 3 speeds, 3 goal-directed speeds — the fastest arriving exactly —, standing: 52
     velocities), each velocity as the environment will command it (the float32 action, scaled and capped as
     ``env.step`` does). The robot's path is integrated per physics substep as the world does, and checked
     against every pedestrian of the replay at the substep ends (``replay.positions_at`` at

@@ -61,7 +61,7 @@ def _raw(tmp_path: Path, **changes: Any) -> dict[str, Any]:
 
 
 def test_planning_aid_config_expands_to_the_issue_grid() -> None:
-    cfg = ab.load_config(Path(__file__).resolve().parents[2] / "configs/ablation/planning_aid.yaml")
+    cfg = ab.load_config(Path(__file__).resolve().parents[3] / "configs/ablation/planning_aid.yaml")
     cells = ab.expand(cfg)
     train = [c for c in cells if c.kind == "train"]
     evals = [c for c in cells if c.kind == "eval"]
@@ -195,7 +195,7 @@ def test_only_selects_cells_and_their_training(tmp_path: Path) -> None:
 
 
 class Fakes:
-    """Stand-ins for agents.train / agents.evaluate that record their calls."""
+    """Stand-ins for training and evaluation (agents.training, agents.evaluation) that record their calls."""
 
     def __init__(self) -> None:
         self.train_calls: list[tuple[str, bool]] = []
@@ -327,7 +327,7 @@ def test_changed_weights_or_spec_make_cells_stale(
 def test_planner_options_and_the_environment_revision_are_part_of_a_cells_spec(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import agents.evaluate
+    import agents.evaluation.run as evaluation_run
     import envs.crowd_nav
 
     calls: dict[str, Any] = {}
@@ -337,7 +337,7 @@ def test_planner_options_and_the_environment_revision_are_part_of_a_cells_spec(
         _write_csv(Path(kw["out_dir"]) / "episodes.csv", _episode_rows("SC", [1.0, 1.0], [1.0, 2.0]))
         return {"episodes": 2}
 
-    monkeypatch.setattr(agents.evaluate, "evaluate", evaluate)
+    monkeypatch.setattr(evaluation_run, "evaluate", evaluate)
     raw = _raw(tmp_path, seeds=[0], arms=["none", "cv"], comparisons=[["cv", "none"]])
     raw["policies"] = {"planner": {"kind": "planner"}, "dense": {"kind": "planner", "options": {"candidates": "dense"}}}
     del raw["policy_comparisons"]
