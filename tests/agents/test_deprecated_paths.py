@@ -188,3 +188,14 @@ def test_python_dash_m_of_an_old_path_is_still_the_command(command: str) -> None
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith(f"usage: python -m {command} ")
+
+
+def test_a_name_that_left_a_live_module_warns_from_there() -> None:
+    """``agents.ablation.backends`` stays (the local backends); the cell runner moved to ``agents.ablation.execute``."""
+    from agents.ablation import backends, execute
+
+    assert backends.execute_cell is execute.execute_cell and backends.CellTask is execute.CellTask
+    with pytest.warns(DeprecationWarning, match="backends.train_overrides is deprecated"):
+        assert backends.train_overrides is execute.train_overrides
+    with pytest.raises(AttributeError):
+        backends.no_such_name  # noqa: B018
