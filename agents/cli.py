@@ -47,8 +47,9 @@ def _demo_policy(args: argparse.Namespace) -> tuple[str, str | None]:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from agents.evaluate import check_spaces, evaluation_env_kwargs, load_policy, run_settings
+    from agents.evaluation.run import evaluation_env_kwargs
     from agents.planners import PLANNERS
+    from agents.runs import check_spaces, load_policy, run_settings
     from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, data_available
     from envs.crowd_nav import CrowdNavEnv
     from envs.forecasting.factory import PredictorUnavailableError
@@ -151,7 +152,7 @@ def add_demo(sub: Any) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from agents.evaluate import export_policy
+    from agents.runs import export_policy
 
     dest = export_policy(args.run, args.dest, args.model)
     print(f"wrote {dest} and {dest.with_suffix('.yaml')} ({dest.stat().st_size / 1e6:.2f} MB)")
@@ -159,10 +160,11 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def add_agent(sub: Any) -> None:
-    from agents.evaluate import RUN_MODELS, add_evaluate_arguments
-    from agents.evaluate import run_from_args as evaluate_from_args
-    from agents.train import add_train_arguments
-    from agents.train import run_from_args as train_from_args
+    from agents.evaluation.cli import add_evaluate_arguments
+    from agents.evaluation.cli import run_from_args as evaluate_from_args
+    from agents.runs import RUN_MODELS
+    from agents.training.cli import add_train_arguments
+    from agents.training.cli import run_from_args as train_from_args
 
     p = sub.add_parser("agent", help="train and evaluate navigation policies (PPO, SAC, planners)")
     asub = p.add_subparsers(dest="agent_cmd", required=True, metavar="ACTION")

@@ -54,7 +54,7 @@ def _reset_option() -> None:
 
 def _train(key: str) -> Callable[[], Any]:
     def load() -> Any:
-        from agents.train import load_train_config
+        from agents.training.config import load_train_config
 
         return load_train_config(REPO / "configs" / "agent" / "ppo.yaml", None, {key: 1, "env.crowd": "synthetic"})
 

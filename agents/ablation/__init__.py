@@ -13,10 +13,10 @@ The grid
     ``privileged``), training seeds, held-out splits and the fixed evaluation episode list.
     It expands into *cells*:
 
-    - ``train/<split>/<policy>/<arm>/seed<k>``: one training run (``agents.train.train``) of a learned
+    - ``train/<split>/<policy>/<arm>/seed<k>``: one training run (:func:`agents.training.run.train`) of a learned
       policy on the split's training scenes;
     - ``eval/<split>/<policy>/<arm>[/seed<k>]``: the trained model (its ``best`` or ``final`` model) or a
-      planner evaluated with ``agents.evaluate.evaluate`` on the split's held-out scene over the fixed
+      planner evaluated with :func:`agents.evaluation.run.evaluate` on the split's held-out scene over the fixed
       episode list (``evaluation.episodes`` episodes from ``evaluation.seed``), identical in every cell.
 
 Cells and their state
@@ -69,14 +69,7 @@ The answer
 
 from __future__ import annotations
 
-from agents.ablation.backends import (
-    CellTask,
-    build_forecast_caches,
-    execute_cell,
-    replicate,
-    run_grid,
-    train_overrides,
-)
+from agents.ablation.backends import build_forecast_caches, replicate, run_grid
 from agents.ablation.cells import (
     Cell,
     CellStatus,
@@ -117,6 +110,7 @@ from agents.ablation.config import (
     load_config,
 )
 from agents.ablation.episodes import ARCHIVE_KEYS, aggregate, cell_record, episodes_archive, read_archive, read_episodes
+from agents.ablation.execute import CellTask, execute_cell, train_overrides
 from agents.ablation.plots import write_plots
 from agents.ablation.ray_backend import CONNECT_TIMEOUT_S, RayBackend, check_address, execute_shipped
 from agents.ablation.report import summary_markdown

@@ -42,7 +42,7 @@ UNCERTAINTY_KINDS: Final[tuple[str, ...]] = ("planner", "search")
 #: Policy kinds: learned ones are trained per arm and seed, the others only evaluated.
 POLICY_KINDS: Final[tuple[str, ...]] = ("ppo", "sac", "planner", "search", "privileged", "straight")
 
-#: The privileged ceiling (reads the replay's true future, :mod:`agents.privileged`): a measuring stick whose
+#: The privileged ceiling (reads the replay's true future, :mod:`agents.planners.privileged`): a measuring stick whose
 #: success every other policy is also reported as a fraction of, never a competitor.
 PRIVILEGED_KIND: Final[str] = "privileged"
 
@@ -174,9 +174,9 @@ class PolicySpec:
     model: str = "best"
     """Learned kinds: ``best`` (selected on validation episodes of the training scenes) or ``final`` model."""
     overrides: Mapping[str, Any] = field(default_factory=dict)
-    """Learned kinds: further overrides passed to ``agents.train.load_train_config``."""
+    """Learned kinds: further overrides passed to ``agents.training.config.load_train_config``."""
     options: Mapping[str, Any] = field(default_factory=dict)
-    """Planner kinds: the planner's options (``agents.evaluate.evaluate``'s ``planner_kwargs``, e.g. the sampling
+    """Planner kinds: the planner's options (``agents.evaluation.run.evaluate``'s ``planner_kwargs``, e.g. the sampling
     planner's ``candidates: dense``); part of the cell's spec."""
     arms: tuple[str, ...] = ()
     """Arm labels this policy runs (empty = every arm of the grid); e.g. the cheap planner runs the
@@ -200,7 +200,7 @@ class AblationConfig:
     seeds: tuple[int, ...]
     policies: tuple[PolicySpec, ...]
     episodes: int
-    """Evaluation episodes per cell (the fixed list of ``agents.evaluate.evaluation_seeds``)."""
+    """Evaluation episodes per cell (the fixed list of ``agents.rollout.evaluation_seeds``)."""
     eval_seed: int = 0
     """Seed of the fixed evaluation episode list."""
     env: Mapping[str, Any] = field(default_factory=dict)
@@ -391,7 +391,7 @@ def _check_uncertainty_arms(policies: Sequence[PolicySpec], arms: Sequence[Arm])
 def training_overrides(
     policy: PolicySpec, arm: Arm, split: str, seed: int | None, env: Mapping[str, Any]
 ) -> dict[str, Any]:
-    """Overrides of ``agents.train.load_train_config`` for one training run of the grid: the run (predictor,
+    """Overrides of ``agents.training.config.load_train_config`` for one training run of the grid: the run (predictor,
     split, seed), the budget (``n_timesteps``, ``n_envs``), the grid's and the arm's environment settings
     (``env.<key>``), then the policy's own ``overrides`` (which may not set the keys before them)."""
     cell_env = {**dict(env), **arm.env_overrides()}
@@ -420,7 +420,7 @@ def _did_you_mean(message: str, overrides: Mapping[str, Any]) -> str:
 
 def _check_training(policies: Sequence[PolicySpec], arms: Sequence[Arm], split: str, seed: int, env: Mapping) -> None:
     """Load the training config of every learned policy with each forecast source it trains on, as a cell
-    would (``agents.train.load_train_config``), so a wrong override or agent config fails now, not when the
+    would (``agents.training.config.load_train_config``), so a wrong override or agent config fails now, not when the
     cell starts. Raises :class:`ConfigError` naming ``policies.<name>``."""
     for policy in (p for p in policies if p.learned):
         where = f"policies.{policy.name}"
@@ -433,7 +433,7 @@ def _check_training(policies: Sequence[PolicySpec], arms: Sequence[Arm], split: 
                 )
         if not Path(policy.config or "").is_file():
             raise _bad(f"{where}.config", policy.config, "an existing agent YAML (relative to the working directory)")
-        from agents.train import load_train_config
+        from agents.training.config import load_train_config
 
         seen: set[str] = set()
         for arm in (a for a in arms if policy.uses(a)):

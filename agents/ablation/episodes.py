@@ -60,10 +60,10 @@ class _Episodes:
 
 
 def aggregate(episodes: _Episodes) -> dict[str, Any]:
-    """The evaluation's own aggregates (:func:`agents.evaluate.summarise`) of the pooled episodes: rates with
+    """The evaluation's own aggregates (:func:`agents.evaluation.summary.summarise`) of the pooled episodes: rates with
     Wilson intervals, metric means with bootstrap intervals (navigation time and path ratio over successful
     episodes; the forecast ADE is undefined in the ``none`` arm)."""
-    from agents.evaluate import summarise
+    from agents.evaluation.summary import summarise
 
     return summarise(episodes.rows)
 
@@ -116,7 +116,7 @@ def cell_record(st: CellStatus) -> dict[str, Any]:
 
 
 #: Leading columns of the results' combined ``episodes.csv.gz`` (the cell and the episode), then every
-#: per-episode metric of :data:`agents.evaluate.METRICS`.
+#: per-episode metric of :data:`agents.rollout.METRICS`.
 ARCHIVE_KEYS: Final[tuple[str, ...]] = ("policy", "arm", "split", "seed", "episode", "outcome")
 #: Per-episode counts archived after the metrics: pop-in events (a track that began on the robot, ``envs.popin``),
 #: which the summary counts per cell (``popin_episodes``, ``popin_events``).
@@ -138,7 +138,7 @@ def episodes_archive(pooled: Mapping[tuple[str, str], _Episodes]) -> bytes:
     computed from this file (:func:`read_archive`), so the results alone reproduce it."""
     import gzip
 
-    from agents.evaluate import METRICS
+    from agents.rollout import METRICS
 
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")

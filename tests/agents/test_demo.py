@@ -65,7 +65,7 @@ def test_export_drops_the_optimizer_state_but_not_the_policy(tiny_ppo_run: Path,
     import torch
     from stable_baselines3 import PPO
 
-    from agents.evaluate import model_path
+    from agents.runs import model_path
 
     source = model_path(tiny_ppo_run)
     assert exported.stat().st_size < source.stat().st_size

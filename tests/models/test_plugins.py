@@ -153,7 +153,7 @@ def test_gymnasium_make_and_config_accept_a_plugin(
 def test_agents_evaluate_accepts_a_plugin(
     monkeypatch: pytest.MonkeyPatch, plugin_module: str, data_dir: Path, tmp_path: Path
 ) -> None:
-    from agents.evaluate import main as evaluate_main
+    from agents.evaluation.cli import main as evaluate_main
 
     fake_entry_points(monkeypatch, ("still", f"{plugin_module}:StandStill", "still-dist", "1.0"))
     argv = ["planner", "--predictor", "still", "--split", "zara1", "--episodes", "2", "--n-envs", "1"]

@@ -1,5 +1,5 @@
-"""agents.train interrupted mid-rollout: the checkpoint it leaves is the last round boundary, so the resumed run
-ends at exactly its budget (issue 16, item 7)."""
+"""Training interrupted mid-rollout: the checkpoint it leaves is the last round boundary, so the resumed run ends at
+exactly its budget."""
 
 from __future__ import annotations
 
@@ -8,13 +8,16 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from stable_baselines3 import PPO
 
-import agents.train as at
+from agents.training.callbacks import Checkpoint
+from agents.training.config import load_train_config
+from agents.training.run import train
 
 
 def _interrupt_at(monkeypatch: pytest.MonkeyPatch, step: int) -> None:
     """A KeyboardInterrupt (Ctrl-C) raised by the first env step at or past ``step`` (inside a rollout)."""
-    original = at.Checkpoint._on_step
+    original = Checkpoint._on_step
 
     def on_step(self: Any) -> bool:
         if self.model.num_timesteps >= step and not getattr(self, "_fired", False):
@@ -22,7 +25,7 @@ def _interrupt_at(monkeypatch: pytest.MonkeyPatch, step: int) -> None:
             raise KeyboardInterrupt
         return original(self)
 
-    monkeypatch.setattr(at.Checkpoint, "_on_step", on_step)
+    monkeypatch.setattr(Checkpoint, "_on_step", on_step)
 
 
 @pytest.mark.parametrize("normalize", [False, True])
@@ -34,15 +37,15 @@ def test_an_interrupt_mid_rollout_resumes_to_exactly_the_budget(
     over["pretrain"] = None
     if normalize:
         over["normalize"] = True
-    cfg = at.load_train_config(config_of("ppo"), None, over)
+    cfg = load_train_config(config_of("ppo"), None, over)
     run = tmp_path / "run"
     _interrupt_at(monkeypatch, 100)  # inside the second round (steps 64-128)
     with pytest.raises(KeyboardInterrupt):
-        at.train(cfg, run, progress=False, command="pytest")
+        train(cfg, run, progress=False, command="pytest")
     latest = json.loads((run / "checkpoints" / "latest.json").read_text())
     assert latest["steps"] == 64  # the round boundary, not step 100
     monkeypatch.undo()
-    at.train(cfg, run, resume=True, progress=False, command="pytest")
+    train(cfg, run, resume=True, progress=False, command="pytest")
     assert json.loads((run / "DONE").read_text())["steps"] == 256
     assert "# resumed from step_0000000064" in (run / "command.txt").read_text()
 
@@ -52,9 +55,9 @@ def test_an_interrupt_during_the_update_keeps_the_last_checkpoint(
 ) -> None:
     over = tiny("ppo", "none", steps=256, checkpoint_freq_steps=64, **{"eval.freq_steps": 0})
     over["pretrain"] = None
-    cfg = at.load_train_config(config_of("ppo"), None, over)
+    cfg = load_train_config(config_of("ppo"), None, over)
     run = tmp_path / "run"
-    original = at.PPO.train
+    original = PPO.train
     calls = {"n": 0}
 
     def train_step(self: Any) -> None:  # the gradient update of the second round is interrupted
@@ -63,11 +66,11 @@ def test_an_interrupt_during_the_update_keeps_the_last_checkpoint(
             raise KeyboardInterrupt
         original(self)
 
-    monkeypatch.setattr(at.PPO, "train", train_step)
+    monkeypatch.setattr(PPO, "train", train_step)
     with pytest.raises(KeyboardInterrupt):
-        at.train(cfg, run, progress=False, command="pytest")
+        train(cfg, run, progress=False, command="pytest")
     # half-updated weights are not saved: the checkpoint is the one at the start of the second round
     assert json.loads((run / "checkpoints" / "latest.json").read_text())["steps"] == 64
     monkeypatch.undo()
-    at.train(cfg, run, resume=True, progress=False, command="pytest")
+    train(cfg, run, resume=True, progress=False, command="pytest")
     assert json.loads((run / "DONE").read_text())["steps"] == 256

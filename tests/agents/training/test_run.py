@@ -1,9 +1,8 @@
-"""Training configs (RL Zoo layout, overrides, validation) and short real PPO/SAC runs per forecast arm."""
+"""Short real PPO/SAC runs per forecast arm: the run folder, resuming, the warm start, the command line."""
 
 from __future__ import annotations
 
 import csv
-import inspect
 import json
 import warnings
 from pathlib import Path
@@ -12,20 +11,13 @@ from typing import Any
 import pytest
 import yaml
 
-from agents.train import (
-    ENV_ID_OF,
-    PROJECT_KEY,
-    ZOO_KEYS,
-    LinearSchedule,
-    algorithm_kwargs,
-    load_train_config,
-    policy_class,
-    train,
-)
-from crowdnav_mesrnn.config import ConfigError, load_yaml
+from agents.runs import PROJECT_KEY
+from agents.training.config import load_train_config
+from agents.training.run import steps_trained, train
+from crowdnav_mesrnn.config import ConfigError
 
 ARMS = ("none", "cv", "mesrnn", "oracle")
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 PPO_YAML = REPO / "configs" / "agent" / "ppo.yaml"
 SAC_YAML = REPO / "configs" / "agent" / "sac.yaml"
 SMOKE_YAML = REPO / "configs" / "agent" / "ppo_smoke.yaml"
@@ -39,91 +31,6 @@ RUN_FILES = (
     "final_model.zip",
     "DONE",
 )
-
-
-@pytest.mark.parametrize("path", [PPO_YAML, SAC_YAML, SMOKE_YAML])
-def test_config_files_are_rl_zoo_entries_per_env_id(path: Path) -> None:
-    """What RL Zoo does with an entry: drop its own keys and pass the rest to the algorithm's constructor."""
-    from stable_baselines3 import PPO, SAC
-
-    raw = yaml.safe_load(path.read_text())
-    algo = raw[PROJECT_KEY]["algo"]
-    params = inspect.signature({"ppo": PPO, "sac": SAC}[algo].__init__).parameters
-    for env_id in set(ENV_ID_OF.values()):
-        entry = dict(raw[env_id])
-        assert entry == raw["CrowdNav-MESRNN-v0"]  # every arm the same hyperparameters
-        assert isinstance(entry["policy_kwargs"], dict)  # plain data (RL Zoo would eval a string)
-        assert policy_class(entry["policy"]).__module__ == "agents.extractors"
-        for key in ZOO_KEYS:
-            entry.pop(key, None)
-        assert set(entry) <= set(params), set(entry) - set(params)
-
-
-def test_overrides_go_to_the_entry_or_the_project_section() -> None:
-    cfg = load_train_config(
-        PPO_YAML,
-        None,
-        {
-            "predictor": "cv",
-            "split": "univ",
-            "seed": 3,
-            "learning_rate": "lin_1e-3",
-            "env.time_penalty": -0.01,
-            "eval.episodes": 7,
-            "policy_kwargs.net_arch": [32],
-            "pretrain.episodes": 5,
-        },
-    )
-    assert (cfg.algo, cfg.env_id, cfg.predictor, cfg.split, cfg.seed) == ("ppo", "CrowdNav-CV-v0", "cv", "univ", 3)
-    assert cfg.env["time_penalty"] == -0.01 and cfg.env["observe_time_left"] is True
-    assert cfg.eval.episodes == 7 and cfg.policy_kwargs["net_arch"] == [32]
-    shipped = load_yaml(PPO_YAML)["CrowdNav-MESRNN-v0"]["policy_kwargs"]["features_extractor_kwargs"]
-    assert cfg.policy_kwargs["features_extractor_kwargs"] == shipped  # siblings of the overridden key kept
-    assert cfg.pretrain is not None and cfg.pretrain.episodes == 5 and cfg.pretrain.teacher == "planner"
-    kwargs = algorithm_kwargs(cfg)
-    assert isinstance(kwargs["learning_rate"], LinearSchedule) and kwargs["learning_rate"](0.5) == 5e-4
-    assert cfg.env_kwargs("val") == {
-        **cfg.env,
-        "predictor": "cv",
-        "split": "univ",
-        "part": "train",
-        "episode_time": "val",
-    }
-    # a second load is unaffected (the YAML aliases are copied, not shared)
-    assert (
-        load_train_config(PPO_YAML).policy_kwargs["net_arch"]
-        == load_yaml(PPO_YAML)["CrowdNav-MESRNN-v0"]["policy_kwargs"]["net_arch"]
-    )
-    assert load_train_config(PPO_YAML, None, {"predictor": "srnn"}).env_id == "CrowdNav-MESRNN-v0"
-
-
-@pytest.mark.parametrize(
-    ("overrides", "message"),
-    [
-        ({"learning_rat": 1e-3}, "learning_rat"),
-        ({"env.colision_penalty": -1}, "colision_penalty"),
-        ({"env.predictor": "cv"}, "set by the run"),
-        ({"env.time_penalty": "x"}, "time_penalty"),
-        ({"eval.episode": 3}, "episode"),
-        ({"pretrain.teacher": "ppo"}, "teacher"),
-        ({"policy_kwargs": "dict(net_arch=[64])"}, "eval"),
-        ({"n_timesteps": -5}, "n_timesteps"),
-        ({"predictor": "lstm"}, "predictor"),
-        ({"vec_env": "ray"}, "vec_env"),
-        ({"frame_stack": 4}, "frame_stack"),
-    ],
-)
-def test_bad_configs_name_the_key(overrides: dict, message: str) -> None:
-    with pytest.raises(ConfigError, match=message):
-        load_train_config(PPO_YAML, None, overrides)
-
-
-def test_missing_entry_lists_the_entries(tmp_path: Path) -> None:
-    path = tmp_path / "x.yaml"
-    path.write_text("CrowdNav-CV-v0: {n_timesteps: 10, policy: MultiInputPolicy}\ncrowdnav_mesrnn: {algo: ppo}\n")
-    with pytest.raises(ConfigError, match="CrowdNav-CV-v0"):
-        load_train_config(path)
-    assert load_train_config(path, None, {"predictor": "cv"}).policy == "MultiInputPolicy"
 
 
 def _check_run_folder(run: Path, steps: int, predictor: str) -> None:
@@ -180,7 +87,7 @@ def test_a_finished_or_foreign_folder_is_not_overwritten(tiny_ppo_run: Path, tmp
 
 
 def test_command_line_trains_and_resumes(tmp_path: Path, tiny: Any) -> None:
-    from agents.train import main
+    from agents.training.cli import main
 
     run = tmp_path / "cli"
     sets = [f"--set={k}={json.dumps(v)}" for k, v in tiny("ppo", "cv", steps=64).items() if k != "predictor"]
@@ -205,7 +112,7 @@ def test_warm_start_runs_before_rl_and_is_validated_at_step_zero(tmp_path: Path,
 
 @pytest.mark.slow
 def test_subprocess_workers_with_observation_normalisation_resume_and_evaluate(tmp_path: Path, tiny: Any) -> None:
-    from agents.evaluate import evaluate
+    from agents.evaluation.run import evaluate
 
     extra = {"n_envs": 2, "vec_env": "subproc", "normalize": True, "n_steps": 32}
     run = tmp_path / "subproc"
@@ -220,7 +127,8 @@ def test_subprocess_workers_with_observation_normalisation_resume_and_evaluate(t
 
 def test_discrete_goal_relative_actions_train_warm_start_and_evaluate(tmp_path: Path, tiny: Any) -> None:
     from agents.actions import DiscretePolicy
-    from agents.evaluate import evaluate, load_policy
+    from agents.evaluation.run import evaluate
+    from agents.runs import load_policy
 
     extra = {"action.kind": "discrete", "pretrain.episodes": 3, "pretrain.epochs": 1}
     cfg = load_train_config(PPO_YAML, None, tiny("ppo", "cv", steps=64, **extra))
@@ -270,8 +178,6 @@ def test_training_on_scenes_without_data_fails_before_the_run_starts(
     ],
 )
 def test_steps_trained_round_up_to_whole_rollouts(algo: str, extra: dict, asked: int, trained: int, tiny: Any) -> None:
-    from agents.train import steps_trained
-
     path = PPO_YAML if algo == "ppo" else SAC_YAML
     cfg = load_train_config(path, None, tiny(algo, "none", steps=asked, **extra))
     assert steps_trained(cfg) == trained
@@ -292,7 +198,7 @@ def test_without_tensorboard_the_run_says_once_that_it_writes_no_tb_logs(
     import importlib.util
     import warnings
 
-    from agents import train as train_module
+    from agents.training import logger as train_module
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "tensorboard" else real(name, *a))

@@ -61,7 +61,7 @@ def _raw(tmp_path: Path, **changes: Any) -> dict[str, Any]:
 
 
 def test_planning_aid_config_expands_to_the_issue_grid() -> None:
-    cfg = ab.load_config(Path(__file__).resolve().parents[2] / "configs/ablation/planning_aid.yaml")
+    cfg = ab.load_config(Path(__file__).resolve().parents[3] / "configs/ablation/planning_aid.yaml")
     cells = ab.expand(cfg)
     train = [c for c in cells if c.kind == "train"]
     evals = [c for c in cells if c.kind == "eval"]
@@ -195,7 +195,7 @@ def test_only_selects_cells_and_their_training(tmp_path: Path) -> None:
 
 
 class Fakes:
-    """Stand-ins for agents.train / agents.evaluate that record their calls."""
+    """Stand-ins for training and evaluation (agents.training, agents.evaluation) that record their calls."""
 
     def __init__(self) -> None:
         self.train_calls: list[tuple[str, bool]] = []
@@ -236,9 +236,10 @@ class Fakes:
 @pytest.fixture
 def fakes(monkeypatch: pytest.MonkeyPatch) -> Fakes:
     f = Fakes()
-    monkeypatch.setattr(ab.backends, "_run_train", f.train)
-    monkeypatch.setattr(ab.backends, "_run_eval", f.evaluate)
-    for module in (ab, ab.cells, ab.backends):  # the package, and where cell states and the cell runner look it up
+    monkeypatch.setattr(ab.execute, "_run_train", f.train)
+    monkeypatch.setattr(ab.execute, "_run_eval", f.evaluate)
+    # the package, and where cell states, the grid's tasks and the cell runner look it up
+    for module in (ab, ab.cells, ab.backends, ab.execute):
         monkeypatch.setattr(module, "weights_fingerprint", lambda p: {"mesrnn_zara1.pt": "v1"} if p == "mesrnn" else {})
     monkeypatch.setattr(ab.backends, "build_forecast_caches", lambda *a, **k: [])
     return f
@@ -294,7 +295,7 @@ def test_changed_weights_or_spec_make_cells_stale(
 ) -> None:
     cfg = ab.config_from_mapping(_raw(tmp_path))
     ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
-    for module in (ab, ab.cells, ab.backends):
+    for module in (ab, ab.cells, ab.backends, ab.execute):
         monkeypatch.setattr(module, "weights_fingerprint", lambda p: {"mesrnn_zara1.pt": "v2"} if p == "mesrnn" else {})
     states = ab.plan(cfg)
     stale = sorted(st.cell.name for st in states if st.state == "stale")
@@ -327,7 +328,7 @@ def test_changed_weights_or_spec_make_cells_stale(
 def test_planner_options_and_the_environment_revision_are_part_of_a_cells_spec(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import agents.evaluate
+    import agents.evaluation.run as evaluation_run
     import envs.crowd_nav
 
     calls: dict[str, Any] = {}
@@ -337,7 +338,7 @@ def test_planner_options_and_the_environment_revision_are_part_of_a_cells_spec(
         _write_csv(Path(kw["out_dir"]) / "episodes.csv", _episode_rows("SC", [1.0, 1.0], [1.0, 2.0]))
         return {"episodes": 2}
 
-    monkeypatch.setattr(agents.evaluate, "evaluate", evaluate)
+    monkeypatch.setattr(evaluation_run, "evaluate", evaluate)
     raw = _raw(tmp_path, seeds=[0], arms=["none", "cv"], comparisons=[["cv", "none"]])
     raw["policies"] = {"planner": {"kind": "planner"}, "dense": {"kind": "planner", "options": {"candidates": "dense"}}}
     del raw["policy_comparisons"]
@@ -390,7 +391,7 @@ def test_a_first_ctrl_c_waits_for_the_running_cells_and_a_second_stops_them(
             os.kill(os.getpid(), signal.SIGINT)
         return original(task, folder)
 
-    monkeypatch.setattr(ab.backends, "_run_train", train)
+    monkeypatch.setattr(ab.execute, "_run_train", train)
     lines: list[str] = []
     only = "train/zara1/ppo/none/seed0,eval/zara1/planner/*"
     result = ab.run_grid(cfg, workers=1, only=only, out=lines.append)
@@ -419,7 +420,7 @@ def test_a_first_ctrl_c_waits_for_the_running_cells_and_a_second_stops_them(
     assert fakes.train_calls == [("train/zara1/ppo/none/seed1", True)]
 
 
-class _QueueBackend(ab.backends._Backend):
+class _QueueBackend(ab.execute._Backend):
     """A backend that runs a cell only when the grid waits for it (as a process pool does), of ``capacity`` 2."""
 
     capacity = 2
@@ -437,7 +438,7 @@ class _QueueBackend(ab.backends._Backend):
 
     def wait_one(self, handles: Any) -> tuple[Any, dict[str, Any]]:
         handle = next(iter(handles))
-        return handle, ab.backends.execute_cell(self.tasks.pop(handle))
+        return handle, ab.execute.execute_cell(self.tasks.pop(handle))
 
 
 def test_a_pool_is_handed_no_more_cells_than_it_runs_so_a_first_ctrl_c_starts_no_other(
@@ -453,7 +454,7 @@ def test_a_pool_is_handed_no_more_cells_than_it_runs_so_a_first_ctrl_c_starts_no
             os.kill(os.getpid(), signal.SIGINT)  # the first Ctrl-C, while two cells are with the backend
         return original(task, folder)
 
-    monkeypatch.setattr(ab.backends, "_run_train", train)
+    monkeypatch.setattr(ab.execute, "_run_train", train)
     lines: list[str] = []
     result = ab.run_grid(cfg, workers=2, out=lines.append)
     assert backend.most_outstanding == 2  # before the fix every ready cell (here 6) was queued at once
@@ -793,17 +794,17 @@ def test_replicate_reruns_cells_in_a_scratch_folder_and_compares_episodes(
 
         return evaluate
 
-    monkeypatch.setattr(ab.backends, "_run_eval", changed("outcome", "timeout"))
+    monkeypatch.setattr(ab.execute, "_run_eval", changed("outcome", "timeout"))
     lines.clear()
     assert ab.replicate(cfg, "eval/zara1/planner/none", tmp_path / "replica2", workers=1, out=lines.append) == 1
     assert "eval/zara1/planner/none: 3/4 episodes identical in all 6 columns, 3/4 outcomes" in "\n".join(lines)
-    monkeypatch.setattr(ab.backends, "_run_eval", changed("return", "99.0"))
+    monkeypatch.setattr(ab.execute, "_run_eval", changed("return", "99.0"))
     lines.clear()
     assert ab.replicate(cfg, "eval/zara1/planner/none", tmp_path / "replica3", workers=1, out=lines.append) == 1
     assert "3/4 episodes identical in all 6 columns, 4/4 outcomes" in "\n".join(lines)
 
     # A grid cell that is not done (here: its model changed since it was evaluated) is not compared.
-    monkeypatch.setattr(ab.backends, "_run_eval", original)
+    monkeypatch.setattr(ab.execute, "_run_eval", original)
     (ab.cell_dir(cfg, "train/zara1/ppo/none/seed0") / ab.TRAIN_RUN / "best_model.zip").write_bytes(b"retrained")
     lines.clear()
     assert ab.replicate(cfg, "eval/zara1/ppo/none/seed0", tmp_path / "replica4", workers=1, out=lines.append) == 1

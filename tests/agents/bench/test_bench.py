@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.bench import BenchConfig, run_bench
 from agents.bench.metrics import protocol_batch_fn
 from agents.bench.planner import bench_grid
+from agents.bench.run import BenchConfig, run_bench
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data.windows import split_windows
 from crowdnav_mesrnn.evaluation.metrics import cv_predict_batch, window_errors

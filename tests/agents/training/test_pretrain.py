@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from agents.pretrain import PretrainConfig, collect_teacher, discounted_returns, fit_policy
-from agents.train import algorithm_kwargs, load_train_config, make_vec_env, policy_class
+from agents.training.config import algorithm_kwargs, load_train_config, policy_class
+from agents.training.pretrain import PretrainConfig, collect_teacher, discounted_returns, fit_policy
+from agents.training.run import make_vec_env
 
 ENV = {"predictor": "cv", "crowd": "synthetic", "part": "train", "episode_time": "train", "observe_time_left": True}
 
@@ -72,7 +73,7 @@ def test_dagger_rounds_label_the_students_states_with_the_teachers_actions(confi
 
     from agents.actions import GoalRelativeActions
     from agents.planners import SamplingPlanner
-    from agents.pretrain import pretrain, student_policy
+    from agents.training.pretrain import pretrain, student_policy
     from envs.config import config_from
 
     cfg = load_train_config(config_of("ppo"), None, tiny("ppo", "cv", vec_env="dummy", **{"action.kind": "discrete"}))
@@ -163,8 +164,8 @@ class _CountingTeacher:
 
 
 def test_a_teacher_that_reads_the_environments_labels_at_every_step(monkeypatch: pytest.MonkeyPatch) -> None:
-    from agents import pretrain as pretrain_module
     from agents.planners import StraightToGoal
+    from agents.training import pretrain as pretrain_module
     from envs.config import config_from
 
     teacher = _CountingTeacher()

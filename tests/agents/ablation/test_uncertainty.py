@@ -13,7 +13,7 @@ import pytest
 import agents.ablation as ab
 from crowdnav_mesrnn.config import ConfigError
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 TINY_AGENT = "CrowdNav-CV-v0: {policy: MultiInputPolicy, n_timesteps: 64, n_steps: 64}\ncrowdnav_mesrnn: {algo: ppo}\n"
 
 
@@ -170,7 +170,7 @@ def test_the_forecast_cache_of_an_uncertainty_arm_is_its_sources(
 def test_a_cell_gives_the_environment_and_the_planner_the_uncertainty_option(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import agents.evaluate
+    import agents.evaluation.run as evaluation_run
 
     calls: dict[str, Any] = {}
 
@@ -184,7 +184,7 @@ def test_a_cell_gives_the_environment_and_the_planner_the_uncertainty_option(
         (Path(kw["out_dir"]) / "episodes.csv").write_text("episode,seed,outcome\n0,1,success\n", encoding="utf-8")
         return {"episodes": 1}
 
-    monkeypatch.setattr(agents.evaluate, "evaluate", evaluate)
+    monkeypatch.setattr(evaluation_run, "evaluate", evaluate)
     monkeypatch.setattr(ab.backends, "build_forecast_caches", lambda *a, **k: [])
     raw = _raw(tmp_path, arms=["cv", "cv_unc"], comparisons=[], env={"crowd": "synthetic"})
     raw["policies"]["planner"]["options"] = {"candidates": "dense"}
@@ -210,10 +210,10 @@ def test_a_cell_gives_the_environment_and_the_planner_the_uncertainty_option(
 def test_a_tiny_grid_with_an_uncertainty_arm_plans_with_the_regions(
     tmp_path: Path, data_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import agents.evaluate
+    import agents.evaluation.run as evaluation_run
 
     seen: dict[tuple[str, str], dict[str, Any]] = {}
-    original = agents.evaluate.run_episodes
+    original = evaluation_run.run_episodes
 
     def run_episodes(policy: Any, envs: Any, seeds: Any, **kw: Any) -> Any:
         key = (type(policy).__name__, envs[0].config.predictor)
@@ -236,7 +236,7 @@ def test_a_tiny_grid_with_an_uncertainty_arm_plans_with_the_regions(
         policy.predict = watched
         return original(policy, envs, seeds, **kw)
 
-    monkeypatch.setattr(agents.evaluate, "run_episodes", run_episodes)
+    monkeypatch.setattr(evaluation_run, "run_episodes", run_episodes)
     cfg = ab.config_from_mapping(_raw(tmp_path, arms=["cv", "cv_unc"], comparisons=[["cv_unc", "cv"]]))
     result = ab.run_grid(cfg, workers=1, out=lambda s: None)
     assert not result["failed"], result["failed"]

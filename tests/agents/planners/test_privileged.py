@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.evaluate import ceiling_fraction, evaluate, format_summary, main, read_episodes
-from agents.planners import StraightToGoal, make_planner
-from agents.privileged import PrivilegedPlanner
+from agents.evaluation.cli import main
+from agents.evaluation.run import evaluate
+from agents.evaluation.summary import ceiling_fraction, format_summary, read_episodes
+from agents.planners import PrivilegedPlanner, StraightToGoal, make_planner
 from envs.crowd_nav import ENV_REVISION, CrowdNavEnv
 from envs.crowds import scripted_recording
 

@@ -14,7 +14,7 @@ from matplotlib.text import Text
 
 from agents.ablation.plots import DENSITY_ARMS, _edge, _label_points, write_plots
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def _boxes_overlap(a, b) -> bool:  # type: ignore[no-untyped-def]
