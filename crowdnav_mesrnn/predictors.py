@@ -8,7 +8,10 @@ arm, ``forecasts build --predictor``, ``bench``) is known here and nowhere else;
 - :func:`kind` says what a name is (:data:`KINDS`): no forecast, the replay's true future (with or without
   noise), a weightless shipped baseline, shipped weights per leave-one-out split, or a plug-in;
 - :func:`check` accepts a name or raises :class:`PluginError` listing the valid ones;
-- :func:`load` returns a ready predictor, ``factory(split=SPLIT)`` of a registered name or an import path.
+- :func:`load` returns a ready predictor, ``factory(split=SPLIT)`` of a registered name or an import path;
+- :func:`check_forecast` accepts a forecast (numbers, the promised shape, finite where read) or raises
+  :class:`ForecastError` naming the predictor, the recording and the frame: every forecast passes it where it enters
+  the environment, the disk cache and ``bench``.
 
 A name goes from here to its user and does not come back: the environment asks :func:`kind` which forecast source
 to build and :func:`load` for the predictor of each split.
@@ -126,6 +129,79 @@ class DistributionPredictor(Protocol):
 
 class PluginError(ConfigError):
     """A predictor name or import path that cannot be resolved or loaded, or a plug-in breaking the protocol."""
+
+
+class ForecastError(PluginError):
+    """A predictor returned forecasts that cannot be used: not numbers, of the wrong shape, or not finite where they
+    are read (:func:`check_forecast`)."""
+
+
+def check_forecast(
+    out: Any,
+    *,
+    name: str,
+    expected_shape: tuple[int, ...],
+    recording: str,
+    frame: int | str | np.ndarray,
+    time_s: float | np.ndarray | None = None,
+    rows: np.ndarray | None = None,
+) -> np.ndarray:
+    """``out`` as an array once it is what the protocol promises: numbers of ``expected_shape`` (``(N, pred_len, 2)``
+    for :meth:`forecast`), finite in every row that is read. The one check every forecast passes where it enters the
+    project: the environment's sources (window and carried), the disk cache (no chunk is written otherwise) and
+    ``bench``.
+
+    Args:
+        out: what the predictor returned.
+        name: the predictor as the user chose it (a plug-in's registered name, a shipped name, an object's ``name``).
+        expected_shape: the shape ``out`` must have.
+        recording: what was forecast (a recording's name).
+        frame: where in it: an annotation frame, a label (``"window starting at frame 1230"``), or ``(N,)`` the
+            frame of each row of a batch over several frames (the first bad row's frame is named).
+        time_s: the time of ``frame`` in the recording, seconds (a scalar, or ``(N,)`` per row), if known.
+        rows: the rows that are read, a boolean mask ``(N,)`` or indices (default: all). Only they must be finite:
+            the protocol leaves the rows of pedestrians absent at the last observed step unread.
+
+    Raises:
+        ForecastError: naming the predictor, the recording, the frame (and time) and what was wrong.
+    """
+
+    def where(row: int | None) -> str:
+        at = frame if not isinstance(frame, np.ndarray) else frame[row if row is not None else 0]
+        t = time_s if not isinstance(time_s, np.ndarray) else time_s[row if row is not None else 0]
+        return f"recording {recording!r} at frame {at}" + (f" (t = {float(t):.2f} s)" if t is not None else "")
+
+    try:
+        arr = np.asarray(out)
+    except (TypeError, ValueError) as exc:  # ragged sequences and the like
+        raise ForecastError(
+            f"predictor {name!r} returned {type(out).__name__}, not an array, for {where(None)}: {exc}"
+        ) from exc
+    if arr.dtype.kind not in "fiu":
+        raise ForecastError(
+            f"predictor {name!r} returned an array of {arr.dtype} for {where(None)}, expected float metres"
+        )
+    if arr.shape != tuple(expected_shape):
+        raise ForecastError(
+            f"predictor {name!r} returned shape {arr.shape} for {where(None)}, expected {tuple(expected_shape)}"
+        )
+    if arr.dtype.kind == "f":
+        bad = ~np.isfinite(arr).all(axis=tuple(range(1, arr.ndim)))  # (N,): a row with any non-finite value
+        if rows is not None:
+            read = np.zeros(len(bad), bool)
+            read[rows] = True
+            bad &= read
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            values = arr[bad]
+            kinds = " and ".join(
+                k for k, hit in (("NaN", np.isnan(values).any()), ("inf", np.isinf(values).any())) if hit
+            )
+            raise ForecastError(
+                f"predictor {name!r} returned non-finite forecasts ({kinds}) for {where(first)}: {int(bad.sum())} of "
+                f"{len(bad)} pedestrians read (first: row {first}); forecasts must be finite positions in metres"
+            )
+    return arr
 
 
 # ---------------------------------------------------------------------------- shipped factories
@@ -363,6 +439,16 @@ def per_split(name: Any) -> bool:
 
 
 _IDENTITIES: dict[int, tuple[Any, str]] = {}
+_CHOSEN: dict[int, tuple[Any, str]] = {}
+
+
+def label_of(model: Any) -> str:
+    """How messages name a predictor: the name :func:`load` was given for it, followed by the object's own ``name``
+    in brackets when that differs (``"nanny (broken-nan)"``); an object not loaded by name goes by its ``name``."""
+    own = str(getattr(model, "name", "") or type(model).__name__)
+    held = _CHOSEN.get(id(model))
+    chosen = held[1] if held is not None and held[0] is model else own
+    return chosen if chosen == own else f"{chosen} ({own})"
 
 
 def check_protocol(model: Any, label: str) -> None:
@@ -396,6 +482,7 @@ def load(name: str, split: str | None = None) -> Predictor:
             f"leave-one-out split whose held-out scene it will forecast; ignore it if the model has none): {exc}"
         ) from exc
     check_protocol(model, name)
+    _CHOSEN[id(model)] = (model, name)
     if not spec.shipped:
         _IDENTITIES[id(model)] = (model, spec.identity())
         if not getattr(model, "name", None):

@@ -19,6 +19,7 @@ import numpy as np
 
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
 from crowdnav_mesrnn.data.recordings import Recording
+from crowdnav_mesrnn.predictors import check_forecast, label_of
 from envs.forecasting.cache import (
     _SHARED_TABLES,
     CHUNK_FRAMES,
@@ -167,12 +168,21 @@ class PredictorForecast(ForecastSource):
             out.append((full.columns[seen], history, mask, mask[-1]))
         return out
 
-    def _checked(self, model: ForecastModel, pred: np.ndarray, n: int, pred_len: int) -> np.ndarray:
-        if pred.shape != (n, pred_len, 2):
-            raise ValueError(
-                f"predictor {getattr(model, 'name', model)!r} returned shape {pred.shape}, expected {(n, pred_len, 2)}"
-            )
-        return pred
+    def _checked(
+        self, model: ForecastModel, pred: Any, n: int, pred_len: int, recording: Recording, frame: Any, rows: Any
+    ) -> np.ndarray:
+        """``pred`` once :func:`~crowdnav_mesrnn.predictors.check_forecast` has accepted it: ``(n, pred_len, 2)``,
+        finite in ``rows`` (the pedestrians present at the frame); ``frame``: the annotation frame, or ``(n,)`` each
+        row's frame."""
+        return check_forecast(
+            pred,
+            name=label_of(model),
+            expected_shape=(n, pred_len, 2),
+            recording=recording.name,
+            frame=frame,
+            time_s=recording.times_s()[frame],
+            rows=rows,
+        )
 
     def compute_frame(self, recording: Recording, i: int) -> tuple[np.ndarray, np.ndarray]:
         """``(columns (n,), forecasts (n, P, 2) float32)`` at annotation frame ``i`` for the pedestrians present there,
@@ -182,7 +192,7 @@ class PredictorForecast(ForecastSource):
         if not now.any():
             return np.zeros(0, dtype=np.int64), np.zeros((0, pred_len, 2), np.float32)
         self.calls += 1
-        pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(cols), pred_len)
+        pred = self._checked(model, model.forecast(history, mask), len(cols), pred_len, recording, i, now)
         return cols[now], np.ascontiguousarray(pred[now], dtype=np.float32)
 
     def compute_chunks(self, recording: Recording, chunk: int) -> dict[int, FrameTable]:
@@ -202,12 +212,13 @@ class PredictorForecast(ForecastSource):
             }
         parts = []
         frames = chunk_frames(recording, chunk)
-        for cols, history, mask, now in self._progress(self._histories(recording, frames, obs_len), recording, frames):
+        histories = self._histories(recording, frames, obs_len)
+        for i, (cols, history, mask, now) in zip(frames, self._progress(histories, recording, frames), strict=True):
             if not now.any():
                 parts.append((np.zeros(0, dtype=np.int64), np.zeros((0, pred_len, 2), np.float32)))
                 continue
             self.calls += 1
-            pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(cols), pred_len)
+            pred = self._checked(model, model.forecast(history, mask), len(cols), pred_len, recording, i, now)
             parts.append((cols[now], np.ascontiguousarray(pred[now], dtype=np.float32)))
         return {chunk: FrameTable.from_frames(parts, pred_len)}
 
@@ -233,7 +244,8 @@ class PredictorForecast(ForecastSource):
         history = pos[frame_of, :, rows].astype(np.float32).transpose(1, 0, 2)  # (obs_len, M, 2)
         history[~mask] = 0.0
         self.calls += int(np.count_nonzero(counts))
-        pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(rows), pred_len)
+        row_frames = frames.start + frame_of
+        pred = self._checked(model, model.forecast(history, mask), len(rows), pred_len, recording, row_frames, None)
         return FrameTable(offsets, columns, np.ascontiguousarray(pred, dtype=np.float32))
 
     def _progress(self, items: Any, recording: Recording, frames: range) -> Any:
