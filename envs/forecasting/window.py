@@ -35,7 +35,7 @@ from envs.forecasting.cache import (
 )
 from envs.forecasting.resampling import resample_matrix, time_key
 from envs.forecasting.sources import ForecastModel, ForecastSource, TrueFuture
-from envs.forecasting.threads import fork_safe_torch, torch_threads
+from envs.forecasting.threads import FORECAST_THREADS, fork_safe_torch, torch_threads
 from envs.replay import TIME_TOL_S, Replay
 
 
@@ -65,9 +65,9 @@ class PredictorForecast(ForecastSource):
             (:func:`~envs.forecasting.cache.predictor_fingerprint`) are kept in memory only; constant velocity's
             tables are shared by every source of the process (:func:`~envs.forecasting.cache.definition_key`).
 
-    Computing runs torch on :attr:`threads` threads, one by default (:func:`~envs.forecasting.threads.torch_threads`;
-    the caller's setting is restored after): a frame's batched operations are small, and more threads contend for
-    the cores. When computing a chunk takes over a second, a progress bar over its frames says so (in the main
+    Computing runs torch on :attr:`threads` threads, :data:`~envs.forecasting.threads.FORECAST_THREADS` (one) by
+    default (:func:`~envs.forecasting.threads.torch_threads`; the caller's setting is restored after): a frame's
+    batched operations are small, more threads contend for the cores, and they change the forecasts' last bits. When computing a chunk takes over a second, a progress bar over its frames says so (in the main
     process only, not in vector-env workers; ``progress = False`` turns it off).
 
     Attributes:
@@ -77,7 +77,8 @@ class PredictorForecast(ForecastSource):
         chunks_shared: chunks taken from another source of this process (constant velocity:
             :func:`definition_key`).
         progress: show a progress bar over a chunk's frames when computing it takes over a second.
-        threads: torch threads while computing (None: the caller's setting).
+        threads: torch threads while computing (None: the caller's setting, whose forecasts may differ in the last
+            bits from the cached ones).
     """
 
     def __init__(
@@ -111,7 +112,7 @@ class PredictorForecast(ForecastSource):
         self.chunks_computed = 0
         self.chunks_shared = 0
         self.progress = True
-        self.threads: int | None = 1
+        self.threads: int | None = FORECAST_THREADS
 
     def predictor_for(self, recording: str) -> ForecastModel:
         model = self.predictors.get(recording, self.default)

@@ -219,8 +219,10 @@ def test_build_command_fills_the_cache_for_envs(
     for _ in range(20):
         env.step(np.zeros(2, dtype=np.float32))
     assert source(env).calls == 0 and source(env).chunks_loaded > 0
-    assert main([*args, "--cache-dir", str(tmp_path), "--no-progress"]) == 0
-    assert f"{chunks} already cached, 0 computed" in capsys.readouterr().out
+    assert main([*args, "--cache-dir", str(tmp_path), "--no-progress", "--threads", "2"]) == 0
+    out, err = capsys.readouterr()
+    assert f"{chunks} already cached, 0 computed" in out
+    assert "--threads 2 is ignored: forecasts are computed on 1 torch thread(s)" in err  # more would change bits
 
 
 def test_disk_cache_can_be_switched_off(data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable) -> None:
