@@ -109,15 +109,17 @@ def install_dist(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.M
             rows = [_record_line(rel, (site / rel).read_bytes()) for rel in listed]
             (info / "RECORD").write_text("\n".join([*rows, f"{info.name}/RECORD,,"]) + "\n")
         monkeypatch.syspath_prepend(str(site))
-        for module in modules:
-            sys.modules.pop(module, None)
+        forget()
         importlib.invalidate_caches()
         predictors.refresh()
         return site
 
+    def forget() -> None:  # the packages' modules and submodules, imported from an earlier site
+        for loaded in [m for m in sys.modules if m.partition(".")[0] in modules]:
+            del sys.modules[loaded]
+
     yield install
-    for module in modules:
-        sys.modules.pop(module, None)
+    forget()
     monkeypatch.undo()
     importlib.invalidate_caches()
     predictors.refresh()

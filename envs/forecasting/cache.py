@@ -111,8 +111,9 @@ def predictor_fingerprint(model: Any) -> str | None:
 
     A predictor object may define ``cache_fingerprint() -> str`` itself; otherwise one with a torch ``net``
     and a ``norm`` (:class:`crowdnav_mesrnn.models.learned.LearnedPredictor`) is hashed. A plug-in loaded by name
-    (:func:`crowdnav_mesrnn.predictors.load`) is keyed on its identity (name, target, distribution version, module
-    source) plus that digest, so it is disk-cached even without weights. Any other object (constant velocity,
+    (:func:`crowdnav_mesrnn.predictors.load`) is keyed on its identity (name, target, distribution version, every
+    file of the plug-in: :mod:`crowdnav_mesrnn.plugin_files`) plus that digest, so it is disk-cached even without
+    weights, and any change to its files recomputes its forecasts. Any other object (constant velocity,
     test doubles passed as objects) is not disk-cached.
     """
     held = _FINGERPRINTS.get(id(model))
