@@ -160,8 +160,8 @@ def check_forecast(
         name: the predictor as the user chose it (a plug-in's registered name, a shipped name, an object's ``name``).
         expected_shape: the shape ``out`` must have.
         recording: what was forecast (a recording's name).
-        frame: where in it: an annotation frame, a label (``"window starting at frame 1230"``), or ``(N,)`` the
-            frame of each row of a batch over several frames (the first bad row's frame is named).
+        frame: where in it: an annotation frame, a label (``"1230 (the window's first observed step)"``), or
+            ``(N,)`` the frame of each row of a batch over several frames (the first bad row's frame is named).
         time_s: the time of ``frame`` in the recording, seconds (a scalar, or ``(N,)`` per row), if known.
         rows: the rows that are read, a boolean mask ``(N,)`` or indices (default: all). Only they must be finite:
             the protocol leaves the rows of pedestrians absent at the last observed step unread.
@@ -191,8 +191,9 @@ def check_forecast(
         )
     if arr.dtype.kind == "f":
         bad = ~np.isfinite(arr).all(axis=tuple(range(1, arr.ndim)))  # (N,): a row with any non-finite value
+        read = np.ones(len(bad), bool)
         if rows is not None:
-            read = np.zeros(len(bad), bool)
+            read[:] = False
             read[rows] = True
             bad &= read
         if bad.any():
@@ -203,7 +204,7 @@ def check_forecast(
             )
             raise ForecastError(
                 f"predictor {name!r} returned non-finite forecasts ({kinds}) for {where(first)}: {int(bad.sum())} of "
-                f"{len(bad)} pedestrians read (first: row {first}); forecasts must be finite positions in metres"
+                f"{int(read.sum())} pedestrians read (first: row {first}); forecasts must be finite positions in metres"
             )
     return arr
 

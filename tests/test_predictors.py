@@ -130,6 +130,8 @@ def test_check_forecast_accepts_finite_forecasts_of_the_promised_shape_only() ->
     # rows that are not read may hold anything (the protocol's pedestrians absent at the last observed step)
     predictors.check_forecast(bad, expected_shape=(3, 12, 2), rows=np.array([True, False, True]), **where)
     predictors.check_forecast(bad, expected_shape=(3, 12, 2), rows=np.array([0, 2]), **where)
+    with pytest.raises(predictors.ForecastError, match=r"1 of 2 pedestrians read \(first: row 1\)"):
+        predictors.check_forecast(bad, expected_shape=(3, 12, 2), rows=np.array([1, 2]), **where)
     with pytest.raises(predictors.ForecastError, match=r"returned shape \(3, 12, 2\) .* expected \(3, 8, 2\)"):
         predictors.check_forecast(good, expected_shape=(3, 8, 2), **where)
     with pytest.raises(predictors.ForecastError, match="returned an array of object"):
