@@ -18,6 +18,23 @@ class ConfigError(ValueError):
     """A configuration key or value is invalid; the message names it and lists what is valid."""
 
 
+class UnknownKeyError(ConfigError, TypeError):
+    """A key (a configuration entry, a keyword argument) that is not accepted at all.
+
+    It is a :class:`ConfigError` (so a ``ValueError``) like every configuration error, and also a ``TypeError``: the
+    error Python raises for an unexpected keyword argument. Libraries that probe a constructor with optional keywords
+    (TorchRL's ``GymEnv`` passes ``frameskip=`` to ``gymnasium.make``, among others) take only a ``TypeError`` as
+    "not supported" and retry without it. A wrong *value* of a known key stays a plain :class:`ConfigError`.
+
+    Attributes:
+        keys: the unknown keys, sorted.
+    """
+
+    def __init__(self, message: str, keys: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.keys = keys
+
+
 def close_matches(word: str, valid: Iterable[str], n: int = 1) -> list[str]:
     """The ``n`` entries of ``valid`` closest to ``word`` (:func:`difflib.get_close_matches`, cutoff 0.6); empty when
     none is close."""
@@ -30,19 +47,29 @@ def did_you_mean(word: str, valid: Iterable[str]) -> str:
     return f"did you mean {match[0]!r}?" if match else ""
 
 
-def check_keys(given: Mapping[str, Any], valid: list[str] | tuple[str, ...], where: str) -> None:
-    """Raise :class:`ConfigError` for any key of ``given`` not in ``valid``: the message leads with the closest
-    valid key of each unknown one (``unknown env config key 'num_pedestrian'; did you mean 'num_pedestrians'?``)
-    and ends with every valid key."""
-    unknown = sorted(set(given) - set(valid))
+def check_keys(
+    given: Mapping[str, Any], valid: list[str] | tuple[str, ...], where: str, *, keywords: bool = False
+) -> None:
+    """Raise :class:`UnknownKeyError` (a :class:`ConfigError` and a ``TypeError``) for any key of ``given`` not in
+    ``valid``: the message leads with the closest valid key of each unknown one (``unknown env config key
+    'num_pedestrian'; did you mean 'num_pedestrians'?``) and ends with every valid key.
+
+    With ``keywords=True`` (the keys are a function's keyword arguments, as in ``gymnasium.make(id, **kwargs)``) the
+    message then adds Python's own wording, ``unexpected keyword argument 'frameskip'``, which libraries probing a
+    constructor look for in a ``TypeError``."""
+    unknown = sorted(set(given) - set(valid), key=str)
     if not unknown:
         return
     valid_list = f"(valid keys: {', '.join(sorted(valid))})"
     if len(unknown) == 1:
         hint = did_you_mean(unknown[0], valid)
-        raise ConfigError(f"unknown {where} key {unknown[0]!r}{'; ' + hint if hint else ''} {valid_list}")
-    named = ", ".join(f"{key!r}" + (f" ({hint})" if (hint := did_you_mean(key, valid)) else "") for key in unknown)
-    raise ConfigError(f"unknown {where} keys {named} {valid_list}")
+        message = f"unknown {where} key {unknown[0]!r}{'; ' + hint if hint else ''} {valid_list}"
+    else:
+        named = ", ".join(f"{key!r}" + (f" ({hint})" if (hint := did_you_mean(key, valid)) else "") for key in unknown)
+        message = f"unknown {where} keys {named} {valid_list}"
+    if keywords:
+        message += "; " + ", ".join(f"unexpected keyword argument {key!r}" for key in unknown)
+    raise UnknownKeyError(message, tuple(unknown))
 
 
 def replace_checked(cfg: T, overrides: Mapping[str, Any] | None, where: str = "config") -> T:

@@ -20,7 +20,7 @@ from typing import Any, Final
 import numpy as np
 
 from crowdnav_mesrnn import predictors
-from crowdnav_mesrnn.config import ConfigError, load_yaml, replace_checked
+from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import RECORDINGS, SPLIT_TEST_RECORDINGS, SPLITS
 from crowdnav_mesrnn.data.paths import DataNotFoundError, find_data_dir
 
@@ -414,6 +414,8 @@ def config_from(
 ) -> CrowdNavConfig:
     """Defaults, then ``config`` (a mapping or a YAML file), then keyword ``overrides``; validated."""
     base = config_mapping(config)
+    # an unknown keyword is a TypeError too, worded as Python's (crowdnav_mesrnn.config.UnknownKeyError)
+    check_keys(overrides, [f.name for f in dataclasses.fields(CrowdNavConfig)], "env config", keywords=True)
     # a value of ``config`` a keyword overrides (the id's predictor, say) is still checked: nonsense is refused,
     # never silently dropped
     for key in set(base) & set(overrides):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from crowdnav_mesrnn import predictors
@@ -111,3 +112,46 @@ def test_every_pretrained_name_is_an_architecture_with_weights_files() -> None:
     assert predictors.names(predictors.PRETRAINED, plugins=False) == tuple(MODEL_TYPES)
     for name in predictors.names(predictors.PRETRAINED, plugins=False):
         assert pretrained_path(name, "zara1").is_file()
+
+
+def test_check_forecast_accepts_finite_forecasts_of_the_promised_shape_only() -> None:
+    where = {"name": "mine", "recording": "walkers", "frame": 7, "time_s": 2.8}
+    good = np.zeros((3, 12, 2), np.float32)
+    assert predictors.check_forecast(good, expected_shape=(3, 12, 2), **where) is good
+    assert predictors.check_forecast([[[0, 0]] * 12], expected_shape=(1, 12, 2), **where).dtype.kind == "i"
+    bad = good.copy()
+    bad[1, 3] = np.nan
+    with pytest.raises(
+        predictors.ForecastError,
+        match=r"^predictor 'mine' returned non-finite forecasts \(NaN\) for recording 'walkers' at frame 7 "
+        r"\(t = 2.80 s\): 1 of 3 pedestrians read \(first: row 1\)",
+    ):
+        predictors.check_forecast(bad, expected_shape=(3, 12, 2), **where)
+    # rows that are not read may hold anything (the protocol's pedestrians absent at the last observed step)
+    predictors.check_forecast(bad, expected_shape=(3, 12, 2), rows=np.array([True, False, True]), **where)
+    predictors.check_forecast(bad, expected_shape=(3, 12, 2), rows=np.array([0, 2]), **where)
+    with pytest.raises(predictors.ForecastError, match=r"1 of 2 pedestrians read \(first: row 1\)"):
+        predictors.check_forecast(bad, expected_shape=(3, 12, 2), rows=np.array([1, 2]), **where)
+    with pytest.raises(predictors.ForecastError, match=r"returned shape \(3, 12, 2\) .* expected \(3, 8, 2\)"):
+        predictors.check_forecast(good, expected_shape=(3, 8, 2), **where)
+    with pytest.raises(predictors.ForecastError, match="returned an array of object"):
+        predictors.check_forecast(np.array([None, 1], dtype=object), expected_shape=(2,), **where)
+    with pytest.raises(predictors.ForecastError, match="returned list, not an array"):
+        predictors.check_forecast([[0.0, 0.0], [1.0]], expected_shape=(2, 2), **where)
+    assert issubclass(predictors.ForecastError, ValueError)
+
+
+def test_check_forecast_names_the_frame_of_the_first_bad_row_of_a_batch() -> None:
+    batch = np.zeros((4, 12, 2))
+    batch[2:, 0, 0] = np.inf
+    with pytest.raises(
+        predictors.ForecastError, match=r"\(inf\) for recording 'r' at frame 65 \(t = 26.00 s\): 2 of 4"
+    ):
+        predictors.check_forecast(
+            batch,
+            name="m",
+            expected_shape=(4, 12, 2),
+            recording="r",
+            frame=np.array([64, 64, 65, 66]),
+            time_s=np.array([25.6, 25.6, 26.0, 26.4]),
+        )

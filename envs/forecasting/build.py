@@ -13,6 +13,7 @@ from crowdnav_mesrnn.data.constants import SPLIT_TEST_RECORDINGS
 from envs.config import FORECAST_MEMORIES, CrowdNavConfig
 from envs.forecasting.cache import ForecastStore, cache_root, num_chunks
 from envs.forecasting.factory import make_forecast_source
+from envs.forecasting.threads import FORECAST_THREADS
 from envs.forecasting.window import PredictorForecast
 
 #: Parts accepted by :func:`build_forecast_cache`.
@@ -49,6 +50,8 @@ def build_forecast_cache(
 
     Chunks already on disk are checked and kept; missing, unreadable or stale ones are computed and
     written. Call it before starting vectorised environments or grid workers, so none of them computes forecasts.
+    Forecasts are computed on :data:`~envs.forecasting.threads.FORECAST_THREADS` torch threads whatever the caller
+    has set (restored after): the files then hold the bits an environment computes itself.
 
     Args:
         predictor: a name loaded per split (:data:`crowdnav_mesrnn.predictors.SPLIT_KINDS`): ``mesrnn``, ``srnn``,
@@ -95,7 +98,7 @@ def build_forecast_cache(
     assert isinstance(source, PredictorForecast) and source.store is not None
     store = source.store
     source.progress = False  # this function's own bar counts the chunks
-    source.threads = None  # the caller's torch threads (``forecasts build --threads``)
+    source.threads = FORECAST_THREADS  # the bits every environment computes, whatever the caller's torch threads
     total = sum(num_chunks(r) for r in recordings)
     bar: Any = None
     if progress:

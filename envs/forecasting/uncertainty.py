@@ -96,7 +96,7 @@ class CalibratedUncertainty(UncertaintySource):
         self._weights: dict[tuple[float, int], np.ndarray] = {}
 
     def calibration(self, split: str) -> Any:
-        """The split's :class:`crowdnav_mesrnn.uncertainty.conformal.Calibration` (from the cache file, else fitted and saved)."""
+        """The split's :class:`crowdnav_mesrnn.uncertainty.calibration.Calibration` (from the cache file, else fitted and saved)."""
         if split not in self._calibrations:
             self._calibrations[split] = load_or_fit_calibration(
                 self.name, split, self.level, self.cache_dir, self.data_dir
@@ -123,8 +123,8 @@ class CalibratedUncertainty(UncertaintySource):
 def calibration_key(name: str, split: str, levels: tuple[float, ...], data_dir: str | None) -> str:
     """Digest of what a calibration depends on: the predictor's weights, the split's training and validation
     recordings, the levels and the calibration format."""
-    from crowdnav_mesrnn.uncertainty.conformal import CALIBRATION_FORMAT
     from crowdnav_mesrnn.data.recordings import load_split
+    from crowdnav_mesrnn.uncertainty.conformal import CALIBRATION_FORMAT
 
     h = hashlib.sha256()
     if predictors.kind(name) == predictors.BASELINE:  # no weights: the name is the predictor
@@ -144,8 +144,7 @@ def load_or_fit_calibration(
     """The ``scaled`` calibration of predictor ``name`` (point head) on ``split`` at :data:`LEVELS` and ``level``:
     read from ``cache_dir/calibration/`` when a file with the same key exists, else fitted (on the training and
     validation windows of the split) and written atomically under a lock, so concurrent processes fit it once."""
-    from crowdnav_mesrnn.uncertainty.calibration import fit_calibration, forecaster_for
-    from crowdnav_mesrnn.uncertainty.conformal import LEVELS, Calibration
+    from crowdnav_mesrnn.uncertainty.calibration import LEVELS, Calibration, fit_calibration, forecaster_for
 
     levels = tuple(sorted({*LEVELS, float(level)}))
 

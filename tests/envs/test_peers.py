@@ -1,0 +1,26 @@
+"""The environment in other RL libraries, built by id as their users would (optional peers: ``pip install -e
+'.[peers]'``; CI installs them)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+
+def test_torchrl_builds_the_env_by_id_checks_its_specs_and_rolls_out(data_dir: Path) -> None:
+    """TorchRL's ``GymEnv`` passes ``frameskip=`` and retries without it only on a ``TypeError`` naming it."""
+    pytest.importorskip("torchrl", reason="TorchRL is not installed (pip install -e '.[peers]'; CI installs it)")
+    from torchrl.envs import GymEnv
+    from torchrl.envs.utils import check_env_specs
+
+    import crowdnav_mesrnn  # noqa: F401 (registers the ids)
+
+    env = GymEnv("CrowdNav-MESRNN-v0")
+    try:
+        check_env_specs(env, seed=0)
+        rollout = env.rollout(5)
+        assert rollout["forecasts"].shape == (len(rollout), 240)  # K=10 pedestrians x H=12 steps x 2
+        assert rollout["next", "reward"].isfinite().all()
+    finally:
+        env.close()
