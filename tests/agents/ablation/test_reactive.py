@@ -475,3 +475,23 @@ def test_a_tiny_real_grid_on_the_replay_names_its_reaction(tmp_path: Path, data_
     assert all(arm[f"{m}_mean"] == 0.0 for m in DISTURBANCE_METRICS)  # the replay disturbs nobody
     cells = json.loads((cfg.out_path() / "cells.json").read_text(encoding="utf-8"))
     assert cells[0]["spec"]["env"]["reaction"] == "none"
+
+
+@pytest.mark.slow
+def test_the_committed_planner_grid_rerenders_unchanged(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--summarize-only`` on a copy of the planners grid's config and results in a fresh clone (no run folders):
+    "up to date", no file changed -- the disturbance columns and the reaction sections leave a grid without reactions
+    as it was."""
+    import shutil
+
+    for sub in ("configs/ablation/planners.yaml", "results/ablation/planners"):
+        (tmp_path / sub).parent.mkdir(parents=True, exist_ok=True)
+        (shutil.copytree if (REPO / sub).is_dir() else shutil.copy)(REPO / sub, tmp_path / sub)
+    monkeypatch.chdir(tmp_path)
+    results = tmp_path / "results/ablation/planners"
+    before = {p.name: p.read_bytes() for p in results.iterdir()}
+    assert ab.main(["configs/ablation/planners.yaml", "--summarize-only"]) == 0
+    assert "is up to date" in capsys.readouterr().out
+    assert {p.name: p.read_bytes() for p in results.iterdir()} == before
