@@ -38,11 +38,29 @@ METRICS: Final[tuple[str, ...]] = (
     "steps",
     "return",
 )
-#: Columns of ``episodes.csv``, in order (the metrics before ``steps`` and ``return``, then the collision details).
+#: What the robot did to people (issue 28; ``envs.reaction.DisturbanceMetrics``, in ``info["episode_metrics"]`` when the
+#: environment's pedestrians may react; 0 under ``reaction="none"``). Blank in a row when the environment does not
+#: report them: absent, not zero.
+DISTURBANCE_METRICS: Final[tuple[str, ...]] = (
+    "ped_disturbed",
+    "ped_deviation_mean_m",
+    "ped_deviation_max_m",
+    "ped_delay_s",
+)
+#: Columns of ``episodes.csv``, in order (the metrics before ``steps`` and ``return``, then the collision details and
+#: the disturbance metrics).
 EPISODE_COLUMNS: Final[tuple[str, ...]] = (
     *("episode", "seed", "recording", "t0_s", "outcome"),
     *METRICS[:-2],
-    *("pedestrians_near_path", "collisions", "collision_fault", "popin_events", "steps", "return"),
+    *(
+        "pedestrians_near_path",
+        "collisions",
+        "collision_fault",
+        "popin_events",
+        *DISTURBANCE_METRICS,
+        "steps",
+        "return",
+    ),
 )
 
 

@@ -23,6 +23,7 @@ from agents.ablation.cells import (
     _read_json,
     cell_dir,
     cell_spec,
+    check_environments,
     default_workers,
     expand,
     plan,
@@ -166,7 +167,7 @@ def _task(cfg: AblationConfig, cell: Cell) -> CellTask:
         weights=weights_fingerprint(cell.arm.predictor),
         episodes=cfg.episodes,
         eval_seed=cfg.eval_seed,
-        env=dict(cfg.env),
+        env=cfg.env_for(cell.policy),
         model=model,
         model_sha256=model_sha,
         command=f"python -m agents.ablation {cfg.source or '<config>'} --only {cell.name}",
@@ -231,6 +232,7 @@ def run_grid(
     statuses = plan(cfg, cells)
     todo = [s for s in statuses if s.state != "done"]
     out(f"grid {cfg.name}: {len(cells)} cells, {len(cells) - len(todo)} done, {len(todo)} to run ({backend} backend)")
+    check_environments(cfg, [s.cell for s in todo])
     for policy in {s.cell.policy.name: s.cell.policy for s in todo if s.cell.policy.learned}.values():
         if not Path(policy.config or "").is_file():
             raise FileNotFoundError(f"policies.{policy.name}.config: agent config {policy.config!r} not found")
