@@ -3,10 +3,11 @@
 Every name the project accepts where a forecast source is chosen (``predictor=`` of the environment, an ablation
 arm, ``forecasts build --predictor``, ``bench``) is known here and nowhere else; other modules ask:
 
-- :func:`names` lists them (in the order shown to users: ``none``, ``cv``, ``mesrnn``, ``srnn``, ``vlstm``,
-  ``oracle``, ``noisy_oracle``, then the installed plug-ins);
+- :func:`names` lists them (in the order shown to users: ``none``, ``cv``, ``cv_gaussian``, ``mesrnn``, ``srnn``,
+  ``vlstm``, ``oracle``, ``noisy_oracle``, then the installed plug-ins);
 - :func:`kind` says what a name is (:data:`KINDS`): no forecast, the replay's true future (with or without
-  noise), a weightless shipped baseline, shipped weights per leave-one-out split, or a plug-in;
+  noise), a weightless shipped baseline, a shipped baseline with parameters fitted per leave-one-out split, shipped
+  weights per leave-one-out split, or a plug-in;
 - :func:`check` accepts a name or raises :class:`PluginError` listing the valid ones;
 - :func:`load` returns a ready predictor, ``factory(split=SPLIT)`` of a registered name or an import path;
 - :func:`check_forecast` accepts a forecast (numbers, the promised shape, finite where read) or raises
@@ -93,20 +94,24 @@ TRUTH: Final[str] = "truth"
 NOISY_TRUTH: Final[str] = "noisy_truth"
 #: Kind of ``cv``: a shipped predictor without weights, the same for every split (loaded with ``split=None``).
 BASELINE: Final[str] = "baseline"
+#: Kind of ``cv_gaussian``: a shipped baseline without a network whose few parameters are fitted per leave-one-out
+#: split (a small file per split); loaded per split like the pretrained, with a distribution.
+FITTED_BASELINE: Final[str] = "fitted_baseline"
 #: Kind of ``mesrnn``, ``srnn``, ``vlstm``: shipped weights per leave-one-out split.
 PRETRAINED: Final[str] = "pretrained"
 #: Kind of an installed plug-in or an import path ``package.module:Factory``: loaded per split like the pretrained.
 PLUGIN: Final[str] = "plugin"
 #: Every kind, in the order above.
-KINDS: Final[tuple[str, ...]] = (NO_FORECAST, TRUTH, NOISY_TRUTH, BASELINE, PRETRAINED, PLUGIN)
+KINDS: Final[tuple[str, ...]] = (NO_FORECAST, TRUTH, NOISY_TRUTH, BASELINE, FITTED_BASELINE, PRETRAINED, PLUGIN)
 #: Kinds loaded per leave-one-out split (a recording is forecast by the predictor of the split holding it out); their
 #: forecasts are what the shared disk cache keeps.
-SPLIT_KINDS: Final[tuple[str, ...]] = (PRETRAINED, PLUGIN)
+SPLIT_KINDS: Final[tuple[str, ...]] = (FITTED_BASELINE, PRETRAINED, PLUGIN)
 
 #: The project's own names in the order shown to users: name -> (kind, factory or None for the non-predictors).
 _BUILTIN: Final[dict[str, tuple[str, str | None]]] = {
     "none": (NO_FORECAST, None),
     "cv": (BASELINE, "crowdnav_mesrnn.predictors:constant_velocity"),
+    "cv_gaussian": (FITTED_BASELINE, "crowdnav_mesrnn.predictors:cv_gaussian"),
     "mesrnn": (PRETRAINED, "crowdnav_mesrnn.predictors:mesrnn"),
     "srnn": (PRETRAINED, "crowdnav_mesrnn.predictors:srnn"),
     "vlstm": (PRETRAINED, "crowdnav_mesrnn.predictors:vlstm"),
@@ -217,6 +222,16 @@ def constant_velocity(split: str | None = None) -> Predictor:
     from crowdnav_mesrnn.models.base import ConstantVelocity
 
     return ConstantVelocity()
+
+
+def cv_gaussian(split: str | None = None) -> Predictor:
+    """Constant velocity with an isotropic Gaussian of scale ``a + b·h`` (:mod:`crowdnav_mesrnn.models.cv_gaussian`),
+    its parameters fitted on ``split``'s training windows (the shipped ``cv_gaussian_<split>.json``)."""
+    if split is None:
+        raise PluginError("predictor 'cv_gaussian' needs the split whose held-out scene it will forecast")
+    from crowdnav_mesrnn.models.cv_gaussian import load_cv_gaussian
+
+    return load_cv_gaussian(split)
 
 
 def _learned(model: str, split: str | None) -> Predictor:
@@ -442,8 +457,8 @@ def is_known(name: str) -> bool:
 
 def names(*kinds: str, plugins: bool = True) -> tuple[str, ...]:
     """Every forecast source name of the given kinds (all kinds when none is given), in the order shown to users:
-    the project's own names (``none``, ``cv``, ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, ``noisy_oracle``), then
-    the installed plug-ins sorted (with ``plugins=True`` and when :data:`PLUGIN` is asked for).
+    the project's own names (``none``, ``cv``, ``cv_gaussian``, ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``,
+    ``noisy_oracle``), then the installed plug-ins sorted (with ``plugins=True`` and when :data:`PLUGIN` is asked for).
 
     Raises:
         PluginError: an unknown kind.

@@ -11,7 +11,7 @@ from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.predictors import PluginError
 
-OWN = ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
+OWN = ("none", "cv", "cv_gaussian", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")
 
 
 @pytest.fixture
@@ -32,8 +32,8 @@ def test_names_in_the_order_shown_to_users_then_the_plugins(one_plugin: str) -> 
     assert predictors.names() == (*OWN, one_plugin)
     assert predictors.names(predictors.PRETRAINED, plugins=False) == ("mesrnn", "srnn", "vlstm")
     assert predictors.names(predictors.PRETRAINED) == ("mesrnn", "srnn", "vlstm")  # no plug-in: another kind
-    shipped = predictors.names(predictors.BASELINE, predictors.PRETRAINED, plugins=False)
-    assert shipped == ("cv", "mesrnn", "srnn", "vlstm")
+    shipped = predictors.names(predictors.BASELINE, predictors.FITTED_BASELINE, predictors.PRETRAINED, plugins=False)
+    assert shipped == ("cv", "cv_gaussian", "mesrnn", "srnn", "vlstm")
     assert predictors.names(predictors.PLUGIN) == (one_plugin,)
     with pytest.raises(PluginError, match="unknown predictor kind 'learned'; valid: none, truth"):
         predictors.names("learned")
@@ -44,6 +44,7 @@ def test_every_name_has_one_kind(one_plugin: str) -> None:
     assert kinds == {
         "none": predictors.NO_FORECAST,
         "cv": predictors.BASELINE,
+        "cv_gaussian": predictors.FITTED_BASELINE,
         "mesrnn": predictors.PRETRAINED,
         "srnn": predictors.PRETRAINED,
         "vlstm": predictors.PRETRAINED,
@@ -71,16 +72,29 @@ def test_check_returns_the_name(one_plugin: str) -> None:
 
 
 def test_plugins_and_pretrained_load_per_split(one_plugin: str) -> None:
-    assert [n for n in predictors.names() if predictors.per_split(n)] == ["mesrnn", "srnn", "vlstm", one_plugin]
+    per_split = [n for n in predictors.names() if predictors.per_split(n)]
+    assert per_split == ["cv_gaussian", "mesrnn", "srnn", "vlstm", one_plugin]
     assert [n for n in predictors.names() if predictors.is_plugin(n)] == [one_plugin]
     assert predictors.per_split("pkg.mod:Factory") and predictors.is_plugin("pkg.mod:Factory")
 
 
 def test_shipped_and_reserved_names_come_from_the_one_table() -> None:
-    shipped = predictors.names(predictors.BASELINE, predictors.PRETRAINED, plugins=False)
+    shipped = predictors.names(predictors.BASELINE, predictors.FITTED_BASELINE, predictors.PRETRAINED, plugins=False)
     assert tuple(predictors.SHIPPED) == shipped
     assert set(predictors.RESERVED) == set(OWN) - set(shipped)
     assert predictors.RESERVED == ("none", "oracle", "noisy_oracle")
+
+
+def test_cv_gaussian_is_a_baseline_with_a_distribution_loaded_per_split() -> None:
+    from crowdnav_mesrnn.models.cv_gaussian import CvGaussian, load_cv_gaussian
+
+    model = predictors.load("cv_gaussian", "zara1")
+    assert isinstance(model, CvGaussian) and model.split == "zara1" and model.has_distribution
+    assert model.cache_fingerprint() == load_cv_gaussian("zara1").cache_fingerprint()
+    assert model.cache_fingerprint() != predictors.load("cv_gaussian", "eth").cache_fingerprint()
+    assert predictors.resolve("cv_gaussian").shipped and predictors.identity_of(model) is None
+    with pytest.raises(PluginError, match="needs the split"):
+        predictors.load("cv_gaussian")
 
 
 def test_the_model_lists_ask_the_registry() -> None:

@@ -53,7 +53,10 @@ def test_uncertainty_arms_use_their_sources_forecasts_with_regions(tmp_path: Pat
         ("oracle_unc", ["'oracle_unc'", "cv_unc, mesrnn_unc, srnn_unc, vlstm_unc", "regions are 0"]),
         ("noisy_oracle_unc", ["'noisy_oracle_unc'", "cv_unc, mesrnn_unc", "known noise"]),
         ("sgan_unc", ["'sgan_unc'", "cv_unc, mesrnn_unc", "no calibrated regions"]),
-        ("sgan", ["'sgan'", "none, cv, mesrnn", "an uncertainty arm (cv_unc, mesrnn_unc, srnn_unc, vlstm_unc)"]),
+        (
+            "sgan",
+            ["'sgan'", "none, cv, cv_gaussian, mesrnn", "an uncertainty arm (cv_unc, mesrnn_unc, srnn_unc, vlstm_unc)"],
+        ),
     ],
 )
 def test_uncertainty_arms_of_sources_without_calibrated_regions_are_refused(
