@@ -67,7 +67,8 @@ def require_trust(path: str | Path, trust_pickle: bool, what: str = "load") -> N
         return
     raise UntrustedPolicyError(
         f"refusing to {what} {path} without --trust-pickle: it is not a policy file of the project's format "
-        f"(NAME{POLICY_SUFFIX}) but an SB3 zip or pickle. " + CONVERT_HINT.format(source=path)
+        f"(NAME{POLICY_SUFFIX}), so it would be unpickled as an SB3 zip (with the _vecnormalize.pkl beside it). "
+        + CONVERT_HINT.format(source=path)
     )
 
 
@@ -79,12 +80,14 @@ def check_trust(spec: str | Path, which: str = "best", trust_pickle: bool = Fals
     require_trust(model_path(spec, which), trust_pickle)
 
 
-def algo_of_model(path: str | Path) -> str:
-    """``"ppo"`` or ``"sac"``: which SB3 algorithm saved the ``.zip`` (from its policy class)."""
+def algo_of_model(path: str | Path, *, trust_pickle: bool = False) -> str:
+    """``"ppo"`` or ``"sac"``: which SB3 algorithm saved the ``.zip`` (from its policy class). Reading it unpickles
+    the zip's data, so only with ``trust_pickle=True`` (:class:`UntrustedPolicyError` otherwise)."""
     from stable_baselines3.common.policies import ActorCriticPolicy
     from stable_baselines3.common.save_util import load_from_zip_file
     from stable_baselines3.sac.policies import SACPolicy
 
+    require_trust(path, trust_pickle)
     data, _, _ = load_from_zip_file(path, load_data=True, device="cpu")
     policy_class = (data or {}).get("policy_class")
     if isinstance(policy_class, type) and issubclass(policy_class, SACPolicy):
@@ -104,7 +107,7 @@ def load_sb3(path: str | Path, algo: str | None = None, *, trust_pickle: bool = 
     require_trust(path, trust_pickle)
     if not path.is_file():
         raise FileNotFoundError(f"no model file {path}")
-    algo = algo or algo_of_model(path)
+    algo = algo or algo_of_model(path, trust_pickle=True)
     cls = {"ppo": PPO, "sac": SAC}[algo]
     model = cls.load(path, device="cpu")
     vecnormalize = None
@@ -182,7 +185,7 @@ def export_policy(run_dir: str | Path, dest: str | Path, which: str = "best", tr
     if config is None:
         raise FileNotFoundError(f"{run_dir} holds no config.yaml (nor {src.stem}.yaml): not a model of agents.train")
     settings = load_yaml(config)
-    algo = (settings.get(PROJECT_KEY) or {}).get("algo") or algo_of_model(src)
+    algo = (settings.get(PROJECT_KEY) or {}).get("algo") or algo_of_model(src, trust_pickle=True)
     policy = load_sb3(src, algo, trust_pickle=True)
     source = {"model": str(src), "model_sha256": _sha256(src), "training_config": str(config)}
     write_policy_file(dest, policy.model.policy, algo, settings, policy.vecnormalize, source)
