@@ -228,8 +228,11 @@ def space_from_description(desc: Any, path: str | Path, key: str) -> spaces.Spac
     if not isinstance(desc, Mapping):
         raise PolicyFileError(path, key, f"a space description must be a mapping, got {desc!r}")
     kind = desc.get("type")
-    fields = {"Box": ("type", "shape", "dtype", "low", "high"), "Discrete": ("type", "n", "start"),
-              "MultiBinary": ("type", "n")}  # fmt: skip
+    fields = {
+        "Box": ("type", "shape", "dtype", "low", "high"),
+        "Discrete": ("type", "n", "start"),
+        "MultiBinary": ("type", "n"),
+    }
     if kind not in fields:
         raise PolicyFileError(path, f"{key}.type", f"unknown space type {kind!r}; valid: {', '.join(fields)}")
     _check_keys(desc, fields[kind], fields[kind], path, key)
@@ -287,8 +290,9 @@ def _check_spaces(
     stored_obs = doc["observation_space"]
     if not isinstance(stored_obs, Mapping) or not stored_obs:
         raise PolicyFileError(path, "observation_space", "must be a mapping of observation keys to space descriptions")
-    stored = {str(k): describe_space(space_from_description(v, path, f"observation_space.{k}"))
-              for k, v in stored_obs.items()}  # fmt: skip
+    stored = {
+        str(k): describe_space(space_from_description(v, path, f"observation_space.{k}")) for k, v in stored_obs.items()
+    }
     stored_act = describe_space(space_from_description(doc["action_space"], path, "action_space"))
     obs, act = expected_spaces(training_config, path)
     rebuilt = describe_observation_space(obs)
@@ -452,6 +456,7 @@ def describe_policy_kwargs(policy: Any, algo: str, path: str | Path) -> dict[str
 def _policy_kwargs(kwargs: Any, algo: str, policy_name: str, path: str | Path) -> dict[str, Any]:
     """Validated ``policy_kwargs`` with classes resolved from the allow-lists."""
     from agents.extractors import ACTIVATIONS
+    from agents.scoring import ActionScoringHead
 
     key = "policy_kwargs"
     if not isinstance(kwargs, Mapping):
@@ -486,13 +491,21 @@ def _policy_kwargs(kwargs: Any, algo: str, policy_name: str, path: str | Path) -
                 raise PolicyFileError(path, where, f"must be a mapping, got {value!r}")
             value = _plain(dict(value), path, where)
         out[name] = value
-    from agents.scoring import ActionScoringHead
-
     extractor = out.get("features_extractor_class") or _default_extractor(policy_name)
-    _check_signature(out.get("features_extractor_kwargs") or {}, extractor, ("self", "observation_space"), path,
-                     f"{key}.features_extractor_kwargs")  # fmt: skip
-    _check_signature(out.get("head_kwargs") or {}, ActionScoringHead, ("self", "num_actions", "num_features",
-                     "context_dim"), path, f"{key}.head_kwargs")  # fmt: skip
+    _check_signature(
+        out.get("features_extractor_kwargs") or {},
+        extractor,
+        ("self", "observation_space"),
+        path,
+        f"{key}.features_extractor_kwargs",
+    )
+    _check_signature(
+        out.get("head_kwargs") or {},
+        ActionScoringHead,
+        ("self", "num_actions", "num_features", "context_dim"),
+        path,
+        f"{key}.head_kwargs",
+    )
     return out
 
 
@@ -773,9 +786,12 @@ def policy_yaml(doc: Mapping[str, Any]) -> str:
 
 
 def _check_keys(
-    given: Mapping[str, Any], valid: tuple[str, ...] | list[str], required: tuple[str, ...] | list[str],
-    path: str | Path, where: str,
-) -> None:  # fmt: skip
+    given: Mapping[str, Any],
+    valid: tuple[str, ...] | list[str],
+    required: tuple[str, ...] | list[str],
+    path: str | Path,
+    where: str,
+) -> None:
     try:
         check_keys(given, list(valid), f"{where}")
     except ConfigError as exc:

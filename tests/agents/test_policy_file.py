@@ -399,8 +399,13 @@ def _set(keys: str, value: Any) -> Any:
 
 
 def _robot_statistics(mean: Any) -> dict[str, Any]:
-    return {"keys": ["robot"], "clip_obs": 10.0, "epsilon": 1e-8, "gamma": 0.99,
-            "statistics": {"robot": {"mean": mean, "var": [1.0] * 5, "count": 4.0}}}  # fmt: skip
+    return {
+        "keys": ["robot"],
+        "clip_obs": 10.0,
+        "epsilon": 1e-8,
+        "gamma": 0.99,
+        "statistics": {"robot": {"mean": mean, "var": [1.0] * 5, "count": 4.0}},
+    }
 
 
 @pytest.mark.parametrize(
