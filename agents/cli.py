@@ -25,9 +25,16 @@ def _fmt(value: Any) -> str:
     return "-" if value is None else str(value)
 
 
-#: The shipped policy: PPO with MESRNN forecasts trained on the zara1 split's training scenes by ``agent train``
-#: (exported with ``agent export``; its environment settings in the ``.yaml`` beside it).
-SHIPPED_POLICY: Final[Path] = Path(__file__).resolve().parent / "pretrained" / "ppo_mesrnn_zara1.zip"
+#: The help of ``--trust-pickle`` (``demo``, ``agent evaluate``, ``agent export``).
+TRUST_PICKLE_HELP: Final[str] = (
+    "allow loading an SB3 .zip and its _vecnormalize.pkl, which are unpickled and can run arbitrary code: only for "
+    "files you trust (policy files of the project's format, NAME.policy.yaml, never need it)"
+)
+
+
+#: The shipped policy: PPO with MESRNN forecasts trained on the zara1 split's training scenes by ``agent train``,
+#: a policy file of the project's format (data only, :mod:`agents.policy_file`; weights in ``ppo_mesrnn_zara1.pt``).
+SHIPPED_POLICY: Final[Path] = Path(__file__).resolve().parent / "pretrained" / "ppo_mesrnn_zara1.policy.yaml"
 #: The split whose training scenes the shipped policy was trained on (its held-out scene is the only one it may cross).
 SHIPPED_SPLIT: Final[str] = "zara1"
 
@@ -49,7 +56,7 @@ def _demo_policy(args: argparse.Namespace) -> tuple[str, str | None]:
 def _demo(args: argparse.Namespace) -> int:
     from agents.evaluation.run import evaluation_env_kwargs
     from agents.planners import PLANNERS
-    from agents.runs import check_spaces, load_policy, run_settings
+    from agents.runs import check_spaces, check_trust, load_policy, run_settings
     from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, data_available
     from envs.crowd_nav import CrowdNavEnv
     from envs.forecasting.factory import PredictorUnavailableError
@@ -57,6 +64,7 @@ def _demo(args: argparse.Namespace) -> int:
 
     started = time.perf_counter()
     spec, note = _demo_policy(args)
+    check_trust(spec, trust_pickle=args.trust_pickle)  # an SB3 zip is refused before anything reads it
     if note:
         print(f"note: {note}", file=sys.stderr)
     crowd = "synthetic" if args.synthetic else "replay"
@@ -76,7 +84,7 @@ def _demo(args: argparse.Namespace) -> int:
         print(f"warning: {exc}\nwarning: falling back to constant-velocity ('cv') forecasts.", file=sys.stderr)
         kwargs["predictor"] = "cv"
         env = CrowdNavEnv(render_mode=render_mode, **kwargs)
-    policy = load_policy(spec, env.config)
+    policy = load_policy(spec, env.config, trust_pickle=args.trust_pickle)
     if hasattr(policy, "bind_envs"):  # the privileged ceiling reads the environment itself
         policy.bind_envs([env])
     check_spaces(policy, env)
@@ -133,8 +141,9 @@ def add_demo(sub: Any) -> None:
         "--policy",
         default=None,
         help="planner, search, straight, privileged (PRIVILEGED: reads the replay's true future), or a trained model "
-        "(.zip or run folder); default: the shipped PPO policy",
+        "(NAME.policy.yaml, a run folder, or an SB3 .zip with --trust-pickle); default: the shipped PPO policy",
     )
+    p.add_argument("--trust-pickle", action="store_true", help=TRUST_PICKLE_HELP)
     p.add_argument("--split", default="zara1", choices=SPLITS, help="its held-out scene is crossed (default: zara1)")
     p.add_argument(
         "--predictor",
@@ -152,10 +161,12 @@ def add_demo(sub: Any) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
+    from agents.policy_file import weights_file_name
     from agents.runs import export_policy
 
-    dest = export_policy(args.run, args.dest, args.model)
-    print(f"wrote {dest} and {dest.with_suffix('.yaml')} ({dest.stat().st_size / 1e6:.2f} MB)")
+    dest = export_policy(args.run, args.dest, args.model, trust_pickle=args.trust_pickle)
+    weights = dest.with_name(weights_file_name(dest))
+    print(f"wrote {dest} and {weights.name} ({weights.stat().st_size / 1e6:.2f} MB)")
     return 0
 
 
@@ -184,12 +195,19 @@ def add_agent(sub: Any) -> None:
     e.set_defaults(func=evaluate_from_args)
     x = asub.add_parser(
         "export",
-        help="copy a run's model with its config, to evaluate or ship the file alone",
-        description="Copy RUN's best (or final) model to DEST.zip with its config as DEST.yaml.",
+        help="write a run's model as a policy file of the project's format (data only), to evaluate or ship it alone",
+        description=(
+            "Write RUN's best (or final) model as DEST (NAME.policy.yaml: architecture, spaces, normalisation "
+            "statistics and training config as plain YAML) and NAME.pt beside it (the weights, read with "
+            "torch.load(weights_only=True)); loading them unpickles nothing. A run folder of 'agent train' holds this "
+            "format already and it is copied; an SB3 .zip (an older run, a model file with its <stem>.yaml) is "
+            "converted, which unpickles it: only with --trust-pickle."
+        ),
     )
-    x.add_argument("run", help="a run folder of agents.train")
-    x.add_argument("dest", help="destination .zip (e.g. agents/pretrained/ppo_mesrnn_zara1.zip)")
+    x.add_argument("run", help="a run folder of agents.train, a policy file, or an SB3 .zip (with --trust-pickle)")
+    x.add_argument("dest", help="destination NAME.policy.yaml (e.g. agents/pretrained/ppo_mesrnn_zara1.policy.yaml)")
     x.add_argument("--model", default="best", choices=RUN_MODELS, help="best or final model (default: best)")
+    x.add_argument("--trust-pickle", action="store_true", help=TRUST_PICKLE_HELP)
     x.set_defaults(func=_export)
     from agents.curves import add_curves_arguments
     from agents.curves import run_from_args as curves_from_args

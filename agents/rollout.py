@@ -68,8 +68,9 @@ class SB3Policy:
     """An SB3 model (and its ``VecNormalize`` statistics, if it was trained with them) behind ``predict``.
 
     Args:
-        model: a loaded SB3 algorithm.
-        vecnormalize: the ``VecNormalize`` whose observation statistics the model was trained with, or None.
+        model: a loaded SB3 algorithm, or an SB3 policy network (both have ``predict`` and ``observation_space``).
+        vecnormalize: what normalises observations as the model was trained with: SB3's ``VecNormalize``, or its
+            statistics as numbers (:class:`agents.policy_file.ObservationNormalizer`, from a policy file), or None.
         source: where the model came from (for messages).
     """
 

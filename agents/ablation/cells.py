@@ -211,13 +211,13 @@ def cell_dir(cfg: AblationConfig, cell: Cell | str) -> Path:
 
 
 def trained_model(train_dir: Path, which: str) -> Path | None:
-    """The ``best``/``final`` model zip of a finished training cell folder (``None`` if absent)."""
+    """The ``best``/``final`` model of a finished training cell folder (``None`` if absent): its policy file of the
+    project's format, which loads without unpickling (:func:`agents.runs.run_model`), else the SB3 zip of a run
+    trained before that format (whose evaluation then refuses to unpickle it and says how to convert it)."""
+    from agents.runs import run_model
+
     meta = _read_json(train_dir / CELL_JSON) or {}
-    run = train_dir / meta.get("run_dir", TRAIN_RUN)
-    for candidate in (run / f"{which}_model.zip", run / "final_model.zip"):
-        if candidate.is_file():
-            return candidate
-    return None
+    return run_model(train_dir / meta.get("run_dir", TRAIN_RUN), which)
 
 
 @dataclass

@@ -11,7 +11,7 @@ from typing import Final
 from agents.entry import module_main, parse_set
 from agents.evaluation.run import default_eval_dir, evaluate
 from agents.evaluation.summary import format_summary
-from agents.runs import RUN_MODELS
+from agents.runs import RUN_MODELS, check_trust
 from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
@@ -25,8 +25,15 @@ DESCRIPTION: Final[str] = (
 def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "policy",
-        help="a run folder of agents.train, an SB3 .zip, or a planner: 'straight', 'planner' (sampling), 'search', "
-        "'privileged' (PRIVILEGED ceiling: reads the replay's true future)",
+        help="a run folder of agents.train, a policy file NAME.policy.yaml, an SB3 .zip (with --trust-pickle), or a "
+        "planner: 'straight', 'planner' (sampling), 'search', 'privileged' (PRIVILEGED ceiling: reads the replay's "
+        "true future)",
+    )
+    p.add_argument(
+        "--trust-pickle",
+        action="store_true",
+        help="allow loading an SB3 .zip and its _vecnormalize.pkl, which are unpickled and can run arbitrary code: "
+        "only for files you trust (policy files, NAME.policy.yaml, never need it)",
     )
     p.add_argument(
         "--predictor",
@@ -74,6 +81,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(1)
+    check_trust(args.policy, args.model, args.trust_pickle)  # an SB3 zip is refused before anything reads it
     out = Path(args.out) if args.out else default_eval_dir(args.policy, args.predictor, args.split, args.seed)
     summary = evaluate(
         args.policy,
@@ -89,6 +97,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         planner_kwargs=parse_set(args.planner_set),
         ceiling=args.ceiling,
         progress=not (args.no_progress or args.json),
+        trust_pickle=args.trust_pickle,
     )
     if args.json:
         print(json.dumps(summary))

@@ -10,6 +10,7 @@ from typing import Any
 
 from agents.evaluation.summary import ceiling_fraction, episodes_csv, read_episodes, summarise
 from agents.planners import PLANNERS
+from agents.policy_file import POLICY_SUFFIX
 from agents.rollout import evaluation_seeds, prepare_forecasts, run_episodes
 from agents.runs import check_spaces, load_policy, model_path, run_settings
 from crowdnav_mesrnn import predictors
@@ -46,12 +47,14 @@ def evaluate(
     progress: bool = False,
     planner_kwargs: Mapping[str, Any] | None = None,
     ceiling: str | Path | None = None,
+    trust_pickle: bool = False,
 ) -> dict[str, Any]:
     """Evaluate a policy on the held-out scene of ``split`` over :func:`evaluation_seeds`.
 
     Args:
         spec: a planner name (:data:`agents.planners.PLANNERS`: ``straight``, ``planner``, ``search``,
-            ``privileged``), an SB3 ``.zip``, or a run folder of :mod:`agents.training`.
+            ``privileged``), a policy file (``NAME.policy.yaml``), a run folder of :mod:`agents.training`, or an SB3
+            ``.zip`` (with ``trust_pickle``).
         predictor: the forecast arm of the environment.
         split: whose held-out scene is replayed.
         episodes: how many episodes.
@@ -66,6 +69,8 @@ def evaluate(
             ``speed_fractions``, ``margin_m``, ``lookahead_steps``; see :mod:`agents.planners`).
         ceiling: the privileged ceiling's ``episodes.csv`` (or its evaluation folder) on the same episode list: the
             summary then holds ``ceiling`` (:func:`ceiling_fraction`).
+        trust_pickle: allow an SB3 ``.zip`` (and its ``_vecnormalize.pkl``), which is unpickled and can run arbitrary
+            code (:func:`agents.runs.load_policy`).
 
     Returns:
         the summary (see :func:`summarise`) plus ``policy``, ``predictor``, ``split``, ``crowd`` (``{"kind",
@@ -84,7 +89,7 @@ def evaluate(
     ceiling_rows = read_episodes(ceiling) if ceiling is not None else None  # fail before running anything
     kwargs = evaluation_env_kwargs(spec, predictor, split, env_overrides, require_pedestrians)
     config = config_from(kwargs, {})
-    policy = load_policy(spec, config, which, planner_kwargs)
+    policy = load_policy(spec, config, which, planner_kwargs, trust_pickle=trust_pickle)
     prepare_forecasts(kwargs, progress=progress)
     envs = [CrowdNavEnv(**kwargs) for _ in range(max(1, min(n_envs, episodes)))]
     check_spaces(policy, envs[0])
@@ -123,10 +128,10 @@ def evaluate(
 
 def default_eval_dir(spec: str | Path, predictor: str, split: str, seed: int, root: str | Path = "runs/eval") -> Path:
     """A new folder for an evaluation's files when none is given: ``runs/eval/<policy>_<predictor>_<split>_s<seed>_<UTC
-    time>`` (``<policy>``: the planner's name, a run folder's name or a model file's stem; ``-2``, ``-3``, ... appended
+    time>`` (``<policy>``: the planner's name, a run folder's name or a model file's ``NAME``; ``-2``, ``-3``, ... appended
     when the folder exists, so an evaluation never overwrites another)."""
     p = Path(spec)
-    name = str(spec) if str(spec) in PLANNERS else (p.stem if p.suffix == ".zip" else p.name) or "policy"
+    name = str(spec) if str(spec) in PLANNERS else p.name.removesuffix(POLICY_SUFFIX).removesuffix(".zip") or "policy"
     stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
     base = Path(root) / f"{name}_{predictor}_{split}_s{seed}_{stamp}"
     out, k = base, 1

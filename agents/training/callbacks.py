@@ -11,6 +11,7 @@ import json
 import pickle
 import shutil
 import time
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,29 @@ from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_
 def save_model(model: Any, path: Path) -> None:
     """An SB3 model saved atomically to ``path`` (``.zip``)."""
     atomic_write(path, lambda fh: model.save(fh))
+
+
+def save_policy_file(model: Any, model_file: Path, run_dir: Path) -> Path | None:
+    """The model as a policy file of the project's format beside ``model_file``: ``<stem>.policy.yaml`` and
+    ``<stem>.pt`` (:mod:`agents.policy_file`; data only, so the run's policy loads without ``--trust-pickle``), with
+    the run's ``config.yaml`` inside. A policy outside the format's allow-lists (a custom class) gets a warning and
+    only the SB3 zip; returns None then."""
+    from agents.policy_file import PolicyFileError, policy_file_path, write_policy_file
+    from crowdnav_mesrnn.config import load_yaml
+
+    config = load_yaml(run_dir / "config.yaml")
+    dest = policy_file_path(model_file)
+    source = {"run_dir": str(run_dir), "model": model_file.name, "steps": int(model.num_timesteps)}
+    try:
+        algo = config["crowdnav_mesrnn"]["algo"]
+        return write_policy_file(dest, model.policy, algo, config, model.get_vec_normalize_env(), source)
+    except PolicyFileError as exc:
+        warnings.warn(
+            f"{exc}: the run folder holds the SB3 zip {model_file.name} only, which loads with --trust-pickle",
+            UserWarning,
+            stacklevel=2,
+        )
+        return None
 
 
 def _save_pickle(obj: Any, path: Path) -> None:
@@ -115,6 +139,7 @@ class Validation(BaseCallback):
             self.state["best"] = result
             save_model(self.model, self.run_dir / "best_model.zip")
             save_vecnormalize(self.model, self.run_dir / "best_model.zip")
+            save_policy_file(self.model, self.run_dir / "best_model.zip", self.run_dir)
         self.state["history"].append(result)
         self.state["last_eval_step"] = int(self.num_timesteps)
         atomic_write_text(self.run_dir / "evaluations.csv", csv_text(list(result), self.state["history"]))

@@ -11,7 +11,8 @@ environment id, the resolved environment settings, the crowd replayed (``crowd``
 ``data_dir``), sha256 of the predictor weights involved, code version), ``command.txt``, ``version.txt``,
 ``progress.csv`` (SB3's logger), ``evaluations.csv`` (validation history), ``best_model.zip`` (best validation
 success rate, ties broken by return), ``final_model.zip`` (``*_vecnormalize.pkl`` beside the models when
-observations are normalised), ``pretrain.json`` (warm start), ``checkpoints/`` (model, ``VecNormalize``
+observations are normalised; each model also as a policy file of the project's format, ``<stem>.policy.yaml`` and
+``<stem>.pt``, which loads without unpickling: :mod:`agents.policy_file`), ``pretrain.json`` (warm start), ``checkpoints/`` (model, ``VecNormalize``
 statistics, SAC's replay buffer and the validation state every ``checkpoint_freq_steps``; ``--resume`` continues
 from the latest with the same timestep count), ``tb/`` (TensorBoard, when installed) and ``DONE``, written last.
 Every file is written atomically.
@@ -45,6 +46,7 @@ from agents.training.callbacks import (
     Validation,
     latest_checkpoint,
     save_model,
+    save_policy_file,
     save_vecnormalize,
 )
 from agents.training.config import TrainConfig, _algo_class, algorithm_kwargs, policy_class
@@ -343,6 +345,7 @@ def train(
         validation.finish()
         save_model(model, run_dir / "final_model.zip")
         save_vecnormalize(model, run_dir / "final_model.zip")
+        save_policy_file(model, run_dir / "final_model.zip", run_dir)
         if cfg.checkpoint_freq_steps > 0 and checkpoint.last_step != model.num_timesteps:
             checkpoint.save()
         validation.close()

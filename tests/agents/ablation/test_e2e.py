@@ -74,6 +74,7 @@ def _check(cfg: ab.AblationConfig, result: dict[str, Any]) -> None:
         assert len(ab.read_episodes(ab.cell_dir(cfg, name) / "episodes.csv")) == cfg.episodes
     meta = json.loads((ab.cell_dir(cfg, CELLS[1]) / ab.CELL_JSON).read_text())
     assert meta["model_sha256"] and Path(meta["model"]).is_file()
+    assert meta["model"].endswith("best_model.policy.yaml")  # the policy file training wrote: nothing unpickled
     summary = json.loads((cfg.out_path() / "summary.json").read_text())
     assert summary["complete"] is True
     assert summary["policies"]["ppo"]["arms"]["none"]["episodes"] == cfg.episodes

@@ -12,7 +12,7 @@ from agents.evaluation.cli import main
 from agents.evaluation.run import evaluate
 from agents.evaluation.summary import format_summary
 from agents.rollout import evaluation_seeds
-from agents.runs import load_policy
+from agents.runs import UntrustedPolicyError, load_policy
 from crowdnav_mesrnn.data import ENV_VAR
 
 SYNTHETIC = {"crowd": "synthetic"}
@@ -36,13 +36,16 @@ def test_evaluate_a_planner_writes_episodes_and_summary(tmp_path: Path) -> None:
 
 def test_evaluate_a_trained_run_with_its_own_env_settings(tiny_ppo_run: Path) -> None:
     s = evaluate(tiny_ppo_run, "none", "zara1", 3, env_overrides=SYNTHETIC, n_envs=1)
-    assert s["episodes"] == 3 and s["model"].endswith("best_model.zip")
+    assert s["episodes"] == 3 and s["model"].endswith("best_model.policy.yaml")
     assert s["env"]["observe_time_left"] is True  # from the run's config
     assert evaluate(tiny_ppo_run, "none", "zara1", 3, env_overrides=SYNTHETIC, which="final")["episodes"] == 3
     with pytest.raises(ValueError, match="trained on observations"):
         evaluate(tiny_ppo_run, "cv", "zara1", 2, env_overrides=SYNTHETIC)
-    policy = load_policy(tiny_ppo_run / "final_model.zip")
+    policy = load_policy(tiny_ppo_run / "final_model.policy.yaml")
     assert hasattr(policy, "predict")
+    with pytest.raises(UntrustedPolicyError, match="--trust-pickle"):
+        load_policy(tiny_ppo_run / "final_model.zip")
+    assert hasattr(load_policy(tiny_ppo_run / "final_model.zip", trust_pickle=True), "predict")
     with pytest.raises(FileNotFoundError, match="planner"):
         load_policy("no/such/run")
 

@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 import yaml
 
+from agents.policy_file import read_policy_file
 from agents.runs import PROJECT_KEY
 from agents.training.config import load_train_config
 from agents.training.run import steps_trained, train
@@ -29,6 +30,10 @@ RUN_FILES = (
     "evaluations.csv",
     "best_model.zip",
     "final_model.zip",
+    "best_model.policy.yaml",
+    "best_model.pt",
+    "final_model.policy.yaml",
+    "final_model.pt",
     "DONE",
 )
 
@@ -36,6 +41,9 @@ RUN_FILES = (
 def _check_run_folder(run: Path, steps: int, predictor: str) -> None:
     for name in RUN_FILES:
         assert (run / name).is_file(), name
+    for which in ("best", "final"):  # the policy files load (nothing unpickled) as the zips they sit beside
+        doc = read_policy_file(run / f"{which}_model.policy.yaml")
+        assert doc.settings["run"]["predictor"] == predictor
     assert json.loads((run / "DONE").read_text())["steps"] == steps
     saved = yaml.safe_load((run / "config.yaml").read_text())
     assert saved[PROJECT_KEY]["run"]["predictor"] == predictor
