@@ -17,9 +17,10 @@ from envs.config import FORECAST_MEMORIES
 
 
 def _build(args: argparse.Namespace) -> int:
-    import torch
+    from envs.forecasting.build import build_forecast_cache, check_cacheable
 
-    from envs.forecasting.build import build_forecast_cache
+    check_cacheable(args.predictor)  # a name without a cache is refused before torch is imported
+    import torch
 
     torch.set_num_threads(args.threads)
     summary = build_forecast_cache(

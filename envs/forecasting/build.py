@@ -34,6 +34,18 @@ def cache_recordings(split: str | None = None, part: str = "all") -> tuple[str, 
     return tuple(r for p in parts for r in episode_recordings(split, p))
 
 
+def check_cacheable(predictor: str) -> None:
+    """Raise ``ValueError`` unless ``predictor``'s forecasts go to the disk cache (a predictor loaded per split:
+    :func:`crowdnav_mesrnn.predictors.per_split`), listing those that do."""
+    if not predictors.per_split(predictor):
+        weightless = predictors.names(*(k for k in predictors.KINDS if k not in predictors.SPLIT_KINDS), plugins=False)
+        raise ValueError(
+            f"unknown predictor {predictor!r} for the forecast cache; valid: "
+            f"{', '.join(predictors.names(predictors.PRETRAINED, plugins=False))}, an installed predictor plug-in or an "
+            f"import path 'package.module:Factory' ({', '.join(weightless[:-1])} and {weightless[-1]} need no cache)"
+        )
+
+
 def build_forecast_cache(
     predictor: str,
     split: str | None = None,
@@ -67,13 +79,7 @@ def build_forecast_cache(
 
     from crowdnav_mesrnn.data.recordings import load_recording
 
-    if not predictors.per_split(predictor):
-        weightless = predictors.names(*(k for k in predictors.KINDS if k not in predictors.SPLIT_KINDS), plugins=False)
-        raise ValueError(
-            f"unknown predictor {predictor!r} for the forecast cache; valid: "
-            f"{', '.join(predictors.names(predictors.PRETRAINED, plugins=False))}, an installed predictor plug-in or an "
-            f"import path 'package.module:Factory' ({', '.join(weightless[:-1])} and {weightless[-1]} need no cache)"
-        )
+    check_cacheable(predictor)
     if memory not in FORECAST_MEMORIES:
         raise ValueError(f"unknown forecast memory {memory!r}; valid: {', '.join(FORECAST_MEMORIES)}")
     started = time.perf_counter()
