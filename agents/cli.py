@@ -54,17 +54,22 @@ def _demo_policy(args: argparse.Namespace) -> tuple[str, str | None]:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from agents.evaluation.run import evaluation_env_kwargs
     from agents.planners import PLANNERS
-    from agents.runs import check_spaces, check_trust, load_policy, run_settings
+    from agents.runs import check_trust, model_path
+
+    started = time.perf_counter()
+    spec, note = _demo_policy(args)
+    if spec not in PLANNERS:  # a missing policy is named before torch and pymunk are imported
+        model_path(spec)
+    check_trust(spec, trust_pickle=args.trust_pickle)  # an SB3 zip is refused before anything reads it
+
+    from agents.evaluation.run import evaluation_env_kwargs
+    from agents.runs import check_spaces, load_policy, run_settings
     from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, data_available
     from envs.crowd_nav import CrowdNavEnv
     from envs.forecasting.factory import PredictorUnavailableError
     from envs.rendering import save_gif
 
-    started = time.perf_counter()
-    spec, note = _demo_policy(args)
-    check_trust(spec, trust_pickle=args.trust_pickle)  # an SB3 zip is refused before anything reads it
     if note:
         print(f"note: {note}", file=sys.stderr)
     crowd = "synthetic" if args.synthetic else "replay"

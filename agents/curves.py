@@ -23,7 +23,6 @@ from typing import Any, Final
 
 import yaml
 
-from agents.stats import wilson_interval
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_text
 
 #: Columns of :func:`curves_csv`.
@@ -75,6 +74,8 @@ def read_curve(run_dir: str | Path, label: str | None = None, episodes: int | No
     Raises:
         FileNotFoundError: the folder has no ``evaluations.csv`` (validation off, or not started).
     """
+    from agents.stats import wilson_interval  # scipy: not with the command line's parser
+
     run = Path(run_dir)
     path = run / "evaluations.csv"
     if not path.is_file():

@@ -10,6 +10,11 @@ from __future__ import annotations
 import sys
 import warnings
 
+if __name__ == "__main__":  # the command, not a deprecated import: arguments checked before torch is imported
+    from agents.evaluation.cli import main as _main
+
+    sys.exit(_main())
+
 from agents.entry import parse_set
 from agents.evaluation.cli import add_evaluate_arguments, main, run_from_args
 from agents.evaluation.run import default_eval_dir, evaluate, evaluation_env_kwargs
@@ -80,8 +85,6 @@ __all__ = [
     "without_optimizer_state",
 ]
 
-if __name__ == "__main__":  # the command, not a deprecated import
-    sys.exit(main())
 warnings.warn(
     "agents.evaluate is deprecated and will be removed in the next release: import from agents.evaluation, "
     "agents.rollout or agents.runs (python -m agents.evaluate stays the command)",

@@ -9,6 +9,11 @@ from __future__ import annotations
 import sys
 import warnings
 
+if __name__ == "__main__":  # the command, not a deprecated import: arguments checked before torch is imported
+    from agents.training.cli import main as _main
+
+    sys.exit(_main())
+
 from agents.actions import action_set
 from agents.runs import PROJECT_KEY
 from agents.training.callbacks import Checkpoint, Progress, Validation, latest_checkpoint, save_checkpoint
@@ -83,8 +88,6 @@ __all__ = [
     "train",
 ]
 
-if __name__ == "__main__":  # the command, not a deprecated import
-    sys.exit(main())
 warnings.warn(
     "agents.train is deprecated and will be removed in the next release: import from agents.training "
     "(python -m agents.train stays the command)",

@@ -7,11 +7,14 @@ import difflib
 import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Final, TypeVar
 
 import yaml
 
 T = TypeVar("T")
+
+#: The checkout's ``configs/`` folder: the experiment YAMLs by kind (``agent``, ``ablation``, ``predictor``, ``env``).
+CONFIGS_DIR: Final[Path] = Path(__file__).resolve().parent.parent / "configs"
 
 
 class ConfigError(ValueError):
@@ -108,3 +111,30 @@ def load_yaml(path: str | os.PathLike[str]) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
     return data
+
+
+def _shown(path: Path) -> str:
+    """``path`` relative to the working directory when it lies below it, else as it is."""
+    try:
+        return str(path.relative_to(Path.cwd()))
+    except ValueError:
+        return str(path)
+
+
+def existing_config(path: str | os.PathLike[str], kind: str) -> Path:
+    """``path`` when it is a file; else :class:`FileNotFoundError` naming it, with the closest file name and every YAML
+    under ``configs/<kind>/`` (:data:`CONFIGS_DIR`), so a mistyped ``--config`` is answered before anything heavy is
+    imported: ``no agent config configs/agent/ppo_scorin.yaml; did you mean configs/agent/ppo_scoring.yaml? (configs
+    in configs/agent: ppo.yaml, ppo_scoring.yaml, ...)``."""
+    given = Path(path)
+    if given.is_file():
+        return given
+    folder = CONFIGS_DIR / kind
+    shipped = sorted(folder.glob("*.yaml")) if folder.is_dir() else []
+    message = f"no {kind} config {path}" + (" (a folder)" if given.is_dir() else "")
+    if shipped:
+        close = close_matches(given.stem, [s.stem for s in shipped])  # stems: every name ends in .yaml
+        if close:
+            message += f"; did you mean {_shown(folder / (close[0] + '.yaml'))}?"
+        message += f" (configs in {_shown(folder)}: {', '.join(s.name for s in shipped)})"
+    raise FileNotFoundError(message)

@@ -19,8 +19,10 @@ from envs.config import FORECAST_MEMORIES
 def _build(args: argparse.Namespace) -> int:
     import sys
 
-    from envs.forecasting.build import build_forecast_cache
+    from envs.forecasting.build import build_forecast_cache, check_cacheable
     from envs.forecasting.threads import FORECAST_THREADS
+
+    check_cacheable(args.predictor)  # a name without a cache is refused before torch is imported
 
     if args.threads is not None and args.threads != FORECAST_THREADS:
         print(

@@ -1,4 +1,6 @@
-"""Shared fixtures. Tests needing ETH/UCY data skip only when no data folder is configured."""
+"""Shared fixtures. Tests needing ETH/UCY data find it exactly where the project does
+(:func:`crowdnav_mesrnn.data.paths.find_data_dir`: ``$CROWDNAV_MESRNN_DATA``, ``./data/eth_ucy``,
+``~/.cache/crowdnav-mesrnn/eth_ucy``) and skip only when none of those places holds it."""
 
 from __future__ import annotations
 
@@ -20,19 +22,47 @@ import torch
 
 torch.set_num_threads(1)
 
-from crowdnav_mesrnn.data.paths import ENV_VAR, HOW_TO_GET_DATA, find_data_dir  # noqa: E402
+from crowdnav_mesrnn.data.paths import ENV_VAR, HOW_TO_GET_DATA, DataNotFoundError, candidate_dirs  # noqa: E402
+from crowdnav_mesrnn.data.paths import find_data_dir as _find_data_dir  # noqa: E402
 
-#: Why a test needing ETH/UCY data skips (the only reason it may).
-NO_DATA = f"${ENV_VAR} is not set. {HOW_TO_GET_DATA}"
+
+def _searched() -> str:
+    """The places the project's lookup searches when no folder is given, on one line."""
+    places = [f"{label} {path}" for label, path in candidate_dirs()]
+    if not os.environ.get(ENV_VAR):
+        places.insert(0, f"${ENV_VAR} (not set)")
+    return "; ".join(places)
+
+
+#: Why a test needing ETH/UCY data skips (the only reason it may): the places searched and how to get the data.
+NO_DATA = f"no ETH/UCY data found (looked in: {_searched()}). {HOW_TO_GET_DATA}"
+
+
+def _pin_data_dir() -> None:
+    """Where the project's own lookup finds the data without the variable (``./data/eth_ucy`` or the user cache, e.g.
+    after ``crowdnav-mesrnn data download``), export it as ``$CROWDNAV_MESRNN_DATA`` for this run: the tests that
+    change the working directory (the docs' blocks run in a temporary one) and the subprocesses they start then use
+    the same folder. A variable that is set is left as it is (set but wrong is an error, never a skip)."""
+    if os.environ.get(ENV_VAR):
+        return
+    try:
+        os.environ[ENV_VAR] = str(_find_data_dir().resolve())
+    except DataNotFoundError:
+        pass
+
+
+_pin_data_dir()
 
 
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
-    """The ETH/UCY folder from ``$CROWDNAV_MESRNN_DATA``; skips when the variable is unset."""
-    if not os.environ.get(ENV_VAR):
+    """The ETH/UCY folder the project would use; skips only when the project's lookup finds none."""
+    try:
+        return _find_data_dir()
+    except DataNotFoundError:
+        if os.environ.get(ENV_VAR):  # set but wrong is an error, not a skip: CI must not silently skip the data tests
+            raise
         pytest.skip(NO_DATA)
-    # Set but wrong is an error, not a skip: CI must not silently skip the data tests.
-    return find_data_dir()
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -106,12 +106,22 @@ def check_environments(cfg: AblationConfig, cells: Iterable[Cell]) -> None:
             ) from None
 
 
-def _canonical_yaml_sha256(path: str) -> str | None:
-    """sha256 of an agent YAML's parsed content (comments and layout do not count); None if missing."""
+def _canonical_yaml_sha256(path: str, timesteps: int | None = None) -> str | None:
+    """sha256 of an agent YAML's parsed content (comments and layout do not count) as a training cell reads it; None if
+    missing.
+
+    A cell's budget is the grid's ``timesteps`` (:func:`agents.ablation.config.training_overrides`), never the YAML's
+    ``n_timesteps``, so every entry's ``n_timesteps`` is hashed as ``float(timesteps)``: a budget written into an agent
+    YAML (e.g. made whole rollouts, ``100352``) does not make the cells that never read it stale, and the form is the
+    one the shipped YAMLs wrote before (``!!float 1e5``), so the committed grids' recorded specs stay the same."""
     try:
         content = load_yaml(path)
     except FileNotFoundError:
         return None
+    if timesteps is not None:
+        for key, entry in list(content.items()):
+            if isinstance(entry, dict) and "n_timesteps" in entry:  # a new mapping: YAML aliases share one
+                content[key] = {**entry, "n_timesteps": float(timesteps)}
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -134,7 +144,7 @@ def cell_spec(cfg: AblationConfig, cell: Cell) -> dict[str, Any]:
     if cell.kind == "train":
         spec.update(
             agent_config=cell.policy.config,
-            agent_config_sha256=_canonical_yaml_sha256(cell.policy.config or ""),
+            agent_config_sha256=_canonical_yaml_sha256(cell.policy.config or "", cell.policy.timesteps),
             timesteps=cell.policy.timesteps,
             n_envs=cell.policy.n_envs,
             overrides=dict(cell.policy.overrides),

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from crowdnav_mesrnn import predictors
-from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml
+from crowdnav_mesrnn.config import ConfigError, check_keys, existing_config, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
 
 #: Forecast sources an arm may use (besides predictor plug-ins), from the registry (:mod:`crowdnav_mesrnn.predictors`).
@@ -716,6 +716,7 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
 
 def load_config(path: str | os.PathLike[str]) -> AblationConfig:
     """Read and validate a grid YAML (:class:`ConfigError` messages start with the file name)."""
+    path = existing_config(path, "ablation")  # a missing file lists the grids under configs/ablation/
     try:
         return config_from_mapping(load_yaml(path), source=str(path))
     except ConfigError as exc:

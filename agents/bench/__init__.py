@@ -16,7 +16,16 @@ The code is in modules: :mod:`agents.bench.run` (:func:`run_bench`, :class:`Benc
 
 from __future__ import annotations
 
+from typing import Any
+
 from agents.bench.cli import add_parser, main
-from agents.bench.run import BenchConfig, default_out, run_bench
 
 __all__ = ["BenchConfig", "add_parser", "default_out", "main", "run_bench"]
+
+
+def __getattr__(name: str) -> Any:
+    if name in ("BenchConfig", "default_out", "run_bench"):  # torch comes with them, not with the command line
+        from agents.bench import run
+
+        return getattr(run, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

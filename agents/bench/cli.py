@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from agents.bench.planner import DEFAULT_SCENES
-from agents.bench.run import BenchConfig, default_out, run_bench
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
 from crowdnav_mesrnn.evaluation.statistics import DEFAULT_BLOCK_LEN
@@ -62,6 +62,9 @@ def add_parser(sub: Any) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    predictors.check(args.predictor)  # a mistyped name is refused before torch is imported
+    from agents.bench.run import BenchConfig, default_out, run_bench
+
     cfg = BenchConfig(
         predictor=args.predictor,
         splits=tuple(args.splits),

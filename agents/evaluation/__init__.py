@@ -16,16 +16,22 @@ are run by :func:`agents.rollout.run_episodes`, policies loaded by :func:`agents
 
 from __future__ import annotations
 
-from agents.evaluation.run import default_eval_dir, evaluate, evaluation_env_kwargs
-from agents.evaluation.summary import (
-    OUTCOMES,
-    SUCCESS_ONLY_METRICS,
-    ceiling_fraction,
-    episodes_csv,
-    format_summary,
-    read_episodes,
-    summarise,
-)
+from typing import Any
+
+#: Where each public name lives; imported when first asked for, so that the command line's parsers (``agent
+#: evaluate``) load neither scipy nor the environment.
+_HOMES: dict[str, str] = {
+    "default_eval_dir": "agents.evaluation.run",
+    "evaluate": "agents.evaluation.run",
+    "evaluation_env_kwargs": "agents.evaluation.run",
+    "OUTCOMES": "agents.evaluation.summary",
+    "SUCCESS_ONLY_METRICS": "agents.evaluation.summary",
+    "ceiling_fraction": "agents.evaluation.summary",
+    "episodes_csv": "agents.evaluation.summary",
+    "format_summary": "agents.evaluation.summary",
+    "read_episodes": "agents.evaluation.summary",
+    "summarise": "agents.evaluation.summary",
+}
 
 __all__ = [
     "OUTCOMES",
@@ -39,3 +45,11 @@ __all__ = [
     "read_episodes",
     "summarise",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _HOMES:
+        import importlib
+
+        return getattr(importlib.import_module(_HOMES[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -9,9 +9,8 @@ from pathlib import Path
 from typing import Final
 
 from agents.entry import module_main, parse_set
-from agents.evaluation.run import default_eval_dir, evaluate
-from agents.evaluation.summary import format_summary
-from agents.runs import RUN_MODELS, check_trust
+from agents.planners import PLANNERS
+from agents.runs import RUN_MODELS, check_trust, model_path
 from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_ENV_HELP
@@ -78,10 +77,16 @@ def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
+    predictors.check(args.predictor)  # a mistyped arm or a missing policy is named before torch is imported
+    if args.policy not in PLANNERS:
+        model_path(args.policy, args.model)
+    check_trust(args.policy, args.model, args.trust_pickle)  # an SB3 zip is refused before anything reads it
     import torch
 
+    from agents.evaluation.run import default_eval_dir, evaluate
+    from agents.evaluation.summary import format_summary
+
     torch.set_num_threads(1)
-    check_trust(args.policy, args.model, args.trust_pickle)  # an SB3 zip is refused before anything reads it
     out = Path(args.out) if args.out else default_eval_dir(args.policy, args.predictor, args.split, args.seed)
     summary = evaluate(
         args.policy,

@@ -12,7 +12,6 @@ from typing import Final
 
 from agents.entry import module_main, parse_set
 from agents.training.config import DEFAULT_CONFIG, TrainConfig, load_train_config
-from agents.training.run import train
 from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import SPLITS
@@ -68,13 +67,13 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
             overrides[key] = getattr(args, key)
     if args.timesteps is not None:
         overrides["n_timesteps"] = args.timesteps
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"no training config {path}")
     return load_train_config(path, None, overrides)
 
 
 def run_from_args(args: argparse.Namespace, command: str | None = None) -> int:
-    cfg = config_from_args(args)
+    cfg = config_from_args(args)  # every argument and config key checked before SB3 and torch are imported
+    from agents.training.run import train
+
     run_dir = train(cfg, args.out, resume=args.resume, progress=not args.no_progress, command=command)
     done = json.loads((run_dir / "DONE").read_text())
     best = done.get("best_validation") or {}

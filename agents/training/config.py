@@ -23,20 +23,17 @@ from __future__ import annotations
 import copy
 import dataclasses
 import importlib
-import inspect
+import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
-from stable_baselines3 import PPO, SAC
-
 from agents.actions import action_set
+from agents.planners import PLANNERS
 from agents.runs import PROJECT_KEY
-from agents.scoring import GeometryCachingBuffer, action_geometry_kwargs, is_scoring_policy
-from agents.training.pretrain import PretrainConfig
 from crowdnav_mesrnn import predictors
-from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
+from crowdnav_mesrnn.config import ConfigError, check_keys, existing_config, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import SPLITS
 from envs.config import config_from
 
@@ -68,6 +65,54 @@ ENV_ID_OF: Final[dict[str, str]] = {
 ALGOS: Final[tuple[str, ...]] = ("ppo", "sac")
 #: RL Zoo keys of an entry that are not algorithm arguments.
 ZOO_KEYS: Final[tuple[str, ...]] = ("n_envs", "n_timesteps", "policy", "policy_kwargs", "normalize")
+#: The keyword arguments of SB3's PPO and SAC (2.x) an entry may set: their ``__init__`` parameters without those a
+#: run sets itself (``policy``, ``env``, ``seed``, ``verbose``, ``device``, ``tensorboard_log``), ``policy_kwargs``
+#: (one of :data:`ZOO_KEYS`) and the private ones (``_init_setup_model``). Written out so that a config is checked before SB3 (and torch) is imported;
+#: ``tests/agents/training/test_config_keys.py`` keeps them equal to the installed SB3's.
+ALGO_KEYS: Final[dict[str, tuple[str, ...]]] = {
+    "ppo": (
+        "learning_rate",
+        "n_steps",
+        "batch_size",
+        "n_epochs",
+        "gamma",
+        "gae_lambda",
+        "clip_range",
+        "clip_range_vf",
+        "normalize_advantage",
+        "ent_coef",
+        "vf_coef",
+        "max_grad_norm",
+        "use_sde",
+        "sde_sample_freq",
+        "rollout_buffer_class",
+        "rollout_buffer_kwargs",
+        "target_kl",
+        "stats_window_size",
+    ),
+    "sac": (
+        "learning_rate",
+        "buffer_size",
+        "learning_starts",
+        "batch_size",
+        "tau",
+        "gamma",
+        "train_freq",
+        "gradient_steps",
+        "action_noise",
+        "replay_buffer_class",
+        "replay_buffer_kwargs",
+        "optimize_memory_usage",
+        "n_steps",
+        "ent_coef",
+        "target_update_interval",
+        "target_entropy",
+        "use_sde",
+        "sde_sample_freq",
+        "use_sde_at_warmup",
+        "stats_window_size",
+    ),
+}
 #: RL Zoo keys this trainer does not implement (rejected with a message rather than ignored).
 UNSUPPORTED_ZOO_KEYS: Final[tuple[str, ...]] = (
     "env_wrapper",
@@ -98,6 +143,102 @@ class EvalConfig:
     """Validation environments stepped in lockstep in the main process (speed only)."""
     require_pedestrians: bool = True
     """Validate only on episodes with a pedestrian near the straight path (as the test evaluation does)."""
+
+
+#: Losses of the action fit.
+ACTION_LOSSES: Final[tuple[str, ...]] = ("mse", "nll")
+
+
+@dataclass(frozen=True)
+class PretrainConfig:
+    """The ``pretrain:`` section of a training config (None there = no warm start)."""
+
+    teacher: str = "planner"
+    """A policy of :mod:`agents.planners` by name (:data:`agents.planners.PLANNERS`: ``planner``, the sampling
+    planner; ``straight``; the search and privileged planners where that module offers them), or any class with
+    SB3's batched ``predict`` as ``"package.module:Class"``, built as ``Class(env_config, **teacher_kwargs)``.
+    A teacher with a ``bind_envs(envs)`` method (one that reads the environments, e.g. the privileged planner) is
+    given the environment of each row before every batched ``predict`` (as :func:`agents.rollout.run_episodes`
+    does) and asked for its action at every step, before the environments move on."""
+    teacher_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Options of the teacher (e.g. ``headings_deg``, ``margin_m`` of the sampling planner)."""
+    episodes: int = 200
+    """Teacher episodes on the training environments (part ``train``, ``episode_time="train"``)."""
+    n_envs: int = 4
+    """Environments the teacher drives in lockstep in the main process (speed only)."""
+    epochs: int = 10
+    """Passes over the teacher's transitions."""
+    batch_size: int = 256
+    """Transitions per gradient step."""
+    lr: float = 1e-3
+    """Adam learning rate of the warm start (a fresh optimiser; the algorithm's own is untouched)."""
+    loss: str = "mse"
+    """Action loss: ``mse`` on the action mean or ``nll`` (Gaussian negative log-likelihood; PPO only)."""
+    value: bool = True
+    """Also fit the value function (PPO) or critics (SAC) to discounted Monte-Carlo returns (gamma of the algorithm)."""
+    dagger_rounds: int = 0
+    """DAgger (Ross et al. 2011) rounds after the first fit: the policy drives ``dagger_episodes`` new episodes,
+    the teacher labels every observation it met, and the policy is refitted on everything gathered so far. Cloning
+    alone only ever sees the teacher's states, and the student's first mistakes lead where it has no labels."""
+    dagger_episodes: int | None = None
+    """Episodes the policy drives per DAgger round (default: ``episodes``)."""
+    dagger_epochs: int | None = None
+    """Passes over the aggregated data per DAgger round (default: ``epochs``); the fit continues from the last one."""
+    value_coef: float = 0.5
+    """Weight of the value loss (Huber) against the action loss; PPO shares the extractor between both."""
+    log_std: float | None = -1.0
+    """PPO: set the action log standard deviation to this afterwards (None keeps it)."""
+
+    def validate(self) -> PretrainConfig:
+        teacher_class(self.teacher)  # a clear error now rather than after the environments are built
+        if self.loss not in ACTION_LOSSES:
+            raise ConfigError(f"unknown pretrain loss {self.loss!r}; valid: {', '.join(ACTION_LOSSES)}")
+        for key in ("dagger_rounds", "dagger_episodes", "dagger_epochs"):
+            value = getattr(self, key)
+            if key != "dagger_rounds" and value is None:
+                continue
+            if not isinstance(value, int) or isinstance(value, bool) or value < (0 if key == "dagger_rounds" else 1):
+                raise ConfigError(
+                    f"pretrain key {key!r} must be a whole number >= {0 if key == 'dagger_rounds' else 1}, got {value!r}"
+                )
+        for key in ("episodes", "n_envs", "epochs", "batch_size"):
+            value = getattr(self, key)
+            if not isinstance(value, int) or isinstance(value, bool) or value < (0 if key == "episodes" else 1):
+                raise ConfigError(f"pretrain key {key!r} must be a positive integer, got {value!r}")
+        if not (isinstance(self.lr, int | float) and math.isfinite(self.lr) and self.lr > 0):
+            raise ConfigError(f"pretrain key 'lr' must be a positive number, got {self.lr!r}")
+        if not isinstance(self.teacher_kwargs, Mapping):
+            raise ConfigError(f"pretrain key 'teacher_kwargs' must be a mapping, got {self.teacher_kwargs!r}")
+        return self
+
+
+def teacher_class(name: str) -> Any:
+    """The teacher a ``pretrain.teacher`` value names: None for a planner of :mod:`agents.planners` (built by
+    :func:`agents.planners.make_planner`), else the class of a ``"package.module:Class"`` path.
+
+    Raises:
+        ConfigError: an unknown name (listing the planners this version offers) or a path that does not import.
+    """
+    from crowdnav_mesrnn.config import ConfigError
+
+    if not isinstance(name, str):
+        raise ConfigError(f"pretrain key 'teacher' must be a planner name or 'package.module:Class', got {name!r}")
+    if name in PLANNERS:
+        return None
+    module, sep, attr = name.partition(":")
+    if not sep:
+        raise ConfigError(
+            f"pretrain teacher {name!r} is not a planner of agents.planners in this version (available: "
+            f"{', '.join(PLANNERS)}; the search and privileged planners are named 'search' and 'privileged' where "
+            "agents.planners offers them) nor a 'package.module:Class' path"
+        )
+    try:
+        cls = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"pretrain teacher {name!r} cannot be imported: {exc}") from None
+    if not callable(getattr(cls, "predict", None)):
+        raise ConfigError(f"pretrain teacher {name!r} has no predict method (SB3's batched predict is needed)")
+    return cls
 
 
 @dataclass(frozen=True)
@@ -214,13 +355,16 @@ def _set_dotted(target: dict[str, Any], key: str, value: Any) -> None:
 
 
 def _algo_class(algo: str) -> Any:
+    from stable_baselines3 import PPO, SAC
+
     return {"ppo": PPO, "sac": SAC}[algo]
 
 
-def _check_hyperparams(algo: str, hyperparams: Mapping[str, Any], where: str) -> None:
-    params = inspect.signature(_algo_class(algo).__init__).parameters
-    valid = [p for p in params if p not in ("self", "policy", "env", "seed", "verbose", "device", "tensorboard_log")]
-    check_keys(hyperparams, valid, f"{algo} hyperparameter ({where})")
+def _check_entry_keys(algo: str, entry: Mapping[str, Any], env_id: str, where: str) -> None:
+    """Every key of an entry is an RL Zoo key (:data:`ZOO_KEYS`) or an argument of the algorithm
+    (:data:`ALGO_KEYS`): a misspelt one is named with the closest valid key (``n_timestep``: did you mean
+    ``n_timesteps``?), before anything heavy is imported."""
+    check_keys(entry, [*ZOO_KEYS, *ALGO_KEYS[algo]], f"{algo} entry {env_id!r} ({where})")
 
 
 def load_train_config(
@@ -240,7 +384,7 @@ def load_train_config(
     Raises:
         ConfigError: naming the key and listing the valid ones.
     """
-    path = Path(path)
+    path = existing_config(path, "agent")
     raw = load_yaml(path)
     over = dict(overrides or {})
     project = copy.deepcopy(raw.get(PROJECT_KEY) or {})
@@ -274,6 +418,7 @@ def _build(
     for key in UNSUPPORTED_ZOO_KEYS:
         if key in entry:
             raise ConfigError(f"{source}: RL Zoo key {key!r} is not supported by agents.train")
+    _check_entry_keys(algo, entry, env_id, source)  # a misspelt key is named before a missing one is asked for
     for key in ("n_timesteps", "policy"):
         if key not in entry:
             raise ConfigError(f"{source}: entry {env_id!r} needs {key!r}")
@@ -290,7 +435,6 @@ def _build(
     policy = entry.pop("policy")
     if not isinstance(policy, str):
         raise ConfigError(f"{source}: policy must be a name or a dotted class path, got {policy!r}")
-    _check_hyperparams(algo, entry, source)
     env = project.get("env") or {}
     if not isinstance(env, dict):
         raise ConfigError(f"{source}: {PROJECT_KEY}.env must be a mapping")
@@ -382,6 +526,8 @@ def _schedule(value: Any, key: str) -> Any:
 
 def algorithm_kwargs(cfg: TrainConfig) -> dict[str, Any]:
     """The algorithm's keyword arguments (schedules built, policy class imported)."""
+    from agents.scoring import GeometryCachingBuffer, action_geometry_kwargs, is_scoring_policy
+
     kwargs = copy.deepcopy(cfg.hyperparams)
     for key in ("learning_rate", "clip_range", "clip_range_vf"):
         if key in kwargs:

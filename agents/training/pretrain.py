@@ -18,12 +18,10 @@ deterministic given the seed.
 
 from __future__ import annotations
 
-import importlib
-import math
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any, Final
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -31,106 +29,13 @@ from gymnasium import spaces as gym_spaces
 from torch.nn import functional as F
 
 from agents.actions import DiscretePolicy
-from agents.planners import PLANNERS, make_planner
+from agents.planners import make_planner
 from agents.rollout import SB3Policy, run_episodes
+
+# The ``pretrain:`` section is read with the rest of the config file (without torch): agents.training.config.
+from agents.training.config import ACTION_LOSSES as ACTION_LOSSES
+from agents.training.config import PretrainConfig, teacher_class
 from envs.config import config_from
-
-#: Losses of the action fit.
-ACTION_LOSSES: Final[tuple[str, ...]] = ("mse", "nll")
-
-
-@dataclass(frozen=True)
-class PretrainConfig:
-    """The ``pretrain:`` section of a training config (None there = no warm start)."""
-
-    teacher: str = "planner"
-    """A policy of :mod:`agents.planners` by name (:data:`agents.planners.PLANNERS`: ``planner``, the sampling
-    planner; ``straight``; the search and privileged planners where that module offers them), or any class with
-    SB3's batched ``predict`` as ``"package.module:Class"``, built as ``Class(env_config, **teacher_kwargs)``.
-    A teacher with a ``bind_envs(envs)`` method (one that reads the environments, e.g. the privileged planner) is
-    given the environment of each row before every batched ``predict`` (as :func:`agents.rollout.run_episodes`
-    does) and asked for its action at every step, before the environments move on."""
-    teacher_kwargs: dict[str, Any] = field(default_factory=dict)
-    """Options of the teacher (e.g. ``headings_deg``, ``margin_m`` of the sampling planner)."""
-    episodes: int = 200
-    """Teacher episodes on the training environments (part ``train``, ``episode_time="train"``)."""
-    n_envs: int = 4
-    """Environments the teacher drives in lockstep in the main process (speed only)."""
-    epochs: int = 10
-    """Passes over the teacher's transitions."""
-    batch_size: int = 256
-    """Transitions per gradient step."""
-    lr: float = 1e-3
-    """Adam learning rate of the warm start (a fresh optimiser; the algorithm's own is untouched)."""
-    loss: str = "mse"
-    """Action loss: ``mse`` on the action mean or ``nll`` (Gaussian negative log-likelihood; PPO only)."""
-    value: bool = True
-    """Also fit the value function (PPO) or critics (SAC) to discounted Monte-Carlo returns (gamma of the algorithm)."""
-    dagger_rounds: int = 0
-    """DAgger (Ross et al. 2011) rounds after the first fit: the policy drives ``dagger_episodes`` new episodes,
-    the teacher labels every observation it met, and the policy is refitted on everything gathered so far. Cloning
-    alone only ever sees the teacher's states, and the student's first mistakes lead where it has no labels."""
-    dagger_episodes: int | None = None
-    """Episodes the policy drives per DAgger round (default: ``episodes``)."""
-    dagger_epochs: int | None = None
-    """Passes over the aggregated data per DAgger round (default: ``epochs``); the fit continues from the last one."""
-    value_coef: float = 0.5
-    """Weight of the value loss (Huber) against the action loss; PPO shares the extractor between both."""
-    log_std: float | None = -1.0
-    """PPO: set the action log standard deviation to this afterwards (None keeps it)."""
-
-    def validate(self) -> PretrainConfig:
-        from crowdnav_mesrnn.config import ConfigError
-
-        teacher_class(self.teacher)  # a clear error now rather than after the environments are built
-        if self.loss not in ACTION_LOSSES:
-            raise ConfigError(f"unknown pretrain loss {self.loss!r}; valid: {', '.join(ACTION_LOSSES)}")
-        for key in ("dagger_rounds", "dagger_episodes", "dagger_epochs"):
-            value = getattr(self, key)
-            if key != "dagger_rounds" and value is None:
-                continue
-            if not isinstance(value, int) or isinstance(value, bool) or value < (0 if key == "dagger_rounds" else 1):
-                raise ConfigError(
-                    f"pretrain key {key!r} must be a whole number >= {0 if key == 'dagger_rounds' else 1}, got {value!r}"
-                )
-        for key in ("episodes", "n_envs", "epochs", "batch_size"):
-            value = getattr(self, key)
-            if not isinstance(value, int) or isinstance(value, bool) or value < (0 if key == "episodes" else 1):
-                raise ConfigError(f"pretrain key {key!r} must be a positive integer, got {value!r}")
-        if not (isinstance(self.lr, int | float) and math.isfinite(self.lr) and self.lr > 0):
-            raise ConfigError(f"pretrain key 'lr' must be a positive number, got {self.lr!r}")
-        if not isinstance(self.teacher_kwargs, Mapping):
-            raise ConfigError(f"pretrain key 'teacher_kwargs' must be a mapping, got {self.teacher_kwargs!r}")
-        return self
-
-
-def teacher_class(name: str) -> Any:
-    """The teacher a ``pretrain.teacher`` value names: None for a planner of :mod:`agents.planners` (built by
-    :func:`agents.planners.make_planner`), else the class of a ``"package.module:Class"`` path.
-
-    Raises:
-        ConfigError: an unknown name (listing the planners this version offers) or a path that does not import.
-    """
-    from crowdnav_mesrnn.config import ConfigError
-
-    if not isinstance(name, str):
-        raise ConfigError(f"pretrain key 'teacher' must be a planner name or 'package.module:Class', got {name!r}")
-    if name in PLANNERS:
-        return None
-    module, sep, attr = name.partition(":")
-    if not sep:
-        raise ConfigError(
-            f"pretrain teacher {name!r} is not a planner of agents.planners in this version (available: "
-            f"{', '.join(PLANNERS)}; the search and privileged planners are named 'search' and 'privileged' where "
-            "agents.planners offers them) nor a 'package.module:Class' path"
-        )
-    try:
-        cls = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as exc:
-        raise ConfigError(f"pretrain teacher {name!r} cannot be imported: {exc}") from None
-    if not callable(getattr(cls, "predict", None)):
-        raise ConfigError(f"pretrain teacher {name!r} has no predict method (SB3's batched predict is needed)")
-    return cls
 
 
 def make_teacher(cfg: PretrainConfig, env_config: Any) -> Any:

@@ -16,6 +16,7 @@ from typing import Any
 import yaml
 
 from crowdnav_mesrnn import predictors
+from crowdnav_mesrnn.config import existing_config
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
 
@@ -58,6 +59,8 @@ def _parse_sets(items: list[str] | None) -> dict[str, Any]:
 
 
 def _train(args: argparse.Namespace) -> int:
+    if args.config is not None:  # a missing file is named before torch is imported
+        existing_config(args.config, "predictor")
     import torch
 
     from crowdnav_mesrnn.training.trainer import Trainer, load_configs
@@ -98,6 +101,16 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_checkpoints(args: argparse.Namespace) -> None:
+    """Refuse a ``--checkpoint`` that names no file for one of the splits, before torch is imported."""
+    if not args.checkpoint:
+        return
+    for split in SPLITS if args.split == "all" else (args.split,):
+        path = Path(args.checkpoint.format(split=split, model=args.model))
+        if not path.is_file():
+            raise FileNotFoundError(f"no predictor checkpoint at {path}")
+
+
 def _checkpoint_loader(args: argparse.Namespace) -> Any:
     """``split -> LearnedPredictor`` from ``--checkpoint`` (a path that may hold ``{split}`` and ``{model}``), or None."""
     if not args.checkpoint:
@@ -113,6 +126,7 @@ def _checkpoint_loader(args: argparse.Namespace) -> Any:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    _check_checkpoints(args)
     import torch
 
     from crowdnav_mesrnn.evaluation.protocol import evaluate_model, evaluate_versus, format_result
@@ -150,6 +164,7 @@ def _emit(args: argparse.Namespace, result: dict[str, Any], fmt: Callable[[dict[
 
 
 def _calibrate(args: argparse.Namespace) -> int:
+    _check_checkpoints(args)
     import torch
 
     from crowdnav_mesrnn.uncertainty.calibration import calibrate_model, format_calibration
@@ -332,6 +347,7 @@ def _report_claims(args: argparse.Namespace, out: Path) -> int:
 
 def main_plan(args: argparse.Namespace) -> int:
     """``crowdnav-mesrnn predictor plan``: run a stage of a comparison plan, or print its budget (``--dry-run``)."""
+    existing_config(args.file, "predictor")  # a missing plan file is named before torch is imported
     import torch
 
     from crowdnav_mesrnn.studies.plan import execute, load_plan, parse_shard

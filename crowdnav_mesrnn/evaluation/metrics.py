@@ -55,8 +55,14 @@ def predicted_batches(
         ``(chunk, positions, present, scored, pred)``: the indices into ``windows``; positions
         ``(B, T, N, 2)`` metres and present ``(B, T, N)`` (tensors, :func:`collate`); scored ``(B, N)``
         bool array; the forecast ``(B, pred_len, N, 2)`` metres.
+
+    A labelled progress bar (stderr) appears when the windows take over two seconds.
     """
-    for chunk in batches(windows, batch_size):
+    from tqdm.auto import tqdm
+
+    groups = list(batches(windows, batch_size))
+    desc = f"forecasting {len(windows):,} windows"
+    for chunk in tqdm(groups, desc=desc, unit="batch", delay=2.0, leave=False):
         pos, pres, scored = collate([windows[i] for i in chunk])
         pos_t, pres_t = torch.from_numpy(pos), torch.from_numpy(pres)
         with torch.no_grad():
