@@ -157,3 +157,14 @@ def test_straight_to_the_goal_in_an_empty_scene_scores_spl_1(episode_runner: Cal
         assert 1.0 - 1e-9 <= final["path_ratio_required"] < 1.0 + cfg.dt_s / 5
         assert final["spl"] == pytest.approx(1.0 / final["path_ratio_required"])
         assert final["min_ttc_s"] is None and final["mean_speed_mps"] <= cfg.robot_pref_speed_mps + 1e-9
+
+
+def test_the_environment_page_names_every_metric_key() -> None:
+    """docs/env.md maps the field's metrics to the project's keys: every key of the episode metrics is on it."""
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[2] / "docs" / "env.md").read_text(encoding="utf-8")
+    section = page[page.index("## Episode metrics") : page.index("## Episodes for agents")]
+    keys = _metrics([(0.0, 0.0), (9.7, 0.0)], "success")
+    missing = [k for k in keys if f"`{k}`" not in section]
+    assert not missing, f"docs/env.md, Episode metrics, does not name {missing}"
