@@ -27,10 +27,11 @@ def _pct(rate: Any, ci: Any) -> str:
     return f"{100 * rate:.1f}{bounds}"
 
 
-def _mean(entry: Mapping[str, Any], metric: str, digits: int = 2) -> str:
+def _mean(entry: Mapping[str, Any], metric: str, digits: int = 2, missing: str = "-") -> str:
+    """``mean [lo, hi]`` of ``entry``'s ``<metric>_mean`` and ``<metric>_ci``; ``missing`` when there is none."""
     v = entry.get(f"{metric}_mean")
     if v is None:
-        return "-"
+        return missing
     lo, hi = entry.get(f"{metric}_ci") or (None, None)
     bounds = f" [{lo:.{digits}f}, {hi:.{digits}f}]" if lo is not None and hi is not None else ""
     return f"{v:.{digits}f}{bounds}"
