@@ -116,13 +116,12 @@ def _demo(args: argparse.Namespace) -> int:
     if args.json:
         record = {"scene": info["recording"], "predictor": env.predictor_name, "policy": str(spec), **metrics}
         print(json.dumps(record, indent=2))
-    else:
+    else:  # the keys of the JSON (and of info["episode_metrics"]), each with its readable label
         from envs.rewards import METRIC_LABELS
 
-        labels = {key: METRIC_LABELS.get(key, key) for key in metrics}
-        width = max(len(v) for v in labels.values())
+        width = max(len(key) for key in metrics)
         for key, value in metrics.items():
-            print(f"  {labels[key]:<{width}}  {_fmt(value)}")
+            print(f"  {key:<{width}}  {_fmt(value):<10}  {METRIC_LABELS.get(key, '')}".rstrip())
     if not args.no_gif:
         path = save_gif(frames, args.out, fps=env.metadata["render_fps"])
         print(f"wrote {path} ({len(frames)} frames)")

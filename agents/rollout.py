@@ -23,14 +23,21 @@ import numpy as np
 from crowdnav_mesrnn.data.constants import SPLITS
 from envs.config import config_from
 
-#: Per-episode metrics of a row (averaged, with bootstrap intervals, by :func:`agents.evaluation.summary.summarise`).
+#: Per-episode metrics of a row (averaged, with bootstrap intervals, by :func:`agents.evaluation.summary.summarise`);
+#: each is a key of ``info["episode_metrics"]`` (:meth:`envs.rewards.EpisodeMetrics.summary`).
 METRICS: Final[tuple[str, ...]] = (
     "navigation_time_s",
     "path_length_m",
     "path_ratio",
+    "path_ratio_required",
+    "spl",
     "min_gap_m",
+    "min_clearance_m",
+    "min_ttc_s",
     "discomfort_frequency",
     "intrusion_ratio",
+    "mean_speed_mps",
+    "mean_accel_mps2",
     "mean_jerk_mps3",
     "forecast_ade_m",
     "forecast_fde_m",
@@ -38,6 +45,24 @@ METRICS: Final[tuple[str, ...]] = (
     "steps",
     "return",
 )
+#: Metrics added after results were committed (issue 31). Episode files and archives written before them lack their
+#: columns; there they read as *absent* -- left out of summaries and archives (:func:`recorded_metrics`) -- rather
+#: than as undefined, so the summaries of those files stay what they were.
+ADDED_METRICS: Final[tuple[str, ...]] = (
+    "path_ratio_required",
+    "spl",
+    "min_clearance_m",
+    "min_ttc_s",
+    "mean_speed_mps",
+    "mean_accel_mps2",
+)
+
+
+def recorded_metrics(rows: Sequence[Mapping[str, Any]]) -> tuple[str, ...]:
+    """:data:`METRICS` that ``rows`` record: all but the :data:`ADDED_METRICS` no row has a key for (in order)."""
+    return tuple(m for m in METRICS if m not in ADDED_METRICS or any(m in r for r in rows))
+
+
 #: What the robot did to people (issue 28; ``envs.reaction.DisturbanceMetrics``, in ``info["episode_metrics"]`` when the
 #: environment's pedestrians may react; 0 under ``reaction="none"``). Blank in a row when the environment does not
 #: report them: absent, not zero.

@@ -40,7 +40,7 @@ from envs.popin import POPIN_MARGIN_M, PopInRule
 from envs.recordings import empty_recording, overlay_recording, synthetic_recording
 from envs.rendering import HUMAN_NEEDS_PYGAME
 from envs.replay import Replay
-from envs.rewards import EpisodeMetrics, reward_components, total_reward
+from envs.rewards import EpisodeMetrics, min_time_to_collision, reward_components, total_reward
 from envs.timing import PhaseTimer, timed
 from envs.world import World
 
@@ -77,6 +77,7 @@ class _Sensed:
     gap_m: float
     intruding: bool
     visible: int
+    ttc_s: float = math.inf  # smallest constant-velocity time to collision at the step's end (envs.rewards)
 
 
 def reset_options(options: Any, goal_tolerance_m: float) -> dict[str, Any]:
@@ -530,6 +531,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             cfg.discomfort_dist_m,
             crowd_density=ep.crowd_density,
             pedestrians_near_path=ep.pedestrians_near_path,
+            goal_tolerance_m=cfg.goal_tolerance_m,
         )
         self._done = False
         self._started = True
@@ -657,8 +659,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         truncated = (not terminated) and self._n >= ep.max_steps
         step_m = math.hypot(after[0] - before[0], after[1] - before[1])
         self._metrics.update(
-            reward, step_m, self._velocity, min_gap, sensed.intruding, moved.new_contacts, moved.fault, sensed.visible
-        )
+            reward, step_m, self._velocity, min_gap, sensed.intruding, moved.new_contacts, moved.fault, sensed.visible,
+            sensed.ttc_s,
+        )  # fmt: skip
         info: dict[str, Any] = {
             "time_s": round(self._n * cfg.dt_s, 9),
             "distance_to_goal_m": dist_after,
@@ -743,9 +746,19 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             seen.age_s,
             unc,
         )
+        ttc = self._time_to_collision(robot, p_now, pres_now) if self._n > 0 else math.inf
         self._trails.append((p_now, pres_now))
         self._last = {"rows": rows, "forecasts": fc, "positions": p_now, "present": pres_now}
-        return obs, _Sensed(gap, intruding, len(rows))
+        return obs, _Sensed(gap, intruding, len(rows), ttc)
+
+    def _time_to_collision(self, robot: np.ndarray, p_now: np.ndarray, pres_now: np.ndarray) -> float:
+        """The smallest constant-velocity time to collision with a present pedestrian at the end of a step: the
+        robot's velocity over the step, each pedestrian's over the same step in the world (0 for one that was not
+        there at its start); see :func:`envs.rewards.min_time_to_collision`."""
+        before, was = self._last["positions"], self._last["present"]
+        both = (pres_now & was)[:, None]
+        velocities = np.where(both, (p_now - np.where(both, before, p_now)) / self.config.dt_s, 0.0)
+        return min_time_to_collision(robot, self._velocity, p_now, velocities, pres_now, self._r_sum)
 
     @timed("forecasts")
     def _forecast(

@@ -116,7 +116,7 @@ def cell_record(st: CellStatus) -> dict[str, Any]:
 
 
 #: Leading columns of the results' combined ``episodes.csv.gz`` (the cell and the episode), then every
-#: per-episode metric of :data:`agents.rollout.METRICS`.
+#: per-episode metric of :data:`agents.rollout.METRICS` the episodes record (:func:`agents.rollout.recorded_metrics`).
 ARCHIVE_KEYS: Final[tuple[str, ...]] = ("policy", "arm", "split", "seed", "episode", "outcome")
 #: Per-episode counts archived after the metrics: pop-in events (a track that began on the robot, ``envs.popin``),
 #: which the summary counts per cell (``popin_episodes``, ``popin_events``).
@@ -149,18 +149,20 @@ def episodes_archive(pooled: Mapping[tuple[str, str], _Episodes]) -> bytes:
     it is written byte for byte as before, and its episodes read them as absent (blank), never as zero."""
     import gzip
 
-    from agents.rollout import DISTURBANCE_METRICS, METRICS
+    from agents.rollout import DISTURBANCE_METRICS, recorded_metrics
 
+    # the metrics the episodes record: one added since an archive was written stays out of it (agents.rollout)
+    metrics = recorded_metrics([row for eps in pooled.values() for row in eps.rows])
     extra = (*ARCHIVE_COUNTS, *(DISTURBANCE_METRICS if _has_disturbance(pooled) else ()))
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow((*ARCHIVE_KEYS, *METRICS, *extra))
+    writer.writerow((*ARCHIVE_KEYS, *metrics, *extra))
     for (policy, arm), eps in sorted(pooled.items()):
         for (split, seed, ep), row in sorted(
             zip(eps.keys, eps.rows, strict=True),
             key=lambda kr: (kr[0][0], -1 if kr[0][1] is None else kr[0][1], kr[0][2]),
         ):
-            values = [_exact(row.get(col)) for col in (*METRICS, *extra)]
+            values = [_exact(row.get(col)) for col in (*metrics, *extra)]
             writer.writerow([policy, arm, split, "" if seed is None else seed, ep, row.get("outcome", ""), *values])
     return gzip.compress(buf.getvalue().encode("utf-8"), mtime=0)
 

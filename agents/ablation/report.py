@@ -27,26 +27,51 @@ def _pct(rate: Any, ci: Any) -> str:
     return f"{100 * rate:.1f}{bounds}"
 
 
-def _mean(entry: Mapping[str, Any], metric: str, digits: int = 2) -> str:
+def _mean(entry: Mapping[str, Any], metric: str, digits: int = 2, missing: str = "-") -> str:
+    """``mean [lo, hi]`` of ``entry``'s ``<metric>_mean`` and ``<metric>_ci``; ``missing`` when there is none."""
     v = entry.get(f"{metric}_mean")
     if v is None:
-        return "-"
+        return missing
     lo, hi = entry.get(f"{metric}_ci") or (None, None)
     bounds = f" [{lo:.{digits}f}, {hi:.{digits}f}]" if lo is not None and hi is not None else ""
     return f"{v:.{digits}f}{bounds}"
 
 
+#: Columns of the rate tables after the rates: (header, metric, digits). The metrics of issue 31 replace or join
+#: the older ones only where the episodes record them (summaries of older archives render as they did).
+_METRIC_COLUMNS: tuple[tuple[str, str, int], ...] = (
+    ("nav. time s (successes)", "navigation_time_s", 1),
+    ("path ratio (successes)", "path_ratio", 2),
+    ("min gap m", "min_gap_m", 2),
+    ("forecast ADE m", "forecast_ade_m", 2),
+)
+_CURRENT_COLUMNS: tuple[tuple[str, str, int], ...] = (
+    ("nav. time s (successes)", "navigation_time_s", 1),
+    ("path ratio to required (successes)", "path_ratio_required", 2),
+    ("SPL", "spl", 2),
+    ("min clearance m", "min_clearance_m", 2),
+    ("min TTC s", "min_ttc_s", 2),
+    ("forecast ADE m", "forecast_ade_m", 2),
+)
+
+
+def _columns(entries: Mapping[str, Mapping[str, Any]]) -> tuple[tuple[str, str, int], ...]:
+    """The current columns when any entry records the metrics of issue 31 (``spl``), else the older ones."""
+    return _CURRENT_COLUMNS if any("spl_mean" in e for e in entries.values()) else _METRIC_COLUMNS
+
+
 def _rate_table(entries: Mapping[str, Mapping[str, Any]], with_seeds: bool) -> list[str]:
+    columns = _columns(entries)
     head = "| arm | " + ("seeds | " if with_seeds else "") + "episodes | success % | collision % | timeout % | "
-    head += "nav. time s (successes) | path ratio (successes) | min gap m | forecast ADE m |"
+    head += " | ".join(h for h, _, _ in columns) + " |"
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for arm, e in entries.items():
         seeds = (", ".join(map(str, e.get("seeds", []))) + " | ") if with_seeds else ""
+        means = " | ".join(_mean(e, key, digits) for _, key, digits in columns)
         lines.append(
             f"| {arm} | {seeds}{e['episodes']} | {_pct(e['success_rate'], e['success_ci'])} | "
             f"{_pct(e['collision_rate'], e['collision_ci'])} | {_pct(e['timeout_rate'], e['timeout_ci'])} | "
-            f"{_mean(e, 'navigation_time_s', 1)} | {_mean(e, 'path_ratio')} | {_mean(e, 'min_gap_m')} | "
-            f"{_mean(e, 'forecast_ade_m')} |"
+            f"{means} |"
         )
     return lines
 
@@ -291,6 +316,15 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         "episodes, scored against the replay).",
         "",
     ]
+    if any(_columns(pol["arms"]) is _CURRENT_COLUMNS for pol in summary["policies"].values()):
+        lines += [
+            "Path ratio to required: path length / (straight line - goal tolerance), at least 1 for a success. SPL: "
+            "success weighted by path length (Anderson et al. 2018), over all episodes. Min clearance: closest "
+            "surface distance to a pedestrian (0 at contact). Min TTC: smallest constant-velocity time to collision "
+            "with a pedestrian, averaged over the episodes that had one on a collision course. Definitions: "
+            "docs/env.md, episode metrics.",
+            "",
+        ]
     for name, pol in summary["policies"].items():
         lines += [f"### {name}", "", *_rate_table(pol["arms"], bool(pol["timesteps"])), ""]
         for split in summary["splits"] if len(summary["splits"]) > 1 else ():
@@ -335,9 +369,25 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         f"approximation), at alpha = {mc['alpha']} and at the strictest Holm level alpha / {max(fam.get('success', 0), 1)}; "
         "'-' where no difference the observed discordance allows reaches that power (or no pair is discordant).",
         "",
-        "| split | a | b | n | b10 (a only) | b01 (b only) | success diff a-b [95 % CI] | p | p Holm | MDD | MDD Holm |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    exact = any("difference_exact_ci" in t for t in summary["tests"])
+    if exact:
+        lines += [
+            "The interval of a success difference is the exact conditional one (the Clopper-Pearson interval of the "
+            "discordant pairs' split, mapped onto the difference): it excludes 0 exactly when p < 0.05. The verdict "
+            f"reads the Holm-adjusted p at alpha = {mc['alpha']}, so a comparison whose interval excludes 0 can still "
+            "show no difference once the family of tests is counted; 'no difference shown' is not a finding of "
+            "equality.",
+            "",
+            "| split | a | b | n | b10 (a only) | b01 (b only) | success diff a-b [95 % CI] | p | p Holm | verdict "
+            "| MDD | MDD Holm |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
+    else:
+        lines += [
+            "| split | a | b | n | b10 (a only) | b01 (b only) | success diff a-b [95 % CI] | p | p Holm | MDD | MDD Holm |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
 
     def side(s: Mapping[str, str]) -> str:
         return f"{s['policy']}/{s['arm']}"
@@ -346,16 +396,18 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         if t["endpoint"] != "success":
             continue
         if t.get("missing"):
-            lines.append(f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | missing | | | | | | | |")
+            empty = " | | | | | | |" + (" |" if exact else "")
+            lines.append(f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | missing |{empty}")
             continue
-        lo, hi = t["difference_ci"]
+        lo, hi = t["difference_exact_ci"] if exact else t["difference_ci"]
         diff = f"{100 * t['difference']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}]" if lo is not None else "-"
         mdd = "-" if t.get("mdd") is None else f"{100 * t['mdd']:.1f}"
         mddh = "-" if t.get("mdd_holm_strictest") is None else f"{100 * t['mdd_holm_strictest']:.1f}"
         star = " *" if t.get("significant") else ""
+        verdict = f" {t.get('verdict', '-')} |" if exact else ""
         lines.append(
             f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | {t['n']} | {t['b10']} | {t['b01']} | {diff} | "
-            f"{_p(t['p_value'])} | {_p(t['p_holm'])}{star} | {mdd} | {mddh} |"
+            f"{_p(t['p_value'])} | {_p(t['p_holm'])}{star} |{verdict} {mdd} | {mddh} |"
         )
     seed_rows = [t for t in summary["tests"] if t["endpoint"] == "success" and t.get("seed_level")]
     if seed_rows:

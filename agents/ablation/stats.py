@@ -121,8 +121,14 @@ def paired_tests(
     cfg: AblationConfig, pooled: Mapping[tuple[str, str], _Episodes]
 ) -> tuple[list[dict[str, Any]], dict[str, int]]:
     """The declared comparisons: exact McNemar on success and Wilcoxon on navigation time (both succeeded),
-    Holm-adjusted within each endpoint over every test performed; returns the tests and the family sizes."""
-    from agents.stats import holm, mcnemar_exact, mcnemar_min_detectable_difference, wilcoxon_paired
+    Holm-adjusted within each endpoint over every test performed; returns the tests and the family sizes.
+
+    A success test of episodes that record the metrics added in issue 31 (:data:`agents.rollout.ADDED_METRICS`)
+    carries ``difference_exact_ci`` (:func:`agents.stats.mcnemar_difference_ci`) and ``verdict``
+    (:func:`agents.stats.paired_verdict` on the Holm-adjusted p); one of an older archive carries the paired bootstrap
+    ``difference_ci`` it was first summarised with."""
+    from agents.rollout import ADDED_METRICS, recorded_metrics
+    from agents.stats import holm, mcnemar_exact, mcnemar_min_detectable_difference, paired_verdict, wilcoxon_paired
 
     planned: list[tuple[str, str, str, str, str, str]] = []  # (policy_a, arm_a, policy_b, arm_b, split, kind)
     for policy in cfg.policies:
@@ -133,6 +139,11 @@ def paired_tests(
         for arm in cfg.arms:
             if cfg.policy(p).uses(arm) and cfg.policy(q).uses(arm):
                 planned += [(p, arm.label, q, arm.label, split, "policies") for split in cfg.splits]
+    # The success difference's interval: episodes recorded with the metrics of issue 31 get the exact conditional
+    # interval, which excludes 0 exactly when the McNemar test rejects, and a verdict; archives written before keep
+    # the paired bootstrap interval they were summarised with (under its own key), so their summaries stay as they are.
+    current = bool(set(ADDED_METRICS) & set(recorded_metrics([r for eps in pooled.values() for r in eps.rows])))
+    intervals = ("exact",) if current else ("bootstrap",)
     tests: list[dict[str, Any]] = []
     for pa, aa, pb, ab, split, kind in planned:
         base = {"comparison": kind, "split": split, "a": {"policy": pa, "arm": aa}, "b": {"policy": pb, "arm": ab}}
@@ -144,7 +155,7 @@ def paired_tests(
         if sa.size == 0:
             tests.append({**base, "endpoint": "success", "missing": True})
             continue
-        mc = mcnemar_exact(sa, sb)
+        mc = mcnemar_exact(sa, sb, intervals=intervals)
         seed_level = _seed_level(ea, eb, keys, sa, sb, 0.95)
         tests.append({**base, "endpoint": "success", **mc, **({"seed_level": seed_level} if seed_level else {})})
         both = sa & sb
@@ -158,6 +169,8 @@ def paired_tests(
             t["p_holm"] = adj
             t["family_size"] = len(members)
             t["significant"] = bool(adj <= cfg.alpha)
+            if current and endpoint == "success":
+                t["verdict"] = paired_verdict(t["difference"], adj, cfg.alpha)
     seed_tests = [t["seed_level"] for t in tests if t.get("seed_level") and math.isfinite(t["seed_level"]["p_value"])]
     families["success_seed_level"] = len(seed_tests)
     for st, adj in zip(seed_tests, holm([st["p_value"] for st in seed_tests]), strict=True):

@@ -17,13 +17,18 @@ from typing import Any, Final
 
 import numpy as np
 
-from agents.rollout import EPISODE_COLUMNS, METRICS
+from agents.rollout import EPISODE_COLUMNS, METRICS, recorded_metrics
 from agents.stats import bootstrap_mean_ci, wilson_interval
 
 #: Outcomes of an episode, each reported as a rate with a Wilson interval.
 OUTCOMES: Final[tuple[str, ...]] = ("success", "collision", "timeout")
 #: Metrics averaged over successful episodes only (a collision cuts a trip short; a timeout has no arrival time).
-SUCCESS_ONLY_METRICS: Final[tuple[str, ...]] = ("navigation_time_s", "path_length_m", "path_ratio")
+SUCCESS_ONLY_METRICS: Final[tuple[str, ...]] = (
+    "navigation_time_s",
+    "path_length_m",
+    "path_ratio",
+    "path_ratio_required",
+)
 
 
 def _number(value: Any) -> float:
@@ -46,10 +51,12 @@ def summarise(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95, seed:
         ``<outcome>_count`` (summaries written before this name held ``successs``, ``collisions`` and
         ``timeouts``; nothing in the project reads the counts back); ``popin_episodes`` (episodes with at least
         one pop-in event, see :mod:`envs.popin`) and ``popin_events`` (their total); for each of :data:`METRICS`
-        ``<metric>_mean``, ``<metric>_ci``
-        (bootstrap, seeded) and ``<metric>_n`` (episodes it is defined for: all, or the successful ones
-        for :data:`SUCCESS_ONLY_METRICS`; ``None`` values such as the ``none`` arm's forecast ADE are
-        left out). Undefined means and intervals are ``None``.
+        the rows record (:func:`agents.rollout.recorded_metrics`: a metric added since older episode files were
+        written is absent from their summaries) ``<metric>_mean``, ``<metric>_ci`` (bootstrap over episodes,
+        seeded: BCa, percentile where BCa degenerates; both are quantiles of resampled means, so an interval
+        never leaves the range of the values averaged) and ``<metric>_n`` (episodes it is defined for: all, or the
+        successful ones for :data:`SUCCESS_ONLY_METRICS`; ``None`` values such as the ``none`` arm's forecast ADE
+        are left out). Undefined means and intervals are ``None``.
     """
     n = len(rows)
     out: dict[str, Any] = {"episodes": n}
@@ -62,7 +69,7 @@ def summarise(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95, seed:
     popins = np.array([_number(r.get("popin_events")) for r in rows], dtype=np.float64)
     out["popin_episodes"] = int(np.sum(popins > 0))  # episodes in which a track began on the robot (envs.popin)
     out["popin_events"] = int(np.nansum(popins)) if n else 0
-    for metric in METRICS:
+    for metric in recorded_metrics(rows):
         use = [r for r in rows if metric not in SUCCESS_ONLY_METRICS or r.get("outcome") == "success"]
         values = np.array([_number(r.get(metric)) for r in use], dtype=np.float64)
         values = values[np.isfinite(values)]
@@ -167,23 +174,31 @@ def episodes_csv(rows: Sequence[Mapping[str, Any]]) -> str:
     return buf.getvalue()
 
 
+#: What the interval of each line of :func:`format_summary` is.
+_RATE_NOTE: Final[str] = "Wilson interval"
+
+
 def format_summary(summary: Mapping[str, Any]) -> str:
-    """A short human-readable table of a summary."""
+    """A short human-readable table of a summary: one line per rate and metric, named by its key -- the key of
+    ``info["episode_metrics"]``, of ``episodes.csv`` and (with ``_rate``/``_mean`` and ``_ci``) of the summary's
+    JSON -- then its value, interval, episodes and readable label (:data:`envs.rewards.METRIC_LABELS`)."""
+    from envs.rewards import METRIC_LABELS
 
     def ci(key: str) -> str:
         value = summary.get(key)
-        return "" if not value or value[0] is None else f"  [{value[0]:.3f}, {value[1]:.3f}]"
+        return "" if not value or value[0] is None else f"[{value[0]:.3f}, {value[1]:.3f}]"
 
-    rows = [(f"{name} rate", summary.get(f"{name}_rate"), f"{name}_ci") for name in OUTCOMES]
-    rows += [
-        (
-            metric + (" (successes)" if metric in SUCCESS_ONLY_METRICS else ""),
-            summary.get(f"{metric}_mean"),
-            f"{metric}_ci",
-        )
-        for metric in METRICS
-    ]
-    width = max(len(label) for label, _, _ in rows) + 2
+    def num(value: Any) -> str:
+        return "-" if value is None else f"{value:.3f}"
+
+    n = summary.get("episodes", 0)
+    rows = [(f"{name}_rate", num(summary.get(f"{name}_rate")), ci(f"{name}_ci"), n, _RATE_NOTE) for name in OUTCOMES]
+    for metric in METRICS:
+        if f"{metric}_mean" not in summary:
+            continue  # a metric the episodes did not record (added since they were written)
+        label = METRIC_LABELS.get(metric, metric) + ("; successes only" if metric in SUCCESS_ONLY_METRICS else "")
+        rows.append((metric, num(summary.get(f"{metric}_mean")), ci(f"{metric}_ci"), summary.get(f"{metric}_n"), label))
+    width = max(len(r[0]) for r in rows) + 2
     crowd = summary.get("crowd") or {}
     if crowd.get("kind") == "replay":
         where = f"{summary.get('split')} (held-out scene, ETH/UCY replay from {crowd.get('data_dir')})"
@@ -197,14 +212,16 @@ def format_summary(summary: Mapping[str, Any]) -> str:
     ]
     if summary.get("privileged"):
         lines.append("  PRIVILEGED: reads every pedestrian's true future from the replay (a ceiling, not a policy)")
-    for label, value, ci_key in rows:
-        lines.append(f"  {label:<{width}}{'-' if value is None else f'{value:.3f}'}{ci(ci_key)}")
-        if label == f"{OUTCOMES[-1]} rate":
+    lines.append(f"  {'key':<{width}}{'value':<9}{'[95 % interval]':<18}{'n':>5}  what")
+    for key, value, interval, count, label in rows:
+        lines.append(f"  {key:<{width}}{value:<9}{interval:<18}{'' if count is None else count:>5}  {label}")
+        if key == f"{OUTCOMES[-1]}_rate":
             ceiling = summary.get("ceiling")
             if ceiling and ceiling.get("fraction") is not None:
                 lo, hi = ceiling["fraction_ci"]
                 lines.append(
-                    f"  {'success / ceiling':<{width}}{ceiling['fraction']:.3f}  [{lo:.3f}, {hi:.3f}]  (ceiling "
-                    f"{ceiling['ceiling_success_rate']:.3f} on {ceiling['episodes']} paired episodes)"
+                    f"  {'ceiling.fraction':<{width}}{ceiling['fraction']:<9.3f}{f'[{lo:.3f}, {hi:.3f}]':<18}"
+                    f"{ceiling['episodes']:>5}  success / ceiling (the privileged ceiling succeeds in "
+                    f"{ceiling['ceiling_success_rate']:.3f} of these episodes; paired bootstrap)"
                 )
     return "\n".join(lines)

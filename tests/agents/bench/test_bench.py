@@ -13,6 +13,7 @@ import pytest
 from agents.bench.metrics import protocol_batch_fn
 from agents.bench.planner import bench_grid
 from agents.bench.run import BenchConfig, run_bench
+from agents.stats import VERDICTS
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data.windows import split_windows
 from crowdnav_mesrnn.evaluation.metrics import cv_predict_batch, window_errors
@@ -88,8 +89,12 @@ def test_bench_writes_the_report_and_resumes(data_dir: Path, tmp_path: Path, sti
     arms = report["planner"]["arms"]["zara1"]
     assert arms["oracle"]["forecast_ade_m"] == pytest.approx(0.0, abs=1e-9)
     assert {(t["a"], t["b"]) for t in report["planner"]["tests"]} == {(still_plugin, "cv"), (still_plugin, "oracle")}
+    for t in report["planner"]["tests"]:  # the interval agrees with the test; each cell has a plain verdict
+        lo, hi = t["difference_exact_ci"]
+        assert (lo > 0 or hi < 0) == (t["p_value"] < 0.05) and t["verdict"] in VERDICTS
     page = (out / "report.md").read_text()
     assert "| eth | 70 |" in page and "exact McNemar" in page and "success_vs_ade.png" in page
+    assert "| verdict |" in page
     assert json.loads((out / "report.json").read_text())["predictor"] == still_plugin
 
     again = run_bench(cfg, out, workers=1)  # everything done: nothing runs again
@@ -120,3 +125,28 @@ def test_bench_rejects_unknown_predictors(tmp_path: Path, capsys: pytest.Capture
     assert main(["bench", "nope", "--out", str(tmp_path / "x")]) == 2
     assert "unknown predictor 'nope'" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_the_planner_table_gives_an_interval_that_agrees_with_its_test_and_a_verdict() -> None:
+    """Issue 31: the page once printed "kalman − cv | −15.0 [−40.0, −5.0] | p 0.25". 3 of 20 episodes discordant,
+    all against kalman: the exact conditional interval holds 0, and the verdict says no difference was shown."""
+    from agents.bench.report import render_markdown
+    from agents.stats import holm, mcnemar_exact, paired_verdict
+
+    a = [0] * 3 + [1] * 10 + [0] * 7
+    b = [1] * 13 + [0] * 7
+    tests = [{"scene": "zara1", "a": "kalman", "b": "cv", **mcnemar_exact(a, b)}]
+    tests.append({"scene": "zara1", "a": "kalman", "b": "oracle", **mcnemar_exact([1] * 20, [0] * 10 + [1] * 10)})
+    for t, adj in zip(tests, holm([t["p_value"] for t in tests]), strict=True):
+        t.update(p_holm=adj, verdict=paired_verdict(t["difference"], adj))
+    arm = {"episodes": 20, "success_rate": 0.5, "success_ci": [0.3, 0.7], "forecast_ade_m": 0.3}
+    report = {
+        "predictor": "kalman",
+        "command": "crowdnav-mesrnn bench kalman",
+        "code_version": "test",
+        "episodes": 20,
+        "planner": {"arms": {"zara1": {"kalman": {**arm, "noisy_oracle_ade_m": None}}}, "tests": tests},
+    }
+    page = render_markdown(report)
+    assert "| zara1 | kalman − cv | −15.0 [−15.0, +6.2] | 0.25 | 0.25 | no difference shown |" in page
+    assert "| zara1 | kalman − oracle | +50.0 [+19.2, +50.0] | 0.00195 | 0.00391 | better than oracle |" in page

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from agents.evaluation.summary import OUTCOMES, episodes_csv, format_summary, summarise
-from agents.rollout import EPISODE_COLUMNS, METRICS
+from agents.rollout import ADDED_METRICS, EPISODE_COLUMNS, recorded_metrics
 
 
 def wilson(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
@@ -53,15 +53,45 @@ def test_summary_rates_have_wilson_intervals_and_counts() -> None:
     json.dumps(s)  # JSON-ready
 
 
-def test_the_table_separates_every_label_from_its_value() -> None:
-    s = summarise(hand_made_rows())
+def test_the_table_names_every_line_by_its_key() -> None:
+    """One naming scheme (issue 31): each line starts with the key of info["episode_metrics"] / episodes.csv (the
+    JSON's ``<key>_mean``), then the value, the interval, the episodes used and the readable label."""
+    rows = hand_made_rows()
+    s = summarise(rows)
     s.update(policy="straight", split="zara1", predictor="none", crowd={"kind": "synthetic", "data_dir": None})
-    lines = format_summary(s).splitlines()[1:]
-    assert len(lines) == len(OUTCOMES) + len(METRICS)
-    matches = [re.match(r"^  (\S.*?\S)(\s{2,})(-|-?\d+\.\d{3})", line) for line in lines]
+    lines = format_summary(s).splitlines()[2:]
+    recorded = recorded_metrics(rows)
+    assert len(lines) == len(OUTCOMES) + len(recorded)
+    matches = [re.match(r"^  (\S+)(\s{2,})(-|-?\d+\.\d{3})", line) for line in lines]
     assert all(matches), lines
     assert {m.start(3) for m in matches if m} == {matches[0].start(3)}, "values start in one column"
-    assert ("navigation_time_s (successes)", "13.000") in {(m.group(1), m.group(3)) for m in matches if m}
+    keys = [m.group(1) for m in matches if m]
+    assert keys == [f"{o}_rate" for o in OUTCOMES] + list(recorded)
+    assert all(f"{k}_mean" in s or (k.endswith("_rate") and k in s) for k in keys)  # every line is a key of the JSON
+    nav = next(line for line in lines if line.startswith("  navigation_time_s "))
+    assert "13.000" in nav and "navigation time, s; successes only" in nav
+
+
+def test_metrics_added_since_a_file_was_written_are_absent_not_undefined() -> None:
+    old = summarise(hand_made_rows())  # rows without the added metrics, as an archive written before them
+    assert not any(k.startswith(m) for k in old for m in ADDED_METRICS)
+    rows = hand_made_rows()
+    for r in rows:
+        r.update(spl=0.5 if r["outcome"] == "success" else 0.0, min_ttc_s=None)
+    new = summarise(rows)
+    assert new["spl_mean"] == pytest.approx(0.35) and new["spl_n"] == 10
+    assert new["min_ttc_s_mean"] is None and new["min_ttc_s_n"] == 0  # recorded, undefined everywhere
+    assert "mean_accel_mps2_mean" not in new  # still absent: no row has it
+
+
+def test_a_signed_metric_keeps_its_interval_within_its_values() -> None:
+    """min_gap_m is negative in a collision (overlap depth): its bootstrap interval may go below 0, never below the
+    smallest value; min_clearance_m (0 at contact) never below 0."""
+    gaps = [-0.5, 0.5, 0.5, 0.3, 0.2, 0.4, -0.2, 0.45, 0.35, 0.1]
+    rows = [{"outcome": "success", "min_gap_m": g, "min_clearance_m": max(g, 0.0)} for g in gaps]
+    s = summarise(rows)
+    assert min(gaps) <= s["min_gap_m_ci"][0] <= s["min_gap_m_mean"] <= s["min_gap_m_ci"][1] <= max(gaps)
+    assert 0.0 <= s["min_clearance_m_ci"][0]
 
 
 def test_summary_means_use_the_episodes_each_metric_applies_to() -> None:
