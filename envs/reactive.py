@@ -5,14 +5,14 @@ the world moves it, what the robot's tracker records of it, and roll-outs of the
 ``social_force``; under ``none`` nothing of it exists and episodes are the plain replay's. The models themselves are
 :mod:`envs.reaction` (``docs/reaction.md``). The rules of the environment around them:
 
-* **When the model decides** (:data:`STEPPING`). ``pause`` decides at every physics substep: its rule is a contact
-  check one substep ahead (a pedestrian and the robot close up to 1 m in a 0.4 s control step, more than its
-  margin). ``orca`` and ``social_force`` decide once per control step, from the robot's centre at its start, and
-  move a reacting pedestrian in a straight line over it (its positions at the substep ends are on that line, which
-  is exactly the model's motion); a pedestrian on its recording at both ends of the step is at its recorded positions
-  at every substep, bit for bit. The 0.4 s between decisions is a reaction time (people respond to a sudden change
-  after 0.2-0.5 s); ORCA plans over 3 s. It costs a quarter of stepping the model at every substep and avoids as well
-  (``benchmarks/env_speed.py --reaction``, ``tests/envs/test_reaction_env.py``).
+* **When the model decides** (:data:`STEPPING`): at every physics substep (0.1 s), for every model. ``pause``'s rule
+  is a contact check one substep ahead (a pedestrian and the robot close up to 1 m in a 0.4 s control step, more
+  than its margin); the social force's robot potential is stiff (explicit Euler needs steps under about 0.13 s);
+  ORCA leaves half of each avoidance to the robot, which does not take it, so a pedestrian takes the rest at its next
+  decision: decided once per control step (``stepping="control"``: the substeps on the straight line between its
+  ends, which is the model's motion) a robot standing in univ's crowds was touched in 9 of 30 episodes, every substep
+  in 1 of 30 (the replay: 15 of 30). Steps in which nobody reacts or is triggered cost next to nothing
+  (:meth:`envs.reaction.ReactiveCrowd.advance`). ``benchmarks/env_speed.py --reaction-only`` measures both.
 * **The robot as the pedestrians see it**: its centre at the start of a model step and its velocity over the
   previous model step (causal: nobody sees the command the robot is about to execute; 0 at the episode's start,
   where the robot is at rest). Pedestrians never see the forecasts, the goal or the policy.
@@ -29,7 +29,8 @@ the world moves it, what the robot's tracker records of it, and roll-outs of the
   velocity over the substep before that), so what the robot observes at ``t`` depends on nothing after ``t``.
 * **Forecasts** (:mod:`envs.forecasting.observed`): from those observed histories. Where nobody observed in a
   forecast's history window was off the recording, the observed histories are the recorded ones and the per-recording
-  cache holds the forecast; elsewhere it is computed from the observed histories for the whole scene.
+  cache holds the forecast; elsewhere it is computed from the observed histories, for the whole scene with a social
+  predictor (per pedestrian for constant velocity).
 """
 
 from __future__ import annotations
@@ -148,6 +149,8 @@ class ReactiveWorld:
             positions (m, 2), presence (m,))`` (the world is the recording elsewhere).
         future_departures: at the last step, the pedestrians whose future differs from the recording (``pause``'s
             time-shifted ones): ``(rows (m,), positions (H, m, 2), presence (H, m))``.
+        forecast_memo: the episode's forecasts from observed histories per annotation frame
+            (:func:`envs.forecasting.observed.observed_forecasts`).
     """
 
     def __init__(
@@ -175,6 +178,7 @@ class ReactiveWorld:
         self.last: CrowdStep | None = None
         self._before: tuple[float, np.ndarray, np.ndarray] | None = None
         self.departures: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.forecast_memo: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.future_departures: tuple[np.ndarray, np.ndarray, np.ndarray] = (
             np.zeros(0, dtype=np.int64),
             np.zeros((0, 0, 2)),
@@ -191,6 +195,7 @@ class ReactiveWorld:
         self._before: tuple[float, np.ndarray, np.ndarray] | None = None  # the last step's second-to-last substep end
         self.departures = []
         self.future_departures = (np.zeros(0, dtype=np.int64), np.zeros((0, 0, 2)), np.zeros((0, 0), dtype=bool))
+        self.forecast_memo = {}
 
     def clone(self) -> ReactiveWorld:
         """A copy in the current state for roll-outs: its own model state; no record, no metrics."""
@@ -279,8 +284,8 @@ class ReactiveWorld:
 
     def _record(self, times_s: np.ndarray, positions: np.ndarray, present: np.ndarray, off: np.ndarray) -> None:
         """Write the annotations in ``(times_s[0], times_s[-1]]`` of the pedestrians off their recording into
-        :attr:`observed`, from the world up to the annotation's time only (so perception stays causal): at a substep end,
-        the positions there; between two (``biwi_eth``), the pedestrians off their recording at the earlier end,
+        :attr:`observed`, from the world up to the annotation's time only (so perception stays causal): at a substep
+        end, the positions there; between two (``biwi_eth``), the pedestrians off their recording at the earlier end,
         extrapolated from it with their velocity over the substep before it (a pedestrian on its recording there keeps
         the annotation)."""
         obs = self.observed
@@ -348,6 +353,8 @@ class ReactionRollout:
         present: ``(T S + 1, N)`` bool (pop-in ghosts absent).
         robot: ``(T S + 1, 2)`` the robot's centre, metres.
         reacting: ``(T, N)`` bool: moved by the model at the end of each control step.
+        end: the crowd at the roll-out's end, to roll on from (a tree search expands a node with
+            ``node.end.simulate(...)``).
     """
 
     times_s: np.ndarray
@@ -355,18 +362,20 @@ class ReactionRollout:
     present: np.ndarray
     robot: np.ndarray
     reacting: np.ndarray
+    end: ReactionSnapshot
 
 
 class ReactionSnapshot:
     """An episode's reacting crowd frozen at one time, to roll the reaction model forward for candidate robot paths.
 
     A privileged measuring stick (it reads the model and every recorded future; no policy's observation carries
-    them): a search planner can score each candidate plan against what the pedestrians would do in reply. Made by
+    them): a search planner can score each candidate plan against what the pedestrians would do in reply, and a tree
+    search can expand a node from the crowd a roll-out ends with (:attr:`ReactionRollout.end`). Made by
     :meth:`envs.crowd_nav.CrowdNavEnv.reaction_snapshot`; every :meth:`simulate` starts again from the snapshot, and
-    the environment is not touched. A roll-out runs exactly the environment's rules (the pop-in rule, the model's
-    stepping, the robot's velocity as the pedestrians see it), so executing the same robot velocities in the
-    environment gives the same pedestrians, bit for bit (``tests/envs/test_reaction_env.py``); what it does not do is
-    physics (contacts end nothing in a roll-out: check distances to :attr:`ReactionRollout.robot`).
+    neither it nor the environment is changed by it. A roll-out runs exactly the environment's rules (the pop-in
+    rule, the model's stepping, the robot's velocity as the pedestrians see it), so executing the same robot
+    velocities in the environment gives the same pedestrians, bit for bit (``tests/envs/test_reaction_env.py``); it
+    does no physics (contacts end nothing in a roll-out: check distances to :attr:`ReactionRollout.robot`).
 
     Args:
         world: the episode's reacting crowd (cloned here).
@@ -400,16 +409,21 @@ class ReactionSnapshot:
         """``(N, 2)`` the pedestrians' positions now, metres."""
         return self._world.crowd.positions
 
+    @property
+    def present(self) -> np.ndarray:
+        """``(N,)`` the pedestrians present now (pop-in ghosts included)."""
+        return self._world.crowd.present
+
     def simulate(self, robot_velocities: np.ndarray) -> ReactionRollout:
         """Roll the model forward while the robot moves with ``robot_velocities``.
 
         Args:
             robot_velocities: ``(T, 2)`` the robot's velocity in each of ``T`` control steps, or ``(T, S, 2)`` in each
-                physics substep, m/s (as the environment's ``_command`` gives them; the robot moves ``p += v h`` per
-                substep, as in the world).
+                physics substep, m/s, as the environment commands them (an action's velocity after its clipping to
+                the preferred speed); the robot moves ``p += v h`` per substep, as in the world.
 
         Returns:
-            the pedestrians and the robot at every substep end of the ``T`` control steps.
+            the pedestrians and the robot at every substep end of the ``T`` control steps, and the crowd after them.
         """
         world, popin = self._world.clone(), copy.deepcopy(self._popin)
         first = self._times(0)
@@ -420,11 +434,12 @@ class ReactionSnapshot:
         if vel.ndim != 3 or vel.shape[1:] != (s, 2) or not np.all(np.isfinite(vel)):
             raise ValueError(f"robot_velocities must be finite, of shape (T, 2) or (T, {s}, 2); got {vel.shape}")
         steps = len(vel)
+        n = world.crowd.positions.shape[0]
         times = np.empty(steps * s + 1)
-        positions = np.empty((steps * s + 1, world.crowd.positions.shape[0], 2))
-        present = np.empty(positions.shape[:2], dtype=bool)
+        positions = np.empty((steps * s + 1, n, 2))
+        present = np.empty((steps * s + 1, n), dtype=bool)
         robots = np.empty((steps * s + 1, 2))
-        reacting = np.zeros((steps, positions.shape[1]), dtype=bool)
+        reacting = np.zeros((steps, n), dtype=bool)
         times[0], positions[0], present[0], robots[0] = first[0], world.crowd.positions, world.crowd.present, self.robot
         if popin.ghost.any():
             present[0] &= ~popin.ghost
@@ -436,12 +451,16 @@ class ReactionSnapshot:
             ghost = popin.step(self._replay, t, rec, pres, path)
             motion = world.move(t, rec, pres, ghost, path, self.substep_s, bookkeeping=False)
             rows = slice(m * s + 1, (m + 1) * s + 1)
-            times[rows], positions[rows], present[rows], robots[rows] = (
-                t[1:],
-                motion.positions[1:],
-                motion.present[1:],
-                path[1:],
-            )
-            reacting[m] = motion.last.reacting
+            times[rows], positions[rows], present[rows] = t[1:], motion.positions[1:], motion.present[1:]
+            robots[rows], reacting[m] = path[1:], motion.last.reacting
             start = path[-1]
-        return ReactionRollout(times, positions, present, robots, reacting)
+        end = copy.copy(self)
+        end._world, end._popin, end.robot = world, popin, start.copy()
+        end._times = _shifted(self._times, steps)
+        end.time_s = float(times[-1])
+        return ReactionRollout(times, positions, present, robots, reacting, end)
+
+
+def _shifted(substep_times: Callable[[int], np.ndarray], steps: int) -> Callable[[int], np.ndarray]:
+    """``substep_times`` counted from ``steps`` control steps later."""
+    return lambda m: substep_times(m + steps)

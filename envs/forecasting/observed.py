@@ -55,7 +55,13 @@ def needs_observed(source: PredictorForecast, observed: ObservedReplay, t_s: flo
     return observed.deviated_between(tau - obs_len * observed.step_s, tau)
 
 
-def observed_forecasts(source: PredictorForecast, observed: Replay, t_s: float, rows: np.ndarray) -> np.ndarray:
+def observed_forecasts(
+    source: PredictorForecast,
+    observed: Replay,
+    t_s: float,
+    rows: np.ndarray,
+    memo: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+) -> np.ndarray:
     """Forecasts of the perceived pedestrians ``rows`` at ``t_s`` from the observed histories.
 
     As the online path (:meth:`PredictorForecast.compute_frame`, then its resampling) on ``observed`` instead of the
@@ -71,6 +77,8 @@ def observed_forecasts(source: PredictorForecast, observed: Replay, t_s: float, 
         observed: the tracker's record of the episode (a :class:`~envs.replay.Replay`).
         t_s: the environment's time, seconds.
         rows: ``(m,)`` replay rows perceived at ``t_s``.
+        memo: an episode's forecasts of a social predictor per annotation frame (final once computed: frames up to
+            ``t_s`` are never rewritten), reused by later times reading the same frame (``biwi_eth``).
 
     Returns:
         ``(m, H, 2)`` world positions at ``t_s + h * dt_s``, metres.
@@ -78,24 +86,17 @@ def observed_forecasts(source: PredictorForecast, observed: Replay, t_s: float, 
     if len(rows) == 0:
         return np.zeros((0, source.horizon, 2))
     rec = observed.recording
-    model, obs_len, pred_len = source._model_sizes(rec)
+    model, _, pred_len = source._model_sizes(rec)
     perceived = observed.perceived_at(t_s)
     i, offset = perceived.index, perceived.age_s
-    back = rec.step_s * np.arange(obs_len - 1, -1, -1)
-    pos, present = observed.positions_at(observed.times[i] - back)
-    if definition_key(model) is not None:  # each pedestrian alone: only the perceived ones
-        seen = np.unique(np.asarray(rows, dtype=np.int64))
-    else:  # a social predictor: the whole scene
-        seen = np.flatnonzero(present.any(axis=0))
-    mask = present[:, seen]
-    history = pos[:, seen].astype(np.float32)
-    history[~mask] = 0.0
-    now = mask[-1]
-    fork_safe_torch()
-    with torch_threads(source.threads):
-        pred = source._checked(model, np.asarray(model.forecast(history, mask)), len(seen), pred_len)
-    cols = seen[now]
-    fc = np.ascontiguousarray(pred[now], dtype=np.float32)
+    independent = definition_key(model) is not None
+    held = None if (memo is None or independent) else memo.get(i)
+    if held is None:
+        cols, fc = _frame_forecasts(source, observed, i, rows if independent else None)
+        if memo is not None and not independent:
+            memo[i] = (cols, fc)
+    else:
+        cols, fc = held
     key = (float(rec.step_s), pred_len, time_key(offset))
     weights = source._weights.get(key)
     if weights is None:
@@ -108,5 +109,29 @@ def observed_forecasts(source: PredictorForecast, observed: Replay, t_s: float, 
     idx = np.minimum(np.searchsorted(cols, rows), max(len(cols) - 1, 0))
     if len(cols) == 0 or not np.array_equal(cols[idx], rows):
         raise RuntimeError(f"forecast requested for pedestrians not observed at t={t_s:.3f} s in {observed.name}")
-    source.calls += 1
     return out[idx]
+
+
+def _frame_forecasts(
+    source: PredictorForecast, observed: Replay, i: int, rows: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows (n,), forecasts (n, P, 2) float32)`` at annotation ``i`` of ``observed`` of the pedestrians present
+    there, as :meth:`PredictorForecast.compute_frame`: of every pedestrian seen in the history window, or (``rows``
+    given, a predictor forecasting each pedestrian alone) of those."""
+    rec = observed.recording
+    model, obs_len, pred_len = source._model_sizes(rec)
+    back = rec.step_s * np.arange(obs_len - 1, -1, -1)
+    pos, present = observed.positions_at(observed.times[i] - back)
+    if rows is not None:
+        seen = np.unique(np.asarray(rows, dtype=np.int64))
+    else:
+        seen = np.flatnonzero(present.any(axis=0))
+    mask = present[:, seen]
+    history = pos[:, seen].astype(np.float32)
+    history[~mask] = 0.0
+    now = mask[-1]
+    fork_safe_torch()
+    with torch_threads(source.threads):
+        pred = source._checked(model, np.asarray(model.forecast(history, mask)), len(seen), pred_len)
+    source.calls += 1
+    return seen[now], np.ascontiguousarray(pred[now], dtype=np.float32)

@@ -382,3 +382,10 @@ def test_a_rollout_of_the_executed_path_is_the_episode(model: str, data_dir: Pat
         np.testing.assert_array_equal(rollout.positions[(k + 1) * s][present], positions[present], err_msg=f"step {k}")
     assert rollout.reacting.any() or model == "pause"
     assert not np.array_equal(other.positions, rollout.positions)
+    # a roll-out continued from where another ended is the whole roll-out (a tree search's expansion)
+    head = snapshot.simulate(np.array(velocities[:3]))
+    tail = head.end.simulate(np.array(velocities[3:]))
+    assert tail.end.time_s == rollout.end.time_s
+    np.testing.assert_array_equal(tail.times_s, rollout.times_s[3 * s :])
+    np.testing.assert_array_equal(tail.present, rollout.present[3 * s :])
+    np.testing.assert_array_equal(tail.positions[tail.present], rollout.positions[3 * s :][tail.present])
