@@ -96,11 +96,22 @@ def calibrated_coverage(
     on ``split``'s validation windows with the ``scaled`` score (as ``calibrate --head gaussian``), on the forecasts
     ``scored`` (its test windows): each scored pedestrian counts the share of its steps covered, so the estimate is
     the fraction of covered positions, all steps pooled."""
-    from crowdnav_mesrnn.uncertainty.calibration import Forecaster, fit_calibration
-    from crowdnav_mesrnn.uncertainty.conformal import level_key, measure_coverage
+    # The conformal primitives directly (crowdnav_mesrnn.uncertainty.calibration imports this module).
+    from crowdnav_mesrnn.uncertainty.conformal import (
+        Calibration,
+        conformal_thresholds,
+        level_key,
+        measure_coverage,
+        region_scores,
+    )
 
-    forecaster = Forecaster(model, "gaussian", distribution=predictor.predict_distribution_batch)
-    cal = fit_calibration(forecaster, split, "scaled", (level,), data_dir, min_scored, batch_size)
+    val = collect_forecasts(
+        split_windows(split, "val", min_scored=min_scored, data_dir=data_dir),
+        distribution=predictor.predict_distribution_batch,
+        batch_size=batch_size,
+    )
+    thresholds = conformal_thresholds(region_scores(val, "scaled"), (level,))
+    cal = Calibration(model, "gaussian", split, "scaled", thresholds, None, val.num_windows, len(val.speed))
     covered = measure_coverage(cal, scored, (level,)).covered[level_key(level)]  # (W, P) windows with a scored one
     return PairedErrors(covered.sum(1) / covered.shape[1], scored.counts[scored.counts > 0])
 
