@@ -132,6 +132,6 @@ def _frame_forecasts(
     now = mask[-1]
     fork_safe_torch()
     with torch_threads(source.threads):
-        pred = source._checked(model, np.asarray(model.forecast(history, mask)), len(seen), pred_len)
+        pred = source._checked(model, np.asarray(model.forecast(history, mask)), len(seen), pred_len, rec, i, now)
     source.calls += 1
     return seen[now], np.ascontiguousarray(pred[now], dtype=np.float32)
