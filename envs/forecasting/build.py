@@ -15,7 +15,7 @@ from crowdnav_mesrnn.data.constants import SPLIT_TEST_RECORDINGS
 from envs.config import FORECAST_MEMORIES, CrowdNavConfig
 from envs.forecasting.cache import ForecastStore, cache_root, chunk_frames, definition_key, num_chunks
 from envs.forecasting.factory import make_forecast_source
-from envs.forecasting.threads import FORECAST_THREADS
+from envs.forecasting.threads import FORECAST_THREADS, torch_threads
 from envs.forecasting.window import PredictorForecast
 
 if TYPE_CHECKING:
@@ -159,11 +159,12 @@ def seconds_per_frame(source: PredictorForecast, frames: list[tuple[Recording, i
     calls = source.calls  # the probe is not counted: ``calls`` counts the frames forecast for the cache
     times = []
     try:
-        source.compute_frame(*frames[0])
-        for rec, i in frames:
-            t = time.perf_counter()
-            source.compute_frame(rec, i)
-            times.append(time.perf_counter() - t)
+        with torch_threads(source.threads):  # timed as the build computes: on the source's threads
+            source.compute_frame(*frames[0])
+            for rec, i in frames:
+                t = time.perf_counter()
+                source.compute_frame(rec, i)
+                times.append(time.perf_counter() - t)
     finally:
         source.calls = calls
     return sorted(times)[len(times) // 2]
