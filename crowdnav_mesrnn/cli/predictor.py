@@ -102,9 +102,11 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _check_checkpoints(args: argparse.Namespace) -> None:
-    """Refuse a ``--checkpoint`` that names no file for one of the splits, before torch is imported."""
+    """Refuse a ``--checkpoint`` for a predictor without weights, or one that names no file for one of the splits,
+    before torch is imported."""
     if not args.checkpoint:
         return
+    _check_checkpoint(args)
     for split in SPLITS if args.split == "all" else (args.split,):
         path = Path(args.checkpoint.format(split=split, model=args.model))
         if not path.is_file():
