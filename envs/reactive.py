@@ -10,8 +10,8 @@ the world moves it, what the robot's tracker records of it, and roll-outs of the
   than its margin); the social force's robot potential is stiff (explicit Euler needs steps under about 0.13 s);
   ORCA leaves half of each avoidance to the robot, which does not take it, so a pedestrian takes the rest at its next
   decision: decided once per control step (``stepping="control"``: the substeps on the straight line between its
-  ends, which is the model's motion) a robot standing in univ's crowds was touched in 9 of 30 episodes, every substep
-  in 1 of 30 (the replay: 15 of 30). Steps in which nobody reacts or is triggered cost next to nothing
+  ends, which is the model's motion) a robot standing in univ's crowds ended 14 of 35 episodes in a collision, every
+  substep 1 of 26 (the replay: 19 of 38). Steps in which nobody reacts or is triggered cost next to nothing
   (:meth:`envs.reaction.ReactiveCrowd.advance`). ``benchmarks/env_speed.py --reaction-only`` measures both.
 * **The robot as the pedestrians see it**: its centre at the start of a model step and its velocity over the
   previous model step (causal: nobody sees the command the robot is about to execute; 0 at the episode's start,
