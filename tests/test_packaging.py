@@ -76,7 +76,8 @@ def test_every_package_folder_with_modules_is_in_the_wheel(wheel_files: set[str]
 
 def test_every_module_and_data_file_is_in_the_wheel(wheel_files: set[str]) -> None:
     expected = expected_files()
-    assert "agents/pretrained/ppo_mesrnn_zara1.yaml" in expected
+    assert "agents/pretrained/ppo_mesrnn_zara1.policy.yaml" in expected
+    assert "agents/pretrained/ppo_mesrnn_zara1.pt" in expected
     assert "crowdnav_mesrnn/pretrained/cv_gaussian_zara1.json" in expected
     assert "crowdnav_mesrnn/pretrained/mesrnn_zara1.pt" in expected
     assert sorted(expected - wheel_files) == []

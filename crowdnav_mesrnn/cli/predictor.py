@@ -128,6 +128,8 @@ def _checkpoint_loader(args: argparse.Namespace) -> Any:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    if args.versus and args.checkpoint:
+        raise ValueError("--versus compares shipped weights; it takes no --checkpoint")
     _check_checkpoints(args)
     import torch
 
@@ -147,8 +149,6 @@ def _eval(args: argparse.Namespace) -> int:
         "n_resamples": args.resamples,
     }
     if args.versus:
-        if args.checkpoint:
-            raise ValueError("--versus compares shipped weights; it takes no --checkpoint")
         result = evaluate_versus(args.model, args.versus, splits=args.split, **common)
     else:
         result = evaluate_model(args.model, args.split, checkpoint_for=_checkpoint_loader(args), **common)
