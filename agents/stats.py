@@ -32,6 +32,7 @@ __all__ = [
     "mcnemar_exact",
     "mcnemar_min_detectable_difference",
     "paired_bootstrap_diff_ci",
+    "paired_seed_test",
     "paired_verdict",
     "welch_seed_test",
     "wilcoxon_paired",
@@ -251,6 +252,12 @@ def wilcoxon_paired(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.nda
     return out
 
 
+def _untestable(out: dict[str, Any], note: str) -> dict[str, Any]:
+    """``out`` of a seed-level test with nothing to test from: ``nan`` interval, p, df and statistic, and why."""
+    out.update(difference_ci=[math.nan, math.nan], p_value=math.nan, df=math.nan, statistic=math.nan, note=note)
+    return out
+
+
 def welch_seed_test(
     a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarray, confidence: float = 0.95
 ) -> dict[str, Any]:
@@ -284,14 +291,7 @@ def welch_seed_test(
     se2 = sum(terms)
     out["difference"] = diff
     if se2 <= 0.0:
-        out.update(
-            difference_ci=[math.nan, math.nan],
-            p_value=math.nan,
-            df=math.nan,
-            statistic=math.nan,
-            note="no variance between seeds (fewer than two seeds, or identical rates)",
-        )
-        return out
+        return _untestable(out, "no variance between seeds (fewer than two seeds, or identical rates)")
     df = se2**2 / sum(t * t / d for t, d in zip(terms, dofs, strict=True))
     se = math.sqrt(se2)
     t = diff / se
@@ -302,6 +302,53 @@ def welch_seed_test(
         standard_error=se,
         difference_ci=[diff - half, diff + half],
         p_value=float(min(1.0, 2.0 * stats.t.sf(abs(t), df))),
+    )
+    return out
+
+
+def paired_seed_test(
+    a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarray, confidence: float = 0.95
+) -> dict[str, Any]:
+    """The seed-level test of ``mean(a) - mean(b)`` where each value is one training seed's rate over the same
+    episodes, paired by seed as declared: value ``i`` of ``a`` and of ``b`` come from training seed ``i``.
+
+    With a value per seed on both sides: the paired t-test on the per-seed differences ``d_i = a_i - b_i``
+    (``scipy.stats.ttest_1samp`` of ``d`` against 0; ``n - 1`` degrees of freedom; interval ``mean(d) +-
+    t_{n-1} sd(d) / sqrt(n)``). With a single value on one side (a deterministic planner, evaluated once on the
+    same episodes): the other side's per-seed rates minus that fixed rate, the same one-sample test. ``n_a``,
+    ``n_b`` count the values; a pair with a non-finite value is dropped. Without two differences, or with identical
+    ones, there is nothing to test from: ``p_value`` and the interval are ``nan`` and ``note`` says why.
+
+    Raises:
+        ValueError: both sides have several values but not the same number (they cannot be paired by seed).
+    """
+    _check_confidence(confidence)
+    x, y = np.asarray(a, dtype=float).ravel(), np.asarray(b, dtype=float).ravel()
+    out: dict[str, Any] = {"n_a": int(x.size), "n_b": int(y.size)}
+    if x.size > 1 and y.size > 1 and x.size != y.size:
+        raise ValueError(f"paired by seed needs as many seeds on both sides, got {x.size} and {y.size}")
+    if x.size == 0 or y.size == 0:
+        out.update(test="paired t on per-seed rates", difference=math.nan, difference_ci=[math.nan, math.nan])
+        out.update(p_value=math.nan, df=math.nan, note="a side has no seeds")
+        return out
+    fixed = x.size == 1 or y.size == 1
+    out["test"] = "one-sample t of per-seed rates against the fixed rate" if fixed else "paired t on per-seed rates"
+    d = x - y  # broadcasts a single value against the other side's seeds
+    d = d[np.isfinite(d)]
+    n = int(d.size)
+    diff = float(d.mean()) if n else math.nan
+    out["difference"] = diff
+    if n < 2 or float(d.std(ddof=1)) == 0.0:
+        return _untestable(out, "no variance between seeds (fewer than two seeds, or identical differences)")
+    res = stats.ttest_1samp(d, 0.0)
+    se = float(d.std(ddof=1)) / math.sqrt(n)
+    half = float(stats.t.ppf(0.5 + confidence / 2.0, n - 1)) * se
+    out.update(
+        statistic=float(res.statistic),
+        df=float(n - 1),
+        standard_error=se,
+        difference_ci=[diff - half, diff + half],
+        p_value=float(res.pvalue),
     )
     return out
 

@@ -358,9 +358,9 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         "",
         f"Declared in the config before any result: arm comparisons {', '.join(f'{a} vs {b}' for a, b in cfg.comparisons) or '(none declared)'} "
         f"within each policy and split; policy comparisons {', '.join(f'{a} vs {b}' for a, b in cfg.policy_comparisons) or '(none declared)'} "
-        "within each arm and split. Pairs are (training seed, episode); a policy without seeds pairs its episode "
-        "with that episode of every seed. Success: exact McNemar test (two-sided binomial test on the discordant "
-        "pairs); navigation time: Wilcoxon signed-rank test over episodes both sides finished. "
+        "within each arm and split. Pairs are (training seed, episode). Success: exact McNemar test (two-sided "
+        "binomial test on the discordant pairs); navigation time: Wilcoxon signed-rank test over episodes both sides "
+        "finished (a policy without seeds pairs its episode with that episode of every seed). "
         f"Holm-Bonferroni correction within each endpoint: {fam.get('success', 0)} success tests and "
         f"{fam.get('navigation_time_s', 0)} navigation-time tests; significant = Holm-adjusted p <= {mc['alpha']}.",
         "",
@@ -370,6 +370,15 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         "'-' where no difference the observed discordance allows reaches that power (or no pair is discordant).",
         "",
     ]
+    if any(t.get("test", "").startswith("exact sign-flip") for t in summary["tests"]):
+        lines += [
+            "A policy with training seeds against one without (a deterministic planner, run once on the same "
+            "episodes; rows marked †) counts each of the planner's episodes once: per episode d = the seeded "
+            "policy's successes summed over its seeds minus seeds x the planner's success, the exact sign-flip test "
+            "of d (H0: d symmetric about 0), its mean / seeds the difference with a bootstrap percentile interval "
+            "over episodes; n counts episodes and b10 / b01 do not apply.",
+            "",
+        ]
     exact = any("difference_exact_ci" in t for t in summary["tests"])
     if exact:
         lines += [
@@ -399,14 +408,17 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
             empty = " | | | | | | |" + (" |" if exact else "")
             lines.append(f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | missing |{empty}")
             continue
-        lo, hi = t["difference_exact_ci"] if exact else t["difference_ci"]
+        fixed = "b01" not in t  # a seeded policy against a deterministic one (seeds_against_fixed)
+        lo, hi = t["difference_exact_ci"] if exact and not fixed else t["difference_ci"]
         diff = f"{100 * t['difference']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}]" if lo is not None else "-"
+        diff += " †" if fixed else ""
         mdd = "-" if t.get("mdd") is None else f"{100 * t['mdd']:.1f}"
         mddh = "-" if t.get("mdd_holm_strictest") is None else f"{100 * t['mdd_holm_strictest']:.1f}"
         star = " *" if t.get("significant") else ""
         verdict = f" {t.get('verdict', '-')} |" if exact else ""
         lines.append(
-            f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | {t['n']} | {t['b10']} | {t['b01']} | {diff} | "
+            f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | {t['n']} | {t.get('b10', '-')} | {t.get('b01', '-')} | "
+            f"{diff} | "
             f"{_p(t['p_value'])} | {_p(t['p_holm'])}{star} |{verdict} {mdd} | {mddh} |"
         )
     seed_rows = [t for t in summary["tests"] if t["endpoint"] == "success" and t.get("seed_level")]
@@ -415,8 +427,9 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
             "",
             "Seed level (secondary): the McNemar test above is conditional on the trained policies, so it does not "
             "count the variance between training seeds. Here each training seed's success rate over the same paired "
-            "episodes is one observation: Welch's t-test and 95 % t-interval on the difference of mean per-seed "
-            "rates (a policy without seeds is one fixed rate, which makes it a one-sample test), Holm-corrected over "
+            "episodes is one observation, paired by seed as declared: the paired t-test and 95 % t-interval on the "
+            "per-seed differences (seed i of a against seed i of b; a policy without seeds is one fixed rate on the "
+            "same episodes, which makes it a one-sample test), Holm-corrected over "
             f"the {fam.get('success_seed_level', 0)} seed-level tests. With {_count(len(summary['seeds']))} seeds "
             "per arm these intervals are wide: a difference can be clear episode by episode and still undetermined "
             "across training seeds.",

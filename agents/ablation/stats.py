@@ -98,9 +98,11 @@ def _seed_level(
     sb: np.ndarray,
     confidence: float,
 ) -> dict[str, Any] | None:
-    """Welch's t-test on per-seed success rates over the paired episodes (the training seed as the unit);
-    a side without seeds (a planner) is one fixed rate. ``None`` when neither side has seeds."""
-    from agents.stats import welch_seed_test
+    """The seed-level test, paired by seed (:func:`agents.stats.paired_seed_test`): each training seed's success rate
+    over the paired episodes is one value, seed ``i`` of one side against seed ``i`` of the other; a side without
+    seeds (a planner) is one fixed rate on the same episodes, which makes it a one-sample test. ``None`` when neither
+    side has seeds."""
+    from agents.stats import paired_seed_test
 
     a_seeded = any(s is not None for _, s, _ in a.keys)
     b_seeded = any(s is not None for _, s, _ in b.keys)
@@ -114,7 +116,49 @@ def _seed_level(
         return per if seeded else per[:1]  # a seedless side repeats the same episodes for every seed
 
     ra, rb = rates(sa, a_seeded), rates(sb, b_seeded)
-    return {**welch_seed_test(ra, rb, confidence), "rates_a": ra, "rates_b": rb}
+    return {**paired_seed_test(ra, rb, confidence), "seeds": [int(s) for s in np.unique(seeds)], "rates_a": ra,
+            "rates_b": rb}  # fmt: skip
+
+
+def seeds_against_fixed(
+    keys: Sequence[tuple[int | None, int]], sa: np.ndarray, sb: np.ndarray, a_seeded: bool, confidence: float = 0.95
+) -> dict[str, Any]:
+    """The episode-level success test of a policy with training seeds against one without (a deterministic planner,
+    evaluated once on the same episodes), counting each of the planner's episodes once.
+
+    Pooling the ``S`` seeds' (seed, episode) pairs into McNemar's test would count every planner episode ``S`` times
+    as if independent. Here each episode ``e`` (of those every seed ran) gives the integer ``d_e = sum_s s_seeded(s, e)
+    - S s_fixed(e)`` in ``{-S, ..., S}`` (``s`` = 1 for a success; ``-d_e`` when the seeded side is ``b``);
+    ``difference`` = mean ``d`` / ``S`` = the difference of success rates, with a bootstrap percentile interval
+    over episodes; the test is the exact sign-flip test of ``d`` (:func:`sign_flip_exact`, H0: ``d`` symmetric
+    about 0). Its unit is the episode: the variance between training seeds is the seed-level test's
+    (:func:`agents.stats.paired_seed_test`)."""
+    per: dict[int, dict[int, tuple[float, float]]] = {}
+    for (seed, ep), x, y in zip(keys, sa, sb, strict=True):
+        per.setdefault(ep, {})[-1 if seed is None else seed] = (float(x), float(y))
+    seeds = sorted({-1 if s is None else s for s, _ in keys})
+    full = sorted(ep for ep, by in per.items() if len(by) == len(seeds))
+    n_seeds = len(seeds)
+    seeded = np.asarray([[per[ep][s][0 if a_seeded else 1] for s in seeds] for ep in full]).reshape(len(full), -1)
+    fixed = np.asarray([per[ep][seeds[0]][1 if a_seeded else 0] for ep in full])
+    d = seeded.sum(axis=1) - n_seeds * fixed
+    if not a_seeded:
+        d = -d
+    test = sign_flip_exact(np.round(d))
+    rate_seeded, rate_fixed = float(seeded.mean()) if seeded.size else math.nan, float(fixed.mean()) if full else 0.0
+    rate_a, rate_b = (rate_seeded, rate_fixed) if a_seeded else (rate_fixed, rate_seeded)
+    return {
+        "test": "exact sign-flip over episodes (seeds summed)",
+        "n": len(full),
+        "seeds": n_seeds,
+        "rate_a": rate_a,
+        "rate_b": rate_b,
+        "difference": test["mean"] / n_seeds if full else math.nan,
+        "difference_ci": list(percentile_mean_ci(d / n_seeds, confidence)),
+        "d_counts": test["counts"],
+        "statistic": test["statistic"],
+        "p_value": test["p_value"],
+    }
 
 
 def paired_tests(
@@ -155,7 +199,11 @@ def paired_tests(
         if sa.size == 0:
             tests.append({**base, "endpoint": "success", "missing": True})
             continue
-        mc = mcnemar_exact(sa, sb, intervals=intervals)
+        a_seeded, b_seeded = (any(s is not None for _, s, _ in e.keys) for e in (ea, eb))
+        if a_seeded != b_seeded:  # a seeded policy against a deterministic one: each of its episodes once
+            mc = seeds_against_fixed(keys, sa, sb, a_seeded)
+        else:
+            mc = mcnemar_exact(sa, sb, intervals=intervals)
         seed_level = _seed_level(ea, eb, keys, sa, sb, 0.95)
         tests.append({**base, "endpoint": "success", **mc, **({"seed_level": seed_level} if seed_level else {})})
         both = sa & sb
@@ -179,7 +227,7 @@ def paired_tests(
         st["significant"] = bool(adj <= cfg.alpha)
     m = max(families.get("success", 0), 1)
     for t in tests:
-        if t["endpoint"] == "success" and not t.get("missing"):
+        if t["endpoint"] == "success" and not t.get("missing") and "b01" in t:
             psi = (t["b01"] + t["b10"]) / t["n"]
             t["discordant_fraction"] = psi
             t["mdd"] = mcnemar_min_detectable_difference(t["n"], psi, cfg.alpha, cfg.power)

@@ -17,6 +17,7 @@ from agents.stats import (
     mcnemar_exact,
     mcnemar_min_detectable_difference,
     paired_bootstrap_diff_ci,
+    paired_seed_test,
     paired_verdict,
     welch_seed_test,
     wilcoxon_paired,
@@ -206,3 +207,33 @@ def test_welch_seed_test_fixed_side_and_degenerate_inputs() -> None:
         res = welch_seed_test(a, b)
         assert math.isnan(res["p_value"]) and "no variance" in res["note"]
     assert "no seeds" in welch_seed_test([], [0.5])["note"]
+
+
+def test_paired_seed_test_pairs_seed_i_with_seed_i() -> None:
+    # the same rates paired differently: seed-by-seed differences (0.1, 0.1, 0.1, 0.2) are steady although the rates
+    # vary widely between seeds, which an unpaired test would count against the difference
+    a, b = [0.9, 0.7, 0.5, 0.8], [0.8, 0.6, 0.4, 0.6]
+    res = paired_seed_test(a, b)
+    ref = sps.ttest_rel(a, b)  # scipy's own paired test
+    assert res["test"] == "paired t on per-seed rates" and res["df"] == pytest.approx(3.0)
+    assert res["difference"] == pytest.approx(0.125) and res["p_value"] == pytest.approx(ref.pvalue)
+    d = np.array(a) - np.array(b)
+    half = sps.t.ppf(0.975, 3) * d.std(ddof=1) / 2
+    assert res["difference_ci"] == pytest.approx([0.125 - half, 0.125 + half])
+    assert res["p_value"] < welch_seed_test(a, b)["p_value"]
+    # reversing b's seeds breaks the pairing and changes the test (Welch's would not change)
+    assert paired_seed_test(a, b[::-1])["p_value"] != pytest.approx(res["p_value"])
+
+
+def test_paired_seed_test_fixed_side_and_degenerate_inputs() -> None:
+    res = paired_seed_test([0.7, 0.8, 0.9], [0.95])
+    assert res["test"].startswith("one-sample") and res["p_value"] == pytest.approx(
+        sps.ttest_1samp([0.7, 0.8, 0.9], 0.95).pvalue
+    )
+    assert paired_seed_test([0.95], [0.7, 0.8, 0.9])["difference"] == pytest.approx(0.15)
+    with pytest.raises(ValueError, match="as many seeds"):
+        paired_seed_test([0.5, 0.6, 0.7], [0.5, 0.6])
+    for a, b in (([0.5], [0.6]), ([0.6, 0.7], [0.5, 0.6])):
+        out = paired_seed_test(a, b)
+        assert math.isnan(out["p_value"]) and "no variance" in out["note"]
+    assert "no seeds" in paired_seed_test([], [0.5])["note"]

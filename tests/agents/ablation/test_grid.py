@@ -666,12 +666,20 @@ def test_summary_pairs_ppo_seeds_with_the_planner_and_counts_missing(tmp_path: P
     assert "mesrnn" not in summary["policies"]["ppo"]["arms"]
     assert not summary["complete"] and "train/zara1/ppo/mesrnn/seed0" in summary["missing_cells"]
     vs = next(t for t in summary["tests"] if t["comparison"] == "policies" and t["a"]["arm"] == "none")
-    # 6 (seed, episode) pairs against the planner's 3 episodes; PPO fails where the planner succeeds 3 times
-    assert (vs["n"], vs["b10"], vs["b01"]) == (6, 0, 3)
+    # each of the planner's 3 episodes once (not 6 (seed, episode) pairs): PPO's successes summed over its 2 seeds
+    # (1, 0, 2) minus 2 x the planner's (1, 1, 1) give d = (-1, -2, 0); the exact sign-flip test of S = -3 over
+    # magnitudes {1, 2}: S in {-3, -1, 1, 3} with probability 1/4 each, so p = P(|S| >= 3) = 1/2
+    assert vs["test"] == "exact sign-flip over episodes (seeds summed)" and "b01" not in vs
+    assert (vs["n"], vs["seeds"], vs["d_counts"]) == (3, 2, {"-2": 1, "-1": 1, "0": 1})
+    assert vs["difference"] == pytest.approx(-0.5) and vs["p_value"] == pytest.approx(0.5)
+    assert (vs["rate_a"], vs["rate_b"]) == (pytest.approx(0.5), pytest.approx(1.0))
+    lo, hi = vs["difference_ci"]
+    assert -1.0 <= lo <= -0.5 <= hi <= 0.0
     # seed level: per-seed rates 2/3 and 1/3 against the planner's fixed 1.0; difference -1/2, standard
     # error sqrt(var / 2) = sqrt((1/18) / 2) = 1/6, t = -3 on 1 degree of freedom (a Cauchy distribution:
     # two-sided p = 1 - 2 atan(3) / pi)
     sl = vs["seed_level"]
+    assert sl["test"] == "one-sample t of per-seed rates against the fixed rate" and sl["seeds"] == [0, 1]
     assert sl["rates_a"] == pytest.approx([2 / 3, 1 / 3]) and sl["rates_b"] == pytest.approx([1.0])
     assert sl["difference"] == pytest.approx(-0.5) and sl["df"] == pytest.approx(1.0)
     assert sl["statistic"] == pytest.approx(-3.0)
