@@ -49,7 +49,7 @@ class WorldStep:
 
     Attributes:
         robot_positions: ``(S + 1, 2)`` robot centre at the substep boundaries, metres.
-        contacts: contacts that began during the step.
+        contacts: contacts that began during the step, by substep, then replay row.
         touching: replay rows in contact at the end of any substep of the step.
     """
 
@@ -232,4 +232,6 @@ class World:
                 touched.update(self._touching)
             p = self.robot.position
             robot_path[k + 1] = (p.x, p.y)
-        return WorldStep(robot_path, list(self._events), frozenset(touched))
+        # contacts in (substep, row) order: pymunk reports the contacts of one substep in its broad phase's order
+        events = sorted(self._events, key=lambda c: (c.substep, c.row))
+        return WorldStep(robot_path, events, frozenset(touched))
