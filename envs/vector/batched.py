@@ -23,6 +23,7 @@ from crowdnav_mesrnn.data.constants import OBS_LEN
 from envs.crowd_nav import _CONFIGURED, CrowdNavEnv, reset_info, reset_options
 from envs.episodes import Episode
 from envs.forecasting.sources import TrueFuture, fill_forward
+from envs.forecasting.window import PredictorForecast
 from envs.observation import nearest_visible
 from envs.popin import POPIN_MARGIN_M, PopInRule
 from envs.replay import TIME_TOL_S, Replay
@@ -597,6 +598,11 @@ class BatchedCrowdNavEnv(VectorEnv):
         unc_obs = np.zeros((nw, k, hor), dtype=np.float32) if b.with_uncertainty else None
         source = self.forecaster
         times = t_s.tolist()
+        if isinstance(source, PredictorForecast) and unc_obs is None:
+            self._table_forecasts(worlds, times, rows_of, robot, fc_obs)
+            obs = self._obs
+            obs["forecasts"][worlds] = fc_obs.reshape(nw, -1) if b.flat else fc_obs
+            return
         for j, w in enumerate(worlds.tolist()):
             rows = rows_of[j]
             m = len(rows)
@@ -622,6 +628,47 @@ class BatchedCrowdNavEnv(VectorEnv):
         obs["forecasts"][worlds] = fc_obs.reshape(nw, -1) if b.flat else fc_obs
         if unc_obs is not None:
             obs["forecast_uncertainty"][worlds] = unc_obs.reshape(nw, -1) if b.flat else unc_obs
+
+    def _table_forecasts(
+        self, worlds: np.ndarray, times: list[float], rows_of: list[np.ndarray], robot: np.ndarray, out: np.ndarray
+    ) -> None:
+        """A predictor's forecasts (:class:`~envs.forecasting.window.PredictorForecast`, whose ``forecast`` takes the
+        perceived pedestrians' rows of its per-time table) for every world in one look-up: each world's table at its
+        time, then one search of all the worlds' rows in them. Writes the clipped offsets into ``out``
+        ``(n, K, H, 2)`` and logs each world's forecasts."""
+        source = self.forecaster
+        assert isinstance(source, PredictorForecast)
+        counts = np.array([len(r) for r in rows_of])
+        js = np.flatnonzero(counts)
+        if len(js) == 0:
+            return
+        tables = [
+            source.all_forecasts(self._worlds[w]._replay, times[j])
+            for j, w in zip(js.tolist(), worlds[js].tolist(), strict=True)
+        ]  # type: ignore[arg-type]
+        sizes = np.array([len(c) for c, _ in tables])
+        rank = np.repeat(np.arange(len(js)), counts[js])
+        big = int(self._replay.columns.max()) + 1 if self._replay.columns.size else 1
+        keys = np.concatenate([c for c, _ in tables]) + np.repeat(np.arange(len(js)) * big, sizes)
+        rows = np.concatenate([rows_of[j] for j in js.tolist()])
+        want = self._replay.columns[worlds[js][rank], rows] + rank * big
+        idx = np.minimum(np.searchsorted(keys, want), max(len(keys) - 1, 0))
+        if len(keys) == 0 or not np.array_equal(keys[idx], want):
+            bad = int(rank[np.flatnonzero(keys[idx] != want)[0]]) if len(keys) else 0
+            raise RuntimeError(
+                f"forecast requested for pedestrians not perceived at t={times[int(js[bad])]:.3f} s in "
+                f"{self._worlds[int(worlds[js[bad]])]._replay.name}"  # type: ignore[union-attr]
+            )
+        fc = np.concatenate([f for _, f in tables])[idx]  # (M, H, 2)
+        slot = np.arange(len(rows)) - np.repeat(np.cumsum(counts[js]) - counts[js], counts[js])
+        out[js[rank], slot] = _clip(fc - robot[js[rank]][:, None, :], self.env._builder.fc_bound)
+        bounds = np.cumsum(counts[js]).tolist()
+        lo = 0
+        for j, hi in zip(js.tolist(), bounds, strict=True):
+            world = self._worlds[int(worlds[j])]
+            world._forecast_log.append((times[j], rows_of[j], fc[lo:hi]))
+            world.last_forecasts = fc[lo:hi]
+            lo = hi
 
     def _reward(
         self,

@@ -24,6 +24,7 @@ class BatchedReplay:
         replays: the worlds' :class:`~envs.replay.Replay` (None before a world's first episode).
         width: P, the padded number of rows (>= every world's pedestrians; only grows).
         num_rows: ``(W,)`` pedestrians of each world's replay.
+        columns: ``(W, P)`` recording column of each world's rows (:attr:`envs.replay.Replay.columns`).
     """
 
     def __init__(self, num_worlds: int) -> None:
@@ -49,9 +50,18 @@ class BatchedReplay:
         self.presence = np.zeros((w, frames, 2, width), dtype=bool)
         self.present = np.zeros((w, frames, width), dtype=bool)
         self.arrival_velocity = np.zeros((w, frames, width, 2))
+        self.columns = np.zeros((w, width), dtype=np.int64)
 
     def _grow(self, frames: int, width: int) -> None:
-        old = (self.times, self.positions, self.slopes, self.presence, self.present, self.arrival_velocity)
+        old = (
+            self.times,
+            self.positions,
+            self.slopes,
+            self.presence,
+            self.present,
+            self.arrival_velocity,
+            self.columns,
+        )
         f0, p0 = self._frames, self.width
         self._frames, self.width = frames, width
         self._alloc(frames, width)
@@ -61,6 +71,7 @@ class BatchedReplay:
         self.presence[:, :f0, :, :p0] = old[3]
         self.present[:, :f0, :p0] = old[4]
         self.arrival_velocity[:, :f0, :p0] = old[5]
+        self.columns[:, :p0] = old[6]
 
     def set_world(self, w: int, replay: Replay) -> None:
         """World ``w`` now replays ``replay``."""
@@ -91,6 +102,8 @@ class BatchedReplay:
         self.present[w, :f, :n] = replay.present
         self.arrival_velocity[w] = 0.0
         self.arrival_velocity[w, :f, :n] = replay.arrival_velocity
+        self.columns[w] = 0
+        self.columns[w, :n] = replay.columns
 
     def frame_index(self, worlds: np.ndarray, times_s: np.ndarray) -> np.ndarray:
         """``(n, T)`` index of the latest frame at or before each time (``times_s`` ``(n, T)``) in each world's replay,
@@ -98,9 +111,12 @@ class BatchedReplay:
         out = np.empty(times_s.shape, dtype=np.int64)
         query = times_s + TIME_TOL_S
         recs = self._rec_of[worlds]
-        for rec in np.unique(recs).tolist():
-            sel = recs == rec
-            out[sel] = np.searchsorted(self._rec_times[rec], query[sel], "right") - 1
+        if len(self._rec_times) == 1:  # one recording (a held-out scene): one search
+            out[:] = np.searchsorted(next(iter(self._rec_times.values())), query, "right") - 1
+        else:
+            for rec in np.unique(recs).tolist():
+                sel = recs == rec
+                out[sel] = np.searchsorted(self._rec_times[rec], query[sel], "right") - 1
         out -= self._first[worlds, None]
         np.minimum(out, self._num_frames[worlds, None] - 1, out=out)
         np.maximum(out, -1, out=out)
