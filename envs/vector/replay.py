@@ -90,17 +90,15 @@ class BatchedReplay:
         self._step_s[w] = replay.step_s
         self._t_lo[w] = float(replay.times[0]) - TIME_TOL_S
         self._t_hi[w] = float(replay.times[-1]) + TIME_TOL_S
-        self.times[w] = 0.0
+        # rows past n and frames past f are never present (frames past f are never read: indices are clamped);
+        # their positions and velocities are left as they were (finite, never used)
         self.times[w, :f] = replay.times
-        self.positions[w] = 0.0
         self.positions[w, :f, :n] = replay.positions
-        self.slopes[w] = 0.0
         self.slopes[w, :f, :n] = replay.slopes
-        self.presence[w] = False
         self.presence[w, :f, :, :n] = replay._presence
-        self.present[w] = False
+        self.presence[w, :f, :, n:] = False
         self.present[w, :f, :n] = replay.present
-        self.arrival_velocity[w] = 0.0
+        self.present[w, :f, n:] = False
         self.arrival_velocity[w, :f, :n] = replay.arrival_velocity
         self.columns[w] = 0
         self.columns[w, :n] = replay.columns
