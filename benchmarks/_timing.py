@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
 import statistics
 import time
 from collections.abc import Callable
+from typing import Any
 
 
 def median_seconds(fn: Callable[[], object], repeats: int, clock: Callable[[], float] = time.perf_counter) -> float:
@@ -16,3 +18,20 @@ def median_seconds(fn: Callable[[], object], repeats: int, clock: Callable[[], f
         fn()
         times.append(clock() - t0)
     return statistics.median(times)
+
+
+def matmul_peak_gflops(dtype: Any, threads: int, repeats: int) -> float:
+    """The machine's matmul peak, GFLOP/s: best of ``repeats`` 1024 x 1024 torch matmuls of ``dtype`` on ``threads``
+    threads (a peak: on a shared machine the best run is the least disturbed)."""
+    import torch
+
+    torch.set_num_threads(threads)
+    a, b = torch.randn(1024, 1024).to(dtype), torch.randn(1024, 1024).to(dtype)
+    for _ in range(3):
+        torch.mm(a, b)
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        torch.mm(a, b)
+        best = min(best, time.perf_counter() - t0)
+    return 2 * 1024**3 / best / 1e9

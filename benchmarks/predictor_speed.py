@@ -16,13 +16,12 @@ step, so it executes less than this nominal count (the header says how much less
 from __future__ import annotations
 
 import argparse
-import math
 import time
 from typing import Any
 
 import numpy as np
 import torch
-from _timing import median_seconds
+from _timing import matmul_peak_gflops, median_seconds
 
 from crowdnav_mesrnn.data import MinMax, collate, data_available, split_windows
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
@@ -56,20 +55,6 @@ def macs_per_pedestrian_step(cfg: ModelConfig) -> int:
     node = 2 * cfg.node_embed + (cfg.node_embed + k * cfg.edge_hidden + cfg.node_hidden) * 4 * cfg.node_hidden
     edge = k * (2 * cfg.edge_embed + (cfg.edge_embed + cfg.edge_hidden) * 4 * cfg.edge_hidden)
     return node + edge + 2 * cfg.node_hidden
-
-
-def matmul_peak_gflops(dtype: torch.dtype, threads: int, repeats: int) -> float:
-    """Best of ``repeats`` timings (a peak: on a shared machine the best run is the least disturbed)."""
-    torch.set_num_threads(threads)
-    a, b = torch.randn(1024, 1024).to(dtype), torch.randn(1024, 1024).to(dtype)
-    for _ in range(3):
-        torch.mm(a, b)
-    best = math.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        torch.mm(a, b)
-        best = min(best, time.perf_counter() - t0)
-    return 2 * 1024**3 / best / 1e9
 
 
 def trainer_pass(cfg: ModelConfig, bf16: bool = False, reference: bool = False):

@@ -20,7 +20,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from crowdnav_mesrnn.data.constants import OBS_LEN
-from envs.crowd_nav import _CONFIGURED, CrowdNavEnv, reset_info, reset_options
+from envs.crowd_nav import _CONFIGURED, TIMING_KEYS, CrowdNavEnv, reset_info, reset_options
 from envs.episodes import Episode
 from envs.forecasting.sources import TrueFuture, fill_forward
 from envs.forecasting.window import PredictorForecast
@@ -28,6 +28,7 @@ from envs.observation import nearest_visible
 from envs.popin import POPIN_MARGIN_M, PopInRule
 from envs.replay import TIME_TOL_S, Replay
 from envs.rewards import REWARD_COMPONENTS, EpisodeMetrics
+from envs.timing import PhaseTimer, timed
 from envs.vector.physics import MAX_WORLDS, BatchedWorld
 from envs.vector.replay import BatchedReplay
 
@@ -129,6 +130,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         self.uncertainty = env.uncertainty
         self.crowd_kind = env.crowd_kind
         self._worlds = [_World(env) for _ in range(n)]
+        self._timer = PhaseTimer(TIMING_KEYS)
         self._phys = BatchedWorld(n, cfg.robot_radius_m, cfg.pedestrian_radius_m)
         self._replay = BatchedReplay(n)
         self._s = env._substeps
@@ -178,6 +180,15 @@ class BatchedCrowdNavEnv(VectorEnv):
     def precompute_forecasts(self, recording: str | None = None) -> int:
         """As :meth:`envs.crowd_nav.CrowdNavEnv.precompute_forecasts` (the forecast source is shared by all worlds)."""
         return self.env.precompute_forecasts(recording)
+
+    @property
+    def timings(self) -> dict[str, float]:
+        """Seconds spent per phase (the single environment's :data:`~envs.crowd_nav.TIMING_KEYS`) since the last
+        :meth:`reset_timings`, for all worlds together."""
+        return self._timer.totals
+
+    def reset_timings(self) -> None:
+        self._timer.reset()
 
     @property
     def episodes(self) -> list[Episode | None]:
@@ -261,7 +272,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         pos_times = np.concatenate(
             [t_now[:, None] + self._sub_offsets[None, :], t_next[:, None] + self._obs_offsets[None, :]], axis=1
         )
-        pos, present = self._replay.positions_at(all_w, pos_times)  # (N, S + 1 + H, P, 2)
+        pos, present = self._positions(all_w, pos_times)  # (N, S + 1 + H, P, 2)
         robot0 = self._phys.robot_positions.copy()
         path = np.empty((n, s + 1, 2))  # as CrowdNavEnv._robot_path (p += v * h)
         path[:, 0] = robot0
@@ -274,8 +285,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         if ghost is not None:
             sub_present &= ~ghost
         near = self._near(sub_pos, sub_present, robot0)
-        robot_path, contacts, touched = self._phys.step(commands, sub_pos, sub_present, near, self._h)
-        self._phys.end_step()
+        robot_path, contacts, touched = self._move(commands, sub_pos, sub_present, near)
         collided = np.zeros(n, dtype=bool)
         faults: list[str | None] = [None] * n
         new_contacts = np.zeros(n, dtype=np.int64)
@@ -316,6 +326,7 @@ class BatchedCrowdNavEnv(VectorEnv):
 
     # ------------------------------------------------------------------ resets
 
+    @timed("reset")
     def _start_world(self, w: int, seed: int | None, opts: dict[str, Any]) -> dict[str, Any]:
         """Draw world ``w``'s next episode as ``CrowdNavEnv.reset`` does; returns its reset ``info``."""
         world = self._worlds[w]
@@ -373,11 +384,23 @@ class BatchedCrowdNavEnv(VectorEnv):
     def _observe_reset(self, worlds: np.ndarray) -> None:
         """The first observation of the episodes just drawn in ``worlds``."""
         t0 = self._times(worlds, np.zeros(len(worlds), dtype=np.int64))
-        pos, present = self._replay.positions_at(worlds, t0[:, None] + self._obs_offsets[None, :])
+        pos, present = self._positions(worlds, t0[:, None] + self._obs_offsets[None, :])
         present[:, 0] &= ~self._reset_ghost[worlds, : present.shape[2]]
         self._observe(worlds, t0, pos, present, self._start[worlds])
 
     # ------------------------------------------------------------------ the phases of a step
+
+    @timed("replay")
+    def _positions(self, worlds: np.ndarray, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self._replay.positions_at(worlds, times_s)
+
+    @timed("physics")
+    def _move(
+        self, commands: np.ndarray, positions: np.ndarray, present: np.ndarray, near: np.ndarray
+    ) -> tuple[np.ndarray, dict[int, list[Any]], dict[int, frozenset[int]]]:
+        out = self._phys.step(commands, positions, present, near, self._h)
+        self._phys.end_step()
+        return out
 
     def _parse_actions(self, actions: Any) -> np.ndarray:
         """``(N, 2)`` float64 actions clipped to [-1, 1], as ``CrowdNavEnv._parse_action`` for each world."""
@@ -410,6 +433,7 @@ class BatchedCrowdNavEnv(VectorEnv):
             self._pp_ann[w] = index
             self._pp_ann_ghost[w, cols] = flags
 
+    @timed("physics")
     def _popin(
         self, stepping: np.ndarray, times: np.ndarray, positions: np.ndarray, present: np.ndarray, path: np.ndarray
     ) -> np.ndarray | None:
@@ -454,6 +478,7 @@ class BatchedCrowdNavEnv(VectorEnv):
                 ghost[w, :, :nrow] = g
         return ghost
 
+    @timed("physics")
     def _near(self, positions: np.ndarray, present: np.ndarray, robot: np.ndarray) -> np.ndarray:
         """``(N, P)``: rows within ``near_m`` of the robot's start of step at some substep boundary (as the single
         environment's ``hypot`` test; the coordinate bound first, which ``hypot`` can only exceed)."""
@@ -468,6 +493,7 @@ class BatchedCrowdNavEnv(VectorEnv):
             near[w[hit], col[hit]] = True
         return near
 
+    @timed("physics")
     def _gap_during(self, positions: np.ndarray, present: np.ndarray, near: np.ndarray, path: np.ndarray) -> np.ndarray:
         """``(N,)`` smallest surface gap to a near pedestrian at the substep ends after the step's start (inf: none)."""
         gap = np.full(self.num_envs, math.inf)
@@ -509,6 +535,7 @@ class BatchedCrowdNavEnv(VectorEnv):
             rows[j, : len(r)] = r
         return rows, counts
 
+    @timed("observation")
     def _observe(
         self, worlds: np.ndarray, t_s: np.ndarray, positions: np.ndarray, present: np.ndarray, robot: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -578,6 +605,7 @@ class BatchedCrowdNavEnv(VectorEnv):
             self._forecasts(worlds, t_s, rows_of, seen_pos, positions, present, index, age, robot)
         return gap, intruding, counts
 
+    @timed("forecasts")
     def _forecasts(
         self,
         worlds: np.ndarray,
@@ -670,6 +698,7 @@ class BatchedCrowdNavEnv(VectorEnv):
             world.last_forecasts = fc[lo:hi]
             lo = hi
 
+    @timed("reward")
     def _reward(
         self,
         ws: np.ndarray,
