@@ -130,3 +130,17 @@ def test_errors_name_what_is_wrong() -> None:
         env.step(np.zeros(2))
     with pytest.raises(ValueError, match="world 1"):
         env.step(np.array([[0.0, 0.0], [np.nan, 0.0]]))
+
+
+def test_reacting_pedestrians_are_not_batched_yet(monkeypatch: pytest.MonkeyPatch) -> None:
+    import envs.vector.batched as batched_module
+    from envs.crowd_nav import CrowdNavEnv
+
+    class Reacting(CrowdNavEnv):
+        def __init__(self, **kwargs: Any) -> None:
+            super().__init__(**kwargs)
+            object.__setattr__(self.config, "reaction", "orca")  # as a config with reaction="orca" would say
+
+    monkeypatch.setattr(batched_module, "CrowdNavEnv", Reacting)
+    with pytest.raises(NotImplementedError, match="'reaction' = 'orca'"):
+        BatchedCrowdNavEnv(num_envs=2, predictor="none", crowd="empty")
