@@ -12,10 +12,11 @@ actions and behaviour cloning is a classification — a regression on the contin
 Only the holonomic robot is supported (a unicycle cannot take a velocity in one step).
 
 - :class:`GoalRelativeActions`: the action set: velocities, environment actions, the nearest action
-  to a given environment action (to label a teacher's choices).
+  to a given environment action (to label a teacher's choices); :func:`action_set` builds it from a training
+  config's ``action:`` section (None for continuous actions).
 - :class:`DiscreteActionWrapper`: a Gymnasium wrapper exposing ``Discrete(n)`` to the learner.
 - :class:`DiscretePolicy`: an SB3 model trained on the wrapper, acting on the plain environment
-  (``predict(obs) -> env actions``), as :mod:`agents.evaluate` expects of every policy.
+  (``predict(obs) -> env actions``), as :mod:`agents.rollout` expects of every policy.
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ from typing import Any, Final
 import gymnasium as gym
 import numpy as np
 
-from agents.planners import DEFAULT_HEADINGS_DEG, DEFAULT_SPEED_FRACTIONS, velocities_to_actions
+from agents.planners.base import velocities_to_actions
+from agents.planners.sampling import DEFAULT_HEADINGS_DEG, DEFAULT_SPEED_FRACTIONS
 from crowdnav_mesrnn.config import ConfigError, check_keys
 from envs.config import CrowdNavConfig
 
@@ -106,6 +108,19 @@ def make_actions(env_config: CrowdNavConfig, options: Mapping[str, Any]) -> Goal
     """The action set of a training configuration's ``action`` section (without its ``kind``)."""
     check_keys(options, ("kind", "headings_deg", "speed_fractions"), "action")
     return GoalRelativeActions(env_config, **dict(options))
+
+
+def action_set(action: Mapping[str, Any] | None, env_config: Any) -> Any:
+    """The discrete action set an ``action:`` section describes for an environment configuration, or None."""
+    options = dict(action or {})
+    kind = options.pop("kind", "continuous")
+    if kind not in ACTION_KINDS:
+        raise ConfigError(f"unknown action kind {kind!r}; valid: {', '.join(ACTION_KINDS)}")
+    if kind == "continuous":
+        if options:
+            raise ConfigError(f"action kind 'continuous' takes no options, got {', '.join(sorted(options))}")
+        return None
+    return make_actions(env_config, options)
 
 
 class DiscreteActionWrapper(gym.ActionWrapper):

@@ -25,9 +25,16 @@ def _fmt(value: Any) -> str:
     return "-" if value is None else str(value)
 
 
-#: The shipped policy: PPO with MESRNN forecasts trained on the zara1 split's training scenes by ``agent train``
-#: (exported with ``agent export``; its environment settings in the ``.yaml`` beside it).
-SHIPPED_POLICY: Final[Path] = Path(__file__).resolve().parent / "pretrained" / "ppo_mesrnn_zara1.zip"
+#: The help of ``--trust-pickle`` (``demo``, ``agent evaluate``, ``agent export``).
+TRUST_PICKLE_HELP: Final[str] = (
+    "allow loading an SB3 .zip and its _vecnormalize.pkl, which are unpickled and can run arbitrary code: only for "
+    "files you trust (policy files of the project's format, NAME.policy.yaml, never need it)"
+)
+
+
+#: The shipped policy: PPO with MESRNN forecasts trained on the zara1 split's training scenes by ``agent train``,
+#: a policy file of the project's format (data only, :mod:`agents.policy_file`; weights in ``ppo_mesrnn_zara1.pt``).
+SHIPPED_POLICY: Final[Path] = Path(__file__).resolve().parent / "pretrained" / "ppo_mesrnn_zara1.policy.yaml"
 #: The split whose training scenes the shipped policy was trained on (its held-out scene is the only one it may cross).
 SHIPPED_SPLIT: Final[str] = "zara1"
 
@@ -47,15 +54,22 @@ def _demo_policy(args: argparse.Namespace) -> tuple[str, str | None]:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from agents.evaluate import check_spaces, evaluation_env_kwargs, load_policy, run_settings
     from agents.planners import PLANNERS
+    from agents.runs import check_trust, model_path
+
+    started = time.perf_counter()
+    spec, note = _demo_policy(args)
+    if spec not in PLANNERS:  # a missing policy is named before torch and pymunk are imported
+        model_path(spec)
+    check_trust(spec, trust_pickle=args.trust_pickle)  # an SB3 zip is refused before anything reads it
+
+    from agents.evaluation.run import evaluation_env_kwargs
+    from agents.runs import check_spaces, load_policy, run_settings
     from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, data_available
     from envs.crowd_nav import CrowdNavEnv
     from envs.forecasting.factory import PredictorUnavailableError
     from envs.rendering import save_gif
 
-    started = time.perf_counter()
-    spec, note = _demo_policy(args)
     if note:
         print(f"note: {note}", file=sys.stderr)
     crowd = "synthetic" if args.synthetic else "replay"
@@ -75,7 +89,7 @@ def _demo(args: argparse.Namespace) -> int:
         print(f"warning: {exc}\nwarning: falling back to constant-velocity ('cv') forecasts.", file=sys.stderr)
         kwargs["predictor"] = "cv"
         env = CrowdNavEnv(render_mode=render_mode, **kwargs)
-    policy = load_policy(spec, env.config)
+    policy = load_policy(spec, env.config, trust_pickle=args.trust_pickle)
     if hasattr(policy, "bind_envs"):  # the privileged ceiling reads the environment itself
         policy.bind_envs([env])
     check_spaces(policy, env)
@@ -102,13 +116,12 @@ def _demo(args: argparse.Namespace) -> int:
     if args.json:
         record = {"scene": info["recording"], "predictor": env.predictor_name, "policy": str(spec), **metrics}
         print(json.dumps(record, indent=2))
-    else:
+    else:  # the keys of the JSON (and of info["episode_metrics"]), each with its readable label
         from envs.rewards import METRIC_LABELS
 
-        labels = {key: METRIC_LABELS.get(key, key) for key in metrics}
-        width = max(len(v) for v in labels.values())
+        width = max(len(key) for key in metrics)
         for key, value in metrics.items():
-            print(f"  {labels[key]:<{width}}  {_fmt(value)}")
+            print(f"  {key:<{width}}  {_fmt(value):<10}  {METRIC_LABELS.get(key, '')}".rstrip())
     if not args.no_gif:
         path = save_gif(frames, args.out, fps=env.metadata["render_fps"])
         print(f"wrote {path} ({len(frames)} frames)")
@@ -132,8 +145,9 @@ def add_demo(sub: Any) -> None:
         "--policy",
         default=None,
         help="planner, search, straight, privileged (PRIVILEGED: reads the replay's true future), or a trained model "
-        "(.zip or run folder); default: the shipped PPO policy",
+        "(NAME.policy.yaml, a run folder, or an SB3 .zip with --trust-pickle); default: the shipped PPO policy",
     )
+    p.add_argument("--trust-pickle", action="store_true", help=TRUST_PICKLE_HELP)
     p.add_argument("--split", default="zara1", choices=SPLITS, help="its held-out scene is crossed (default: zara1)")
     p.add_argument(
         "--predictor",
@@ -151,18 +165,21 @@ def add_demo(sub: Any) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from agents.evaluate import export_policy
+    from agents.policy_file import weights_file_name
+    from agents.runs import export_policy
 
-    dest = export_policy(args.run, args.dest, args.model)
-    print(f"wrote {dest} and {dest.with_suffix('.yaml')} ({dest.stat().st_size / 1e6:.2f} MB)")
+    dest = export_policy(args.run, args.dest, args.model, trust_pickle=args.trust_pickle)
+    weights = dest.with_name(weights_file_name(dest))
+    print(f"wrote {dest} and {weights.name} ({weights.stat().st_size / 1e6:.2f} MB)")
     return 0
 
 
 def add_agent(sub: Any) -> None:
-    from agents.evaluate import RUN_MODELS, add_evaluate_arguments
-    from agents.evaluate import run_from_args as evaluate_from_args
-    from agents.train import add_train_arguments
-    from agents.train import run_from_args as train_from_args
+    from agents.evaluation.cli import add_evaluate_arguments
+    from agents.evaluation.cli import run_from_args as evaluate_from_args
+    from agents.runs import RUN_MODELS
+    from agents.training.cli import add_train_arguments
+    from agents.training.cli import run_from_args as train_from_args
 
     p = sub.add_parser("agent", help="train and evaluate navigation policies (PPO, SAC, planners)")
     asub = p.add_subparsers(dest="agent_cmd", required=True, metavar="ACTION")
@@ -182,12 +199,19 @@ def add_agent(sub: Any) -> None:
     e.set_defaults(func=evaluate_from_args)
     x = asub.add_parser(
         "export",
-        help="copy a run's model with its config, to evaluate or ship the file alone",
-        description="Copy RUN's best (or final) model to DEST.zip with its config as DEST.yaml.",
+        help="write a run's model as a policy file of the project's format (data only), to evaluate or ship it alone",
+        description=(
+            "Write RUN's best (or final) model as DEST (NAME.policy.yaml: architecture, spaces, normalisation "
+            "statistics and training config as plain YAML) and NAME.pt beside it (the weights, read with "
+            "torch.load(weights_only=True)); loading them unpickles nothing. A run folder of 'agent train' holds this "
+            "format already and it is copied; an SB3 .zip (an older run, a model file with its <stem>.yaml) is "
+            "converted, which unpickles it: only with --trust-pickle."
+        ),
     )
-    x.add_argument("run", help="a run folder of agents.train")
-    x.add_argument("dest", help="destination .zip (e.g. agents/pretrained/ppo_mesrnn_zara1.zip)")
+    x.add_argument("run", help="a run folder of agents.train, a policy file, or an SB3 .zip (with --trust-pickle)")
+    x.add_argument("dest", help="destination NAME.policy.yaml (e.g. agents/pretrained/ppo_mesrnn_zara1.policy.yaml)")
     x.add_argument("--model", default="best", choices=RUN_MODELS, help="best or final model (default: best)")
+    x.add_argument("--trust-pickle", action="store_true", help=TRUST_PICKLE_HELP)
     x.set_defaults(func=_export)
     from agents.curves import add_curves_arguments
     from agents.curves import run_from_args as curves_from_args

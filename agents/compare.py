@@ -4,7 +4,7 @@ the ablation's ``episodes.csv.gz``.
 ``python -m agents.compare EVAL_DIR [EVAL_DIR ...] [--against EVAL_DIR ...] [--grid results/ablation/planning_aid/episodes.csv.gz
 --cells ppo/mesrnn/0 planner/mesrnn ...] [--json]``
 
-Every evaluation of :mod:`agents.evaluate` on split ``S`` with episode list ``seed`` replays the same seeded
+Every evaluation of :mod:`agents.evaluation` on split ``S`` with episode list ``seed`` replays the same seeded
 episodes in the same order, so two evaluations (or an evaluation and a grid cell: ``POLICY/ARM[/TRAINING_SEED]``
 of the grid's ``episodes.csv.gz``, split and list from the evaluation's ``summary.json``) pair episode by episode
 on the episodes both hold. Each comparison prints both success rates with 95 % Wilson intervals, the difference

@@ -2,7 +2,7 @@
 
 ``python -m agents.curves RUN_DIR [RUN_DIR ...] --out curves.png [--csv curves.csv] [--title TEXT]``
 
-Every run of :mod:`agents.train` validates on the training scenes' validation episodes (``episode_time="val"``;
+Every run of :mod:`agents.training` validates on the training scenes' validation episodes (``episode_time="val"``;
 never the held-out scene) at step 0 (the warm start) and every ``eval.freq_steps`` PPO steps, and writes the
 history to ``evaluations.csv`` (step, episodes, success rate and its 95 % Wilson interval, collision and timeout
 rates, mean return). :func:`read_curve` reads one run's history with its arm, split and seed (from
@@ -23,7 +23,6 @@ from typing import Any, Final
 
 import yaml
 
-from agents.stats import wilson_interval
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_text
 
 #: Columns of :func:`curves_csv`.
@@ -67,7 +66,7 @@ def read_curve(run_dir: str | Path, label: str | None = None, episodes: int | No
     """The validation history of a run folder (``evaluations.csv`` and ``config.yaml``).
 
     Args:
-        run_dir: a folder of :mod:`agents.train`.
+        run_dir: a folder of :mod:`agents.training`.
         label: its name in plots (default: ``<predictor> s<seed>``).
         episodes: validation episodes per point, for histories without an ``episodes`` column (default: the
             config's ``eval.episodes``).
@@ -75,6 +74,8 @@ def read_curve(run_dir: str | Path, label: str | None = None, episodes: int | No
     Raises:
         FileNotFoundError: the folder has no ``evaluations.csv`` (validation off, or not started).
     """
+    from agents.stats import wilson_interval  # scipy: not with the command line's parser
+
     run = Path(run_dir)
     path = run / "evaluations.csv"
     if not path.is_file():

@@ -27,7 +27,8 @@ The policy uses only the observation: the forecast arms differ in what the ``for
 ``none`` arm the futures are extrapolated from the observed velocities, which every arm observes).
 
 The action geometry (headings, speed fractions, preferred speed, step, radii) must be the environment's and the
-action set's: :func:`action_geometry_kwargs` builds it, and :mod:`agents.train` fills it in for these policies.
+action set's: :func:`action_geometry_kwargs` builds it, and :mod:`agents.training.config` fills it in for these
+policies.
 """
 
 from __future__ import annotations

@@ -1,7 +1,12 @@
 """Statistics for evaluations and the ablation: intervals, paired tests, multiple-comparison correction.
 
 Distributions and resampling come from scipy; the only formulas written here are the Holm step-down
-rule and the sample-size relation of the McNemar power approximation (both stated where defined).
+rule, the sample-size relation of the McNemar power approximation and the linear map of a Clopper-Pearson
+interval onto a difference of paired rates (each stated where defined).
+
+Intervals agree with the tests beside them: the interval of a McNemar difference is the exact conditional one
+(:func:`mcnemar_difference_ci`, 0 outside it exactly when the test rejects), and a comparison's plain verdict
+(:func:`paired_verdict`) reads the multiplicity-adjusted p-value.
 
 Conventions: every interval is a ``(lo, hi)`` tuple of floats (``nan`` when there is nothing to
 estimate from); every test returns a JSON-serialisable dict; ``nan`` inputs (a metric that does not
@@ -20,11 +25,14 @@ import numpy as np
 from scipy import optimize, stats
 
 __all__ = [
+    "VERDICTS",
     "bootstrap_mean_ci",
     "holm",
+    "mcnemar_difference_ci",
     "mcnemar_exact",
     "mcnemar_min_detectable_difference",
     "paired_bootstrap_diff_ci",
+    "paired_verdict",
     "welch_seed_test",
     "wilcoxon_paired",
     "wilson_interval",
@@ -115,19 +123,55 @@ def paired_bootstrap_diff_ci(
     return bootstrap_mean_ci(x - y, confidence=confidence, n_resamples=n_resamples, seed=seed)
 
 
+def mcnemar_difference_ci(b10: int, b01: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    """The exact conditional interval of ``rate(a) - rate(b)`` that matches the exact McNemar test.
+
+    Given ``m = b10 + b01`` discordant pairs out of ``n``, ``b10 ~ Binomial(m, pi)`` and the difference is
+    ``(m / n) * (2 * pi - 1)``. The Clopper-Pearson interval ``[pi_lo, pi_hi]`` of ``pi``
+    (``scipy.stats.binomtest(...).proportion_ci(method="exact")``) maps to ``[(m / n)(2 pi_lo - 1),
+    (m / n)(2 pi_hi - 1)]``. Clopper-Pearson inverts the equal-tailed exact binomial test, which under
+    ``pi = 1/2`` (a symmetric distribution) is the two-sided test :func:`mcnemar_exact` reports, so the interval
+    excludes 0 exactly when ``p_value < 1 - confidence``. It is conditional on the discordant pairs observed, as
+    the test is: it does not count how the number of discordant pairs itself could vary. No discordant pair gives
+    ``(0.0, 0.0)``; ``n = 0`` gives ``(nan, nan)``.
+    """
+    _check_confidence(confidence)
+    b10, b01, n = int(b10), int(b01), int(n)
+    m = b10 + b01
+    if b10 < 0 or b01 < 0 or m > n:
+        raise ValueError(f"need 0 <= b10, b01 and b10 + b01 <= n, got b10={b10}, b01={b01}, n={n}")
+    if n == 0:
+        return NAN_CI
+    if m == 0:
+        return (0.0, 0.0)
+    ci = stats.binomtest(b10, m, 0.5).proportion_ci(confidence_level=confidence, method="exact")
+    scale = m / n
+    return (float(scale * (2.0 * ci.low - 1.0)), float(scale * (2.0 * ci.high - 1.0)))
+
+
 def mcnemar_exact(
     a_success: Sequence[bool] | np.ndarray,
     b_success: Sequence[bool] | np.ndarray,
     confidence: float = 0.95,
     seed: int = 0,
+    intervals: Sequence[str] = ("exact",),
 ) -> dict[str, Any]:
     """Exact McNemar test of paired successes: a two-sided binomial test on the discordant pairs.
 
     ``b10`` counts pairs where ``a`` succeeded and ``b`` did not, ``b01`` the reverse; under the null
     hypothesis of equal success rates ``b10 ~ Binomial(b10 + b01, 1/2)``. No discordant pair gives
-    ``p_value = 1``. ``difference`` is ``rate(a) - rate(b) = (b10 - b01) / n`` with a paired bootstrap
-    interval (``difference_ci``).
+    ``p_value = 1``. ``difference`` is ``rate(a) - rate(b) = (b10 - b01) / n``.
+
+    Args:
+        intervals: which intervals of the difference to report: ``"exact"`` gives ``difference_exact_ci``
+            (:func:`mcnemar_difference_ci`: excludes 0 exactly when ``p_value < 1 - confidence``);
+            ``"bootstrap"`` gives ``difference_ci``, a paired bootstrap interval (the only interval before
+            ``difference_exact_ci`` existed; it can exclude 0 beside a test that does not reject, so new reports
+            use the exact one, and summaries written with it keep it).
     """
+    unknown = set(intervals) - {"exact", "bootstrap"}
+    if unknown:
+        raise ValueError(f"unknown interval(s) {sorted(unknown)}; valid: exact, bootstrap")
     a = np.asarray(a_success).ravel()
     b = np.asarray(b_success).ravel()
     if a.shape != b.shape:
@@ -143,9 +187,11 @@ def mcnemar_exact(
         rate_a = rate_b = math.nan
     else:
         diff = (b10 - b01) / n
-        ci = paired_bootstrap_diff_ci(a.astype(float), b.astype(float), confidence=confidence, seed=seed)
+        ci = NAN_CI
+        if "bootstrap" in intervals:
+            ci = paired_bootstrap_diff_ci(a.astype(float), b.astype(float), confidence=confidence, seed=seed)
         rate_a, rate_b = float(a.mean()), float(b.mean())
-    return {
+    out: dict[str, Any] = {
         "test": "exact McNemar",
         "n": n,
         "b01": b01,
@@ -153,9 +199,28 @@ def mcnemar_exact(
         "rate_a": rate_a,
         "rate_b": rate_b,
         "difference": diff,
-        "difference_ci": [ci[0], ci[1]],
-        "p_value": min(p_value, 1.0),
     }
+    if "bootstrap" in intervals:
+        out["difference_ci"] = [ci[0], ci[1]]
+    if "exact" in intervals:
+        out["difference_exact_ci"] = list(mcnemar_difference_ci(b10, b01, n, confidence))
+    out["p_value"] = min(p_value, 1.0)
+    return out
+
+
+#: The plain verdicts of a paired comparison ``a`` against ``b`` (:func:`paired_verdict`).
+VERDICTS: tuple[str, ...] = ("better", "worse", "no difference shown")
+
+
+def paired_verdict(difference: float | None, p_adjusted: float | None, alpha: float = 0.05) -> str:
+    """``"better"`` (``a`` above ``b``) or ``"worse"`` when the multiplicity-adjusted p-value is at most ``alpha``,
+    by the sign of ``difference`` (``a - b``, higher is better); else ``"no difference shown"`` -- which is not a
+    finding of equality. ``"not tested"`` without a p-value."""
+    if p_adjusted is None or difference is None or not math.isfinite(p_adjusted):
+        return "not tested"
+    if p_adjusted <= alpha and difference != 0:
+        return VERDICTS[0] if difference > 0 else VERDICTS[1]
+    return VERDICTS[2]
 
 
 def wilcoxon_paired(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarray) -> dict[str, Any]:

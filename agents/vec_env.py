@@ -1,5 +1,5 @@
 """A vectorised environment for training: every environment in this process, stepped in lockstep, with the
-per-environment wrappers of :func:`agents.train.make_env` done once for the whole batch.
+per-environment wrappers of :func:`agents.training.run.make_env` done once for the whole batch.
 
 ``vec_env: dummy`` wraps each :class:`~envs.crowd_nav.CrowdNavEnv` in the discrete action wrapper, a success flag
 and SB3's ``Monitor``, then steps them with SB3's ``DummyVecEnv``, which also deep-copies every step's infos. For

@@ -21,8 +21,9 @@ def median_seconds(fn: Callable[[], object], repeats: int, clock: Callable[[], f
 
 
 def matmul_peak_gflops(dtype: Any, threads: int, repeats: int) -> float:
-    """The machine's matmul peak, GFLOP/s: best of ``repeats`` 1024 x 1024 torch matmuls of ``dtype`` on ``threads``
-    threads (a peak: on a shared machine the best run is the least disturbed)."""
+    """The machine's matmul peak, GFLOP/s: ``torch.mm`` of two 1024 x 1024 matrices of ``dtype`` on ``threads`` threads,
+    best of ``repeats`` timings (a peak: on a shared machine the best run is the least disturbed). Printed beside a
+    benchmark's figures so they can be read against the machine that produced them."""
     import torch
 
     torch.set_num_threads(threads)

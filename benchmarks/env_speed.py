@@ -2,7 +2,8 @@
 PPO.
 
 Run: ``python benchmarks/env_speed.py [--batched-steps 4000] [--steps 3000] [--repeats 3] [--split zara1]
-[--fresh-steps 1500] [--ppo-steps 0]``. Four parts, each printing medians of repeats:
+[--fresh-steps 1500] [--ppo-steps 0] [--reaction]``. Up to five parts, each printing medians of repeats and ratios
+against a reference measured the same way (the single environment, the ``none`` arm, or ``reaction="none"``):
 
 0. **Batched** (``--batched-steps``, 0 skips it): the batched environment (:class:`envs.vector.BatchedCrowdNavEnv`)
    at N = 1, 16 and 64 worlds against the single environment and ``SyncVectorEnv`` over N single environments, for
@@ -26,6 +27,16 @@ Run: ``python benchmarks/env_speed.py [--batched-steps 4000] [--steps 3000] [--r
    time of ``learn(N)``; ``cv`` as a control with MESRNN's observation (so the same policy network) and cheap
    forecasts: what ``mesrnn`` costs beyond ``cv`` is its forecasts, what ``cv`` costs beyond ``none`` is the
    larger observation.
+4. **Reaction models** (``--reaction``; ``--reaction-only`` skips the others): env steps/s of each ``reaction``
+   against ``reaction="none"`` in one process, for each arm of ``--reaction-arms`` (default ``cv oracle mesrnn``) on
+   the held-out scene of ``--reaction-split`` (default univ: the densest crowds), by the process's CPU time (median of
+   ``--repeats``), with cached forecasts for the unreacted (a learned arm runs only when its forecasts of the scene
+   are on disk: building them takes minutes, ``crowdnav-mesrnn forecasts build``). Two robots: a random policy (as
+   part 1) and a robot standing where it starts (people walk up to it: the most reacting). Each row also gives the
+   microseconds per step spent in the reaction model and in forecasts, and the frames forecast from observed
+   histories (those with a reacted pedestrian in their window: the learned arms' extra cost). The rows ``control
+   step`` step the model once per control step instead of every physics substep (the alternative the environment
+   does not use: see :mod:`envs.reactive`). The machine's single-thread fp32 matmul peak is printed beside.
 
 The forecast cache is the usual one (``$CROWDNAV_MESRNN_CACHE`` or ``~/.cache/crowdnav-mesrnn/forecasts``).
 Learned arms need the pretrained weights and are reported as missing otherwise. Never asserts on time.
@@ -57,7 +68,9 @@ from _timing import matmul_peak_gflops
 
 from envs.crowd_nav import TIMING_KEYS, CrowdNavEnv
 from envs.forecasting.build import build_forecast_cache
+from envs.forecasting.cache import num_chunks
 from envs.forecasting.factory import PredictorUnavailableError
+from envs.forecasting.window import PredictorForecast
 
 #: (label, predictor, cache, warm the cache first, forecast memory, share of --steps)
 ARMS: tuple[tuple[str, str, bool, bool, str, float], ...] = (
@@ -69,6 +82,16 @@ ARMS: tuple[tuple[str, str, bool, bool, str, float], ...] = (
     ("mesrnn (cached)", "mesrnn", True, True, "window", 1.0),
     ("mesrnn (online)", "mesrnn", False, False, "window", 0.1),
     ("mesrnn carried", "mesrnn", True, True, "carried", 1.0),
+)
+
+#: Rows of part 4: (label, reaction, stepping of the model; None: the environment's).
+REACTION_ROWS: tuple[tuple[str, str, str | None], ...] = (
+    ("none", "none", None),
+    ("pause", "pause", None),
+    ("orca", "orca", None),
+    ("social_force", "social_force", None),
+    ("orca, control step", "orca", "control"),
+    ("social_force, control step", "social_force", "control"),
 )
 
 FRESH = """
@@ -114,21 +137,32 @@ if __name__ == "__main__":
 """
 
 
-def run(env: CrowdNavEnv, steps: int, seed: int) -> tuple[float, dict[str, float]]:
-    """Steps per second over ``steps`` random steps, and mean seconds per step of each timed part."""
+def run(
+    env: CrowdNavEnv, steps: int, seed: int, clock: Any = time.perf_counter, standing: bool = False
+) -> tuple[float, dict[str, float], int, tuple[int, int]]:
+    """Steps per second of ``clock`` (wall time, or ``time.process_time``: this process's CPU time) over ``steps``
+    random steps (zero actions with ``standing``), resets included; the mean seconds per step of each timed part
+    (``other``: the rest of the step); the frames forecast meanwhile; and (episodes ended by a collision, episodes
+    ended)."""
     rng = np.random.default_rng(seed)
     actions = rng.uniform(-1.0, 1.0, size=(steps, 2)).astype(np.float32)
+    if standing:
+        actions[:] = 0.0
     env.reset(seed=seed)
     env.reset_timings()
-    start = time.perf_counter()
+    calls = getattr(env.forecaster, "calls", 0)
+    ended = collided = 0
+    start = clock()
     for a in actions:
-        _, _, terminated, truncated, _ = env.step(a)
+        _, _, terminated, truncated, info = env.step(a)
         if terminated or truncated:
+            ended += 1
+            collided += info["episode_metrics"]["outcome"] == "collision"
             env.reset()
-    elapsed = time.perf_counter() - start
+    elapsed = clock() - start
     parts = {k: v / steps for k, v in env.timings.items()}
     parts["other"] = elapsed / steps - sum(parts.values())
-    return steps / elapsed, parts
+    return steps / elapsed, parts, getattr(env.forecaster, "calls", 0) - calls, (collided, ended)
 
 
 def _rate(step: Any, steps: int) -> tuple[float, float]:
@@ -324,6 +358,74 @@ def ppo(args: argparse.Namespace) -> None:
         )
 
 
+def on_disk(env: CrowdNavEnv) -> bool:
+    """Every forecast chunk of the env's recordings is in the disk cache (True for sources without one)."""
+    source = env.forecaster
+    if not isinstance(source, PredictorForecast) or source.store is None:
+        return True
+    for rec in env.recordings:
+        key = source.table_key(rec)
+        if key is None:
+            return True
+        if any(source.store.load(key, c, rec, quiet=True) is None for c in range(num_chunks(rec))):
+            return False
+    return True
+
+
+def reactions(args: argparse.Namespace) -> None:
+    peak = matmul_peak_gflops(torch.float32, 1, 9) if torch is not None else float("nan")
+    print(
+        f"\n4. Reaction models: {args.reaction_split} held-out scene, {args.reaction_steps} steps x {args.repeats} "
+        f"repeats (median), steps per CPU second of this process; machine: fp32 matmul peak {peak:.0f} GFLOP/s on 1 "
+        "thread"
+    )
+    header = (
+        f"{'arm':<8}{'robot':<10}{'reaction':<28}{'steps/s':>9}{'x none':>8}{'reaction us':>13}{'forecasts us':>14}"
+        f"{'online frames':>15}{'collisions':>12}"
+    )
+    print(header, flush=True)
+    print("-" * len(header))
+    for arm in args.reaction_arms:
+        try:
+            probe = CrowdNavEnv(predictor=arm, split=args.reaction_split, part="test")
+        except PredictorUnavailableError as exc:
+            print(f"{arm:<8}skipped: {str(exc).split('. ')[0]}")
+            continue
+        if not on_disk(probe):
+            print(
+                f"{arm:<8}skipped: its forecasts of {', '.join(r.name for r in probe.recordings)} are not on disk "
+                f"(crowdnav-mesrnn forecasts build --predictor {arm} --split {args.reaction_split} --part test)"
+            )
+            continue
+        for standing in (False, True):
+            base = None
+            for label, reaction, stepping in REACTION_ROWS:
+                env = CrowdNavEnv(predictor=arm, split=args.reaction_split, part="test", reaction=reaction)
+                if stepping is not None:
+                    env._reactive.stepping = stepping  # a benchmark of the alternative: not a configuration key
+                env.precompute_forecasts()
+                runs = [
+                    run(env, args.reaction_steps, seed, time.process_time, standing) for seed in range(args.repeats)
+                ]
+                rate = statistics.median(r[0] for r in runs)
+                parts = {k: statistics.median(r[1][k] for r in runs) for k in ("reaction", "forecasts")}
+                online = statistics.median(r[2] for r in runs)
+                collided, ended = (sum(r[3][i] for r in runs) for i in (0, 1))
+                base = rate if base is None else base
+                print(
+                    f"{arm:<8}{'standing' if standing else 'random':<10}{label:<28}{rate:>9.0f}{base / rate:>8.2f}"
+                    f"{1e6 * parts['reaction']:>13.0f}{1e6 * parts['forecasts']:>14.0f}{online:>15.0f}"
+                    f"{f'{collided}/{ended}':>12}",
+                    flush=True,
+                )
+    print(
+        "x none: CPU time per step relative to reaction none (same arm and robot); reaction/forecasts us: wall "
+        "microseconds per step in the model and in forecasts; online frames: frames forecast from observed histories "
+        "per run (cv: per pedestrian, cheap; a learned arm: the whole scene, one predictor call each); collisions: "
+        "episodes ended by a collision / episodes ended, over the repeats"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=3000)
@@ -333,7 +435,15 @@ def main() -> None:
     parser.add_argument("--ppo-steps", type=int, default=0, help="PPO steps per arm (default 0: skip part 3)")
     parser.add_argument("--skip-in-process", action="store_true", help="skip part 1")
     parser.add_argument("--batched-steps", type=int, default=4000, help="world-steps per batched measurement (0: skip)")
+    parser.add_argument("--reaction", action="store_true", help="part 4: env steps/s per reaction model")
+    parser.add_argument("--reaction-only", action="store_true", help="only part 4")
+    parser.add_argument("--reaction-split", default="univ", help="its held-out scene is replayed in part 4")
+    parser.add_argument("--reaction-arms", nargs="+", default=["cv", "oracle", "mesrnn"], help="arms of part 4")
+    parser.add_argument("--reaction-steps", type=int, default=1500, help="steps per run of part 4")
     args = parser.parse_args()
+    if args.reaction_only:
+        reactions(args)
+        return
     if args.batched_steps:
         batched(args)
     if not args.skip_in_process:
@@ -342,6 +452,8 @@ def main() -> None:
         fresh_process(args)
     if args.ppo_steps:
         ppo(args)
+    if args.reaction:
+        reactions(args)
 
 
 if __name__ == "__main__":

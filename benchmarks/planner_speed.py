@@ -3,7 +3,7 @@
 Run: ``python benchmarks/planner_speed.py [--split univ] [--predictor oracle] [--episodes 20] [--repeats 3]
 [--n-envs 4]``. For each planner — straight-to-goal, the sampling planner (default and dense candidates), the
 search planner and the PRIVILEGED ceiling — the first ``--episodes`` episodes of
-:func:`agents.evaluate.evaluation_seeds` run as ``agents.evaluate`` runs them (``--n-envs`` environments in
+:func:`agents.rollout.evaluation_seeds` run as ``agents.evaluate`` runs them (``--n-envs`` environments in
 lockstep, one batched ``predict`` per step). Printed: the median over ``--repeats`` of episodes per second by
 the process's CPU time (robust to a shared machine) and by wall time, the ratio of CPU time per episode against
 the sampling planner measured the same way, the mean planning time per ``predict`` call, and the success rate of
@@ -17,8 +17,9 @@ import statistics
 import time
 from typing import Any
 
-from agents.evaluate import evaluation_env_kwargs, evaluation_seeds, run_episodes
+from agents.evaluation.run import evaluation_env_kwargs
 from agents.planners import make_planner
+from agents.rollout import evaluation_seeds, run_episodes
 from envs.crowd_nav import CrowdNavEnv
 
 #: (label, planner name, options)

@@ -3,7 +3,7 @@
 Run: ``python benchmarks/train_speed.py [--json] [--steps 8192] [--arms none cv mesrnn oracle]
 [--cells 8:batched 8:dummy 2:subproc] [--config configs/agent/ppo_scoring.yaml] [--split zara1] [--set key=value ...]``.
 
-Each cell builds the PPO of the config (``agents.train``: the same policy, vectorised environment kind and networks;
+Each cell builds the PPO of the config (``agents.training``: the same policy, vectorised environment kind and networks;
 validation, checkpoints and the warm start off) on the split's training scenes, with ``n_steps`` scaled so that
 every update sees the config's rollout size (``n_steps x n_envs``); fills the shared forecast cache first (its time
 is printed, not counted); runs one warm-up rollout; then times ``--steps`` steps of ``model.learn`` — rollouts and
@@ -32,16 +32,10 @@ from typing import Any
 
 import torch
 
-from agents.evaluate import parse_set
+from agents.entry import parse_set
 from agents.scoring import attach_geometry_cache
-from agents.train import (
-    _algo_class,
-    algorithm_kwargs,
-    load_train_config,
-    make_vec_env,
-    policy_class,
-    prepare_training_forecasts,
-)
+from agents.training.config import _algo_class, algorithm_kwargs, load_train_config, policy_class
+from agents.training.run import make_vec_env, prepare_training_forecasts
 
 torch.set_num_threads(1)
 

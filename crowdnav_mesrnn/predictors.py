@@ -3,12 +3,16 @@
 Every name the project accepts where a forecast source is chosen (``predictor=`` of the environment, an ablation
 arm, ``forecasts build --predictor``, ``bench``) is known here and nowhere else; other modules ask:
 
-- :func:`names` lists them (in the order shown to users: ``none``, ``cv``, ``mesrnn``, ``srnn``, ``vlstm``,
-  ``oracle``, ``noisy_oracle``, then the installed plug-ins);
+- :func:`names` lists them (in the order shown to users: ``none``, ``cv``, ``cv_gaussian``, ``mesrnn``, ``srnn``,
+  ``vlstm``, ``oracle``, ``noisy_oracle``, then the installed plug-ins);
 - :func:`kind` says what a name is (:data:`KINDS`): no forecast, the replay's true future (with or without
-  noise), a weightless shipped baseline, shipped weights per leave-one-out split, or a plug-in;
+  noise), a weightless shipped baseline, a shipped baseline with parameters fitted per leave-one-out split, shipped
+  weights per leave-one-out split, or a plug-in;
 - :func:`check` accepts a name or raises :class:`PluginError` listing the valid ones;
-- :func:`load` returns a ready predictor, ``factory(split=SPLIT)`` of a registered name or an import path.
+- :func:`load` returns a ready predictor, ``factory(split=SPLIT)`` of a registered name or an import path;
+- :func:`check_forecast` accepts a forecast (numbers, the promised shape, finite where read) or raises
+  :class:`ForecastError` naming the predictor, the recording and the frame: every forecast passes it where it enters
+  the environment, the disk cache and ``bench``.
 
 A name goes from here to its user and does not come back: the environment asks :func:`kind` which forecast source
 to build and :func:`load` for the predictor of each split.
@@ -36,10 +40,11 @@ Optional parts, looked up with ``getattr`` (a plug-in without them works):
   (:class:`DistributionPredictor`); ``forecast`` should return ``mean``.
 - ``online(num_slots)``: an incremental forecaster (``observe(positions (S, 2), present (S,))`` per annotation
   step, ``forecast() -> (S, pred_len, 2)``) for ``forecast_memory="carried"``.
-- ``cache_fingerprint() -> str``: a digest of whatever determines the forecasts (weights, parameters). The
-  forecast cache keys a registered plug-in's forecasts on its identity (:meth:`PredictorSpec.identity`: name,
-  import target, distribution name and version, and a hash of the factory's module source) plus this digest,
-  or the hash of a torch ``net`` and ``norm`` when the predictor has them.
+- ``cache_fingerprint() -> str``: a digest of whatever determines the forecasts that the plug-in's files do not
+  hold (weights downloaded to a user folder, a service's model version). The forecast cache keys a registered
+  plug-in's forecasts on its identity (:meth:`PredictorSpec.identity`: name, import target, distribution name and
+  version, and a digest of every file of the plug-in, :mod:`crowdnav_mesrnn.plugin_files`) plus this digest, or
+  the hash of a torch ``net`` and ``norm`` when the predictor has them.
 
 **Registration.** A package declares a factory under the entry-point group :data:`ENTRY_POINT_GROUP`::
 
@@ -51,7 +56,9 @@ called as ``factory(split=SPLIT)``: ``SPLIT`` is the leave-one-out split whose h
 (a learned plug-in returns weights trained without that scene; others ignore it), or None. The shipped models
 register the same way (``pyproject.toml``); :data:`SHIPPED` is used for them when the package runs from a source
 tree without installed metadata. The names in :data:`RESERVED` (``none``, ``oracle``, ``noisy_oracle``) are forecast
-sources of the environment, not predictors: they cannot be registered and :func:`load` refuses them.
+sources of the environment, not predictors: they cannot be registered and :func:`load` refuses them. An entry point
+that breaks these rules (a reserved or shipped name, a name two distributions register) is skipped with a
+:class:`PluginWarning` naming its distribution, and every other plug-in keeps working.
 """
 
 from __future__ import annotations
@@ -62,6 +69,7 @@ import importlib
 import importlib.metadata
 import importlib.util
 import json
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, Protocol, runtime_checkable
@@ -86,20 +94,24 @@ TRUTH: Final[str] = "truth"
 NOISY_TRUTH: Final[str] = "noisy_truth"
 #: Kind of ``cv``: a shipped predictor without weights, the same for every split (loaded with ``split=None``).
 BASELINE: Final[str] = "baseline"
+#: Kind of ``cv_gaussian``: a shipped baseline without a network whose few parameters are fitted per leave-one-out
+#: split (a small file per split); loaded per split like the pretrained, with a distribution.
+FITTED_BASELINE: Final[str] = "fitted_baseline"
 #: Kind of ``mesrnn``, ``srnn``, ``vlstm``: shipped weights per leave-one-out split.
 PRETRAINED: Final[str] = "pretrained"
 #: Kind of an installed plug-in or an import path ``package.module:Factory``: loaded per split like the pretrained.
 PLUGIN: Final[str] = "plugin"
 #: Every kind, in the order above.
-KINDS: Final[tuple[str, ...]] = (NO_FORECAST, TRUTH, NOISY_TRUTH, BASELINE, PRETRAINED, PLUGIN)
+KINDS: Final[tuple[str, ...]] = (NO_FORECAST, TRUTH, NOISY_TRUTH, BASELINE, FITTED_BASELINE, PRETRAINED, PLUGIN)
 #: Kinds loaded per leave-one-out split (a recording is forecast by the predictor of the split holding it out); their
 #: forecasts are what the shared disk cache keeps.
-SPLIT_KINDS: Final[tuple[str, ...]] = (PRETRAINED, PLUGIN)
+SPLIT_KINDS: Final[tuple[str, ...]] = (FITTED_BASELINE, PRETRAINED, PLUGIN)
 
 #: The project's own names in the order shown to users: name -> (kind, factory or None for the non-predictors).
 _BUILTIN: Final[dict[str, tuple[str, str | None]]] = {
     "none": (NO_FORECAST, None),
     "cv": (BASELINE, "crowdnav_mesrnn.predictors:constant_velocity"),
+    "cv_gaussian": (FITTED_BASELINE, "crowdnav_mesrnn.predictors:cv_gaussian"),
     "mesrnn": (PRETRAINED, "crowdnav_mesrnn.predictors:mesrnn"),
     "srnn": (PRETRAINED, "crowdnav_mesrnn.predictors:srnn"),
     "vlstm": (PRETRAINED, "crowdnav_mesrnn.predictors:vlstm"),
@@ -128,6 +140,80 @@ class PluginError(ConfigError):
     """A predictor name or import path that cannot be resolved or loaded, or a plug-in breaking the protocol."""
 
 
+class ForecastError(PluginError):
+    """A predictor returned forecasts that cannot be used: not numbers, of the wrong shape, or not finite where they
+    are read (:func:`check_forecast`)."""
+
+
+def check_forecast(
+    out: Any,
+    *,
+    name: str,
+    expected_shape: tuple[int, ...],
+    recording: str,
+    frame: int | str | np.ndarray,
+    time_s: float | np.ndarray | None = None,
+    rows: np.ndarray | None = None,
+) -> np.ndarray:
+    """``out`` as an array once it is what the protocol promises: numbers of ``expected_shape`` (``(N, pred_len, 2)``
+    for :meth:`forecast`), finite in every row that is read. The one check every forecast passes where it enters the
+    project: the environment's sources (window and carried), the disk cache (no chunk is written otherwise) and
+    ``bench``.
+
+    Args:
+        out: what the predictor returned.
+        name: the predictor as the user chose it (a plug-in's registered name, a shipped name, an object's ``name``).
+        expected_shape: the shape ``out`` must have.
+        recording: what was forecast (a recording's name).
+        frame: where in it: an annotation frame, a label (``"1230 (the window's first observed step)"``), or
+            ``(N,)`` the frame of each row of a batch over several frames (the first bad row's frame is named).
+        time_s: the time of ``frame`` in the recording, seconds (a scalar, or ``(N,)`` per row), if known.
+        rows: the rows that are read, a boolean mask ``(N,)`` or indices (default: all). Only they must be finite:
+            the protocol leaves the rows of pedestrians absent at the last observed step unread.
+
+    Raises:
+        ForecastError: naming the predictor, the recording, the frame (and time) and what was wrong.
+    """
+
+    def where(row: int | None) -> str:
+        at = frame if not isinstance(frame, np.ndarray) else frame[row if row is not None else 0]
+        t = time_s if not isinstance(time_s, np.ndarray) else time_s[row if row is not None else 0]
+        return f"recording {recording!r} at frame {at}" + (f" (t = {float(t):.2f} s)" if t is not None else "")
+
+    try:
+        arr = np.asarray(out)
+    except (TypeError, ValueError) as exc:  # ragged sequences and the like
+        raise ForecastError(
+            f"predictor {name!r} returned {type(out).__name__}, not an array, for {where(None)}: {exc}"
+        ) from exc
+    if arr.dtype.kind not in "fiu":
+        raise ForecastError(
+            f"predictor {name!r} returned an array of {arr.dtype} for {where(None)}, expected float metres"
+        )
+    if arr.shape != tuple(expected_shape):
+        raise ForecastError(
+            f"predictor {name!r} returned shape {arr.shape} for {where(None)}, expected {tuple(expected_shape)}"
+        )
+    if arr.dtype.kind == "f":
+        bad = ~np.isfinite(arr).all(axis=tuple(range(1, arr.ndim)))  # (N,): a row with any non-finite value
+        read = np.ones(len(bad), bool)
+        if rows is not None:
+            read[:] = False
+            read[rows] = True
+            bad &= read
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            values = arr[bad]
+            kinds = " and ".join(
+                k for k, hit in (("NaN", np.isnan(values).any()), ("inf", np.isinf(values).any())) if hit
+            )
+            raise ForecastError(
+                f"predictor {name!r} returned non-finite forecasts ({kinds}) for {where(first)}: {int(bad.sum())} of "
+                f"{int(read.sum())} pedestrians read (first: row {first}); forecasts must be finite positions in metres"
+            )
+    return arr
+
+
 # ---------------------------------------------------------------------------- shipped factories
 
 
@@ -136,6 +222,16 @@ def constant_velocity(split: str | None = None) -> Predictor:
     from crowdnav_mesrnn.models.base import ConstantVelocity
 
     return ConstantVelocity()
+
+
+def cv_gaussian(split: str | None = None) -> Predictor:
+    """Constant velocity with an isotropic Gaussian of scale ``a + b·h`` (:mod:`crowdnav_mesrnn.models.cv_gaussian`),
+    its parameters fitted on ``split``'s training windows (the shipped ``cv_gaussian_<split>.json``)."""
+    if split is None:
+        raise PluginError("predictor 'cv_gaussian' needs the split whose held-out scene it will forecast")
+    from crowdnav_mesrnn.models.cv_gaussian import load_cv_gaussian
+
+    return load_cv_gaussian(split)
 
 
 def _learned(model: str, split: str | None) -> Predictor:
@@ -198,9 +294,27 @@ class PredictorSpec:
         return obj
 
     def identity(self) -> str:
-        """SHA-256 of (name, target, distribution, version, the factory module's source): what the forecast cache
-        keys a plug-in on, besides its weights."""
+        """SHA-256 of what the forecast cache keys a plug-in on, besides its weights (or its own
+        ``cache_fingerprint()``): name, target, distribution name and version, and a digest of every file of the
+        plug-in (:func:`crowdnav_mesrnn.plugin_files.files_digest`: its installed distribution's ``RECORD``, or
+        every file of its package for an editable install or an import path), so that changing any of them — another
+        module, a parameter file — recomputes its forecasts.
+
+        A shipped predictor keeps the identity it always had (its factory module's source in place of the files
+        digest), so results keyed on it stay valid."""
         module = self.target.partition(":")[0]
+        if not self.shipped:
+            from crowdnav_mesrnn.plugin_files import files_digest
+
+            head = [
+                self.name,
+                self.target,
+                self.distribution,
+                self.version,
+                "files",
+                files_digest(module, self.distribution),
+            ]
+            return hashlib.sha256(json.dumps(head).encode()).hexdigest()
         source = ""
         try:
             found = importlib.util.find_spec(module)
@@ -219,44 +333,78 @@ def _entry_points() -> tuple[importlib.metadata.EntryPoint, ...]:
 
 
 def refresh() -> None:
-    """Forget the entry points read so far (call after installing a plug-in into a running interpreter)."""
+    """Forget the entry points read so far (call after installing a plug-in into a running interpreter), and which
+    :class:`PluginWarning` were given."""
     _entry_points.cache_clear()
+    _WARNED.clear()
+
+
+class PluginWarning(UserWarning):
+    """An installed entry point of :data:`ENTRY_POINT_GROUP` was skipped; the message names its distribution, its name
+    and why. The other plug-ins keep working."""
+
+
+#: The messages of :class:`PluginWarning` already given in this process (each is given once; :func:`refresh` forgets).
+_WARNED: set[str] = set()
+
+
+def _skip(message: str) -> None:
+    if message not in _WARNED:
+        _WARNED.add(message)
+        warnings.warn(message, PluginWarning, stacklevel=4)
+
+
+def _scan() -> tuple[dict[str, PredictorSpec], dict[str, tuple[PredictorSpec, ...]]]:
+    """``(usable specs by name, names registered by several targets -> their specs)`` from the installed entry points;
+    every entry point that cannot be used is skipped with a :class:`PluginWarning` naming its distribution."""
+    out: dict[str, PredictorSpec] = {}
+    twice: dict[str, tuple[PredictorSpec, ...]] = {}
+    for ep in _entry_points():
+        dist = getattr(ep, "dist", None)
+        spec = PredictorSpec(
+            ep.name, ep.value, getattr(dist, "name", None) if dist else None, getattr(dist, "version", None)
+        )
+        entry = f"the predictor plug-in {ep.name!r} = {ep.value!r} of the distribution {spec.distribution!r}"
+        if ep.name in RESERVED or ":" in ep.name:
+            why = "contains ':'" if ":" in ep.name else f"is reserved ({', '.join(RESERVED)} are not predictors)"
+            _skip(f"skipped {entry}: its name {why}; the other plug-ins work. Ask its authors to rename it.")
+            continue
+        if ep.name in SHIPPED and ep.value != SHIPPED[ep.name]:
+            _skip(
+                f"skipped {entry}: it would replace the shipped predictor {ep.name!r}, which keeps its place; the other "
+                "plug-ins work. Ask its authors to rename it."
+            )
+            continue
+        if ep.name in twice:
+            twice[ep.name] = (*twice[ep.name], spec)
+            continue
+        held = out.get(ep.name)
+        if held is not None and held.target != spec.target:
+            twice[ep.name] = (out.pop(ep.name), spec)
+            continue
+        out.setdefault(ep.name, spec)
+    for name, specs in twice.items():
+        _skip(f"skipped the predictor name {name!r}: {_registered_by(specs)}; the other plug-ins work")
+    for name, target in SHIPPED.items():
+        out.setdefault(name, PredictorSpec(name, target, "crowdnav-mesrnn", _own_version()))
+    return out, twice
+
+
+def _registered_by(specs: tuple[PredictorSpec, ...]) -> str:
+    both = " and ".join(f"{s.target!r} ({s.distribution})" for s in specs)
+    return f"it is registered by several plug-ins, {both}; uninstall all but one"
 
 
 def registered() -> dict[str, PredictorSpec]:
     """Every registered predictor by name: installed entry points, plus :data:`SHIPPED` when the project's own
     metadata is not installed.
 
-    Raises:
-        PluginError: two distributions register one name, a plug-in takes a shipped or reserved name, or a name
-            contains ``:``.
+    An entry point that cannot be used — a reserved name (:data:`RESERVED`) or one containing ``:``, a shipped name
+    for another factory, a name that several distributions register — is left out with a :class:`PluginWarning`
+    naming its distribution (once per process); every other plug-in stays usable. Asking for a name registered
+    twice is an error naming both (:func:`resolve`).
     """
-    out: dict[str, PredictorSpec] = {}
-    for ep in _entry_points():
-        dist = getattr(ep, "dist", None)
-        spec = PredictorSpec(
-            ep.name, ep.value, getattr(dist, "name", None) if dist else None, getattr(dist, "version", None)
-        )
-        if ep.name in RESERVED or ":" in ep.name:
-            raise PluginError(
-                f"entry point {ep.name!r} = {ep.value!r} ({spec.distribution}) in group {ENTRY_POINT_GROUP!r}: the name "
-                f"is reserved or contains ':'; reserved: {', '.join(RESERVED)}"
-            )
-        if ep.name in SHIPPED and ep.value != SHIPPED[ep.name]:
-            raise PluginError(
-                f"entry point {ep.name!r} = {ep.value!r} ({spec.distribution}) would replace the shipped predictor "
-                f"{ep.name!r}; choose another name"
-            )
-        held = out.get(ep.name)
-        if held is not None and held.target != spec.target:
-            raise PluginError(
-                f"predictor name {ep.name!r} is registered twice: {held.target!r} ({held.distribution}) and "
-                f"{spec.target!r} ({spec.distribution}); uninstall one"
-            )
-        out[ep.name] = spec
-    for name, target in SHIPPED.items():
-        out.setdefault(name, PredictorSpec(name, target, "crowdnav-mesrnn", _own_version()))
-    return out
+    return _scan()[0]
 
 
 def _own_version() -> str:
@@ -280,13 +428,16 @@ def resolve(name: str) -> PredictorSpec:
     """The spec of a registered name or an import path.
 
     Raises:
-        PluginError: unknown name (listing the registered ones and the import-path form).
+        PluginError: unknown name (listing the registered ones and the import-path form), or a name several
+            distributions register (naming them).
     """
     if not isinstance(name, str):
         raise PluginError(f"a predictor name must be a string, got {name!r}")
-    specs = registered()
+    specs, twice = _scan()
     if name in specs:
         return specs[name]
+    if name in twice:
+        raise PluginError(f"predictor name {name!r} is ambiguous: {_registered_by(twice[name])}")
     if is_import_path(name):
         return PredictorSpec(name, name)
     raise PluginError(
@@ -306,11 +457,11 @@ def is_known(name: str) -> bool:
 
 def names(*kinds: str, plugins: bool = True) -> tuple[str, ...]:
     """Every forecast source name of the given kinds (all kinds when none is given), in the order shown to users:
-    the project's own names (``none``, ``cv``, ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, ``noisy_oracle``), then
-    the installed plug-ins sorted (with ``plugins=True`` and when :data:`PLUGIN` is asked for).
+    the project's own names (``none``, ``cv``, ``cv_gaussian``, ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``,
+    ``noisy_oracle``), then the installed plug-ins sorted (with ``plugins=True`` and when :data:`PLUGIN` is asked for).
 
     Raises:
-        PluginError: an unknown kind; or (reading the plug-ins) a bad registration, see :func:`registered`.
+        PluginError: an unknown kind.
     """
     for k in kinds:
         if k not in KINDS:
@@ -363,6 +514,16 @@ def per_split(name: Any) -> bool:
 
 
 _IDENTITIES: dict[int, tuple[Any, str]] = {}
+_CHOSEN: dict[int, tuple[Any, str]] = {}
+
+
+def label_of(model: Any) -> str:
+    """How messages name a predictor: the name :func:`load` was given for it, followed by the object's own ``name``
+    in brackets when that differs (``"nanny (broken-nan)"``); an object not loaded by name goes by its ``name``."""
+    own = str(getattr(model, "name", "") or type(model).__name__)
+    held = _CHOSEN.get(id(model))
+    chosen = held[1] if held is not None and held[0] is model else own
+    return chosen if chosen == own else f"{chosen} ({own})"
 
 
 def check_protocol(model: Any, label: str) -> None:
@@ -396,6 +557,7 @@ def load(name: str, split: str | None = None) -> Predictor:
             f"leave-one-out split whose held-out scene it will forecast; ignore it if the model has none): {exc}"
         ) from exc
     check_protocol(model, name)
+    _CHOSEN[id(model)] = (model, name)
     if not spec.shipped:
         _IDENTITIES[id(model)] = (model, spec.identity())
         if not getattr(model, "name", None):

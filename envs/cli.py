@@ -17,11 +17,19 @@ from envs.config import FORECAST_MEMORIES
 
 
 def _build(args: argparse.Namespace) -> int:
-    import torch
+    import sys
 
-    from envs.forecasting.build import build_forecast_cache
+    from envs.forecasting.build import build_forecast_cache, check_cacheable
+    from envs.forecasting.threads import FORECAST_THREADS
 
-    torch.set_num_threads(args.threads)
+    check_cacheable(args.predictor)  # a name without a cache is refused before torch is imported
+
+    if args.threads is not None and args.threads != FORECAST_THREADS:
+        print(
+            f"forecasts build: --threads {args.threads} is ignored: forecasts are computed on {FORECAST_THREADS} torch "
+            "thread(s), the bits every environment computes (more threads change the last bits)",
+            file=sys.stderr,
+        )
     summary = build_forecast_cache(
         args.predictor,
         args.split,
@@ -86,7 +94,9 @@ def add_forecasts(sub: Any) -> None:
     b.add_argument("--memory", default="window", choices=FORECAST_MEMORIES, help="forecast memory (default: window)")
     b.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     b.add_argument("--cache-dir", default=None, help="cache folder (default: $CROWDNAV_MESRNN_CACHE, ...)")
-    b.add_argument("--threads", type=int, default=1, help="torch threads (default: 1)")
+    b.add_argument(
+        "--threads", type=int, default=None, help="ignored: forecasts are computed on one torch thread (bit-exact)"
+    )
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     b.add_argument("--json", action="store_true", help="print the summary as JSON")
     b.set_defaults(func=_build)

@@ -14,15 +14,16 @@ import math
 import os
 import warnings
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Final
 
 import numpy as np
 
 from crowdnav_mesrnn import predictors
-from crowdnav_mesrnn.config import ConfigError, load_yaml, replace_checked
+from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import RECORDINGS, SPLIT_TEST_RECORDINGS, SPLITS
 from crowdnav_mesrnn.data.paths import DataNotFoundError, find_data_dir
+from envs.reaction.params import ReactionParams, check_model
 
 #: Crowd sources accepted by ``crowd=`` (or a :class:`~crowdnav_mesrnn.data.Recording` object).
 CROWDS: Final[tuple[str, ...]] = ("auto", "replay", "synthetic", "empty")
@@ -58,6 +59,19 @@ class CrowdNavConfig:
     predictor: str = "mesrnn"
     """Forecast source: ``none``, ``cv``, ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, ``noisy_oracle``, an installed
     predictor plug-in's name or an import path ``package.module:Factory`` (or pass a predictor object)."""
+
+    # ----------------------------------------------------------------- pedestrians' reaction to the robot
+    reaction: str = "none"
+    """How pedestrians react to the robot (:data:`envs.reaction.REACTION_MODELS`): ``none`` (the recording, exactly:
+    nobody sees the robot), ``pause`` (wait before contact, then resume the recording time-shifted by the wait),
+    ``orca`` or ``social_force`` (replay-then-model: follow the recording until the robot comes within
+    ``reaction_params["trigger_distance_m"]``, react through the model, rejoin the recording). A model of reaction,
+    not measured people; the ``oracle`` forecast stays the recording, what a person would have done without the
+    robot. See ``docs/reaction.md``."""
+    reaction_params: dict[str, Any] = field(default_factory=lambda: ReactionParams().to_dict())
+    """Constants of the reaction models (:class:`envs.reaction.ReactionParams`, each with its unit and the source of
+    its default): a mapping of overrides, e.g. ``{"trigger_distance_m": 2.0}``, merged onto the defaults (the
+    config holds them all, resolved). ``none`` uses none of them."""
 
     # ----------------------------------------------------------------- robot and physics
     kinematics: str = "holonomic"
@@ -184,6 +198,15 @@ class CrowdNavConfig:
     render_trail_steps: int = 8
     """Length of the pedestrians' trails, control steps."""
 
+    def __post_init__(self) -> None:
+        # the reaction constants, resolved onto their defaults (a ConfigError names a bad key or value)
+        object.__setattr__(self, "reaction_params", ReactionParams.from_mapping(self.reaction_params).to_dict())
+
+    @property
+    def reaction_parameters(self) -> ReactionParams:
+        """:attr:`reaction_params` as a :class:`~envs.reaction.ReactionParams`."""
+        return ReactionParams(**self.reaction_params)
+
     @property
     def substeps(self) -> int:
         """Physics substeps per control step."""
@@ -197,8 +220,8 @@ class CrowdNavConfig:
         """Check the type, finiteness and range of every value (:func:`check_value`) and how values go together;
         raise :class:`ConfigError` naming the key, the value and what is allowed (valid values are listed for
         choices). Returns self."""
-        for field in dataclasses.fields(self):
-            check_value(field.name, getattr(self, field.name))
+        for spec in dataclasses.fields(self):
+            check_value(spec.name, getattr(self, spec.name))
         resolve_scenes(self.scenes, episode_recordings(self.split, self.part), self.split, self.part)
         if self.start_goal_distance_m[0] <= self.goal_tolerance_m:
             raise ConfigError(
@@ -233,6 +256,10 @@ def check_value(key: str, value: Any) -> None:
     how keys go together is checked by :meth:`CrowdNavConfig.validate`)."""
     if key == "predictor":
         predictors.check(value)
+    elif key == "reaction":
+        check_model(value)
+    elif key == "reaction_params":
+        ReactionParams.from_mapping(value)
     elif key in _CHOICES:
         _one_of(key, value, _CHOICES[key])
     elif key == "scenes":
@@ -414,6 +441,8 @@ def config_from(
 ) -> CrowdNavConfig:
     """Defaults, then ``config`` (a mapping or a YAML file), then keyword ``overrides``; validated."""
     base = config_mapping(config)
+    # an unknown keyword is a TypeError too, worded as Python's (crowdnav_mesrnn.config.UnknownKeyError)
+    check_keys(overrides, [f.name for f in dataclasses.fields(CrowdNavConfig)], "env config", keywords=True)
     # a value of ``config`` a keyword overrides (the id's predictor, say) is still checked: nonsense is refused,
     # never silently dropped
     for key in set(base) & set(overrides):

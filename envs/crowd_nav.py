@@ -32,27 +32,53 @@ from envs.config import (
 )
 from envs.episodes import Episode, EpisodeSampler, episode_time_window
 from envs.forecasting.factory import make_forecast_source
+from envs.forecasting.observed import needs_observed, observed_forecasts
 from envs.forecasting.sources import ForecastModel, ForecastSource, TrueFuture, fill_forward
 from envs.forecasting.uncertainty import UncertaintySource, make_uncertainty_source
 from envs.forecasting.window import PredictorForecast
 from envs.observation import ObservationBuilder, nearest_visible, observation_space
 from envs.popin import POPIN_MARGIN_M, PopInRule
+from envs.reactive import ReactionSnapshot, ReactiveWorld
 from envs.recordings import empty_recording, overlay_recording, synthetic_recording
 from envs.rendering import HUMAN_NEEDS_PYGAME
 from envs.replay import Replay
-from envs.rewards import EpisodeMetrics, reward_components, total_reward
+from envs.rewards import EpisodeMetrics, min_time_to_collision, reward_components, total_reward
 from envs.timing import PhaseTimer, timed
-from envs.world import World
+from envs.world import World, robot_path
 
 #: Default of ``CrowdNavEnv(predictor=...)``: the config's ``predictor`` (an explicit None is an error).
 _CONFIGURED: Final[Any] = object()
 #: Keys accepted in ``reset(options=...)``.
 RESET_OPTIONS: Final[tuple[str, ...]] = ("recording", "t0_s", "start", "goal", "time_limit_s")
-TIMING_KEYS: Final[tuple[str, ...]] = ("replay", "physics", "forecasts", "observation", "reward", "reset")
+TIMING_KEYS: Final[tuple[str, ...]] = ("replay", "physics", "reaction", "forecasts", "observation", "reward", "reset")
 #: Revision of the environment's rules (episodes, physics, perception), in every reset ``info`` and evaluation
 #: summary, so a result says which rules it ran under; bumped whenever the same seed can give another episode
-#: (see the class docstring's Version History).
+#: (see the class docstring's Version History). With ``reaction="none"`` (the default) episodes are those of
+#: revision 1 bit for bit; the reaction model and its parameters are the rest of the identity (:func:`env_rules`).
 ENV_REVISION: Final[int] = 1
+#: The disturbance metrics (``info["episode_metrics"]``) of an episode in which nobody reacts.
+UNDISTURBED: Final[dict[str, Any]] = {
+    "ped_disturbed": 0,
+    "ped_deviation_mean_m": 0.0,
+    "ped_deviation_max_m": 0.0,
+    "ped_delay_s": 0.0,
+}
+
+
+def env_rules(config: CrowdNavConfig | Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The identity of the rules an environment runs under, for every result's spec: ``{"env_revision":
+    ENV_REVISION}`` under ``reaction="none"`` (so results of revision 1 stay valid as they are), plus ``reaction``
+    and ``reaction_params`` (every constant, :meth:`envs.reaction.ReactionParams.to_dict`) under a reaction model.
+
+    Args:
+        config: the environment's configuration (a :class:`~envs.config.CrowdNavConfig`, or a mapping of settings
+            merged onto the defaults); None: the defaults.
+    """
+    cfg = config if isinstance(config, CrowdNavConfig) else config_from(config or {}, {})
+    rules: dict[str, Any] = {"env_revision": ENV_REVISION}
+    if cfg.reaction != "none":
+        rules.update(reaction=cfg.reaction, reaction_params=dict(cfg.reaction_params))
+    return rules
 
 
 @dataclass(frozen=True)
@@ -77,6 +103,13 @@ class _Sensed:
     gap_m: float
     intruding: bool
     visible: int
+    ttc_s: float = math.inf  # smallest constant-velocity time to collision at the step's end (envs.rewards)
+
+
+def _grid_time(k0: int | None, t0_s: float, dt_s: float, n: int) -> float:
+    """Time of step ``n`` of an episode starting at ``t0_s``: ``(k0 + n) * dt_s`` when ``t0_s`` is on the ``dt_s`` grid
+    at index ``k0``, else ``t0_s + n * dt_s``."""
+    return (k0 + n) * dt_s if k0 is not None else t0_s + n * dt_s
 
 
 def reset_options(options: Any, goal_tolerance_m: float) -> dict[str, Any]:
@@ -121,8 +154,10 @@ def reset_options(options: Any, goal_tolerance_m: float) -> dict[str, Any]:
     return opts
 
 
-def reset_info(ep: Episode, crowd: str, predictor: str) -> dict[str, Any]:
-    """The reset ``info`` of an episode (see :class:`CrowdNavEnv`'s Starting State)."""
+def reset_info(
+    ep: Episode, crowd: str, predictor: str, reaction: str, reaction_params: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The reset ``info`` of an episode (see :class:`CrowdNavEnv`'s Starting State); ``reaction_params`` is copied."""
     return {
         "recording": ep.recording.name,
         "crowd": crowd,
@@ -134,6 +169,8 @@ def reset_info(ep: Episode, crowd: str, predictor: str) -> dict[str, Any]:
         "crowd_density": ep.crowd_density,
         "pedestrians_near_path": ep.pedestrians_near_path,
         "env_revision": ENV_REVISION,
+        "reaction": reaction,
+        "reaction_params": dict(reaction_params),
     }
 
 
@@ -147,9 +184,12 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     (``biwi_eth``, ``biwi_hotel``, ``students001``/``students003``, ``crowds_zara01``,
     ``crowds_zara02``) in continuous time: pedestrian positions are interpolated linearly between
     annotations, which are 0.4 s apart (0.667 s for ``biwi_eth``), and equal the file at every
-    annotation time. Pedestrians appear and leave as in the data and ignore the robot. The robot, a
-    disk of radius 0.3 m, must reach a goal 6-12 m away whose straight path crosses where people
-    walk. ``split``/``part`` choose the recordings: ``part="test"`` replays the split's held-out
+    annotation time. Pedestrians appear and leave as in the data and, by default (``reaction="none"``), ignore the
+    robot. ``reaction="pause"``, ``"orca"`` or ``"social_force"`` lets them react (:mod:`envs.reactive`,
+    ``docs/reaction.md``): each follows its recording bit for bit until the robot comes near, is then moved by a
+    model of reaction (not measured people) and rejoins its recording; the reset ``info`` names the ``reaction`` and
+    its ``reaction_params``. The robot, a disk of radius 0.3 m, must reach a goal 6-12 m away whose straight path
+    crosses where people walk. ``split``/``part`` choose the recordings: ``part="test"`` replays the split's held-out
     scene, ``part="train"`` the four others. Naming a scene (``split``, ``part`` or ``scenes``) without the
     ETH/UCY data on disk is a ``DataNotFoundError`` naming where the project looked. ``crowd="synthetic"``
     replays a social-force crowd generated by the project; so does a bare ``gymnasium.make(id)`` (no scene
@@ -199,7 +239,11 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     less than one annotation step old), and forecasts come from that same annotation, resampled onto
     t + h dt. Nothing annotated after t enters the observation (on ``biwi_eth``, whose 0.667 s
     annotations fall between control steps, positions are up to 0.53 s old). The world (physics,
-    contacts, gaps, intrusion, the oracle's truth) interpolates between annotations.
+    contacts, gaps, intrusion, the oracle's truth) interpolates between annotations. With a reaction model the
+    robot perceives where the pedestrians actually were at the annotation times, and forecasts come from those
+    observed histories (the per-recording cache where they are the recorded ones). ``oracle`` and
+    ``noisy_oracle`` always give the recorded future, what each person would have done without the robot: a
+    counterfactual, not the truth, once people react (``pause``: the person's own time-shifted recording).
 
     **Pedestrians do not appear on the robot** (:mod:`envs.popin`). A track that begins (or resumes after a
     gap) with its centre closer than the sum of radii plus ``POPIN_MARGIN_M`` (0.1 m) to the robot's is a
@@ -216,7 +260,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     ``discomfort`` (``(gap - 0.25) * 10 * dt`` when the smallest gap to a pedestrian during the step
     is under 0.25 m), ``progress`` (``gamma * phi(s') - phi(s)``, ``phi = -distance to goal``,
     gamma = ``progress_gamma``), ``intrusion`` (``intrusion_penalty``, default 0, when the robot
-    stands on a pedestrian's true future path within the horizon — from the replay, never from the
+    stands on a pedestrian's true future path within the horizon — the recorded one, never from the
     arm's forecasts) and ``time`` (``time_penalty`` at every step, default 0). All values are
     configurable.
 
@@ -232,7 +276,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     of the straight start-goal segment. All randomness comes from ``reset(seed=...)``;
     ``reset(options=...)`` may fix ``recording``, ``t0_s``, ``start``, ``goal`` and ``time_limit_s``.
     The reset ``info`` holds ``recording``, ``crowd``, ``predictor``, ``t0_s``, ``start``, ``goal``,
-    ``time_limit_s``, ``env_revision`` (:data:`ENV_REVISION`, the revision of the rules), ``crowd_density``
+    ``time_limit_s``, ``env_revision`` (:data:`ENV_REVISION`, the revision of the rules), ``reaction`` and
+    ``reaction_params`` (the rest of the rules' identity, :func:`env_rules`), ``crowd_density``
     (mean number of pedestrians within ``sensor_range_m`` of the start-goal segment at the annotation times of
     the episode, frames the file skips counting as empty) and ``pedestrians_near_path``.
 
@@ -244,8 +289,10 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     ``terminate_on_collision=False`` the episode continues and every step in contact is penalised.
     Truncated at the time limit, ``time_limit_factor`` (3) x straight-line distance / preferred
     speed. The last step's ``info["episode_metrics"]`` holds the episode metrics (see
-    :meth:`envs.rewards.EpisodeMetrics.summary`); ``info["episode"]`` is left to Gymnasium's
-    ``RecordEpisodeStatistics`` and SB3's ``Monitor``. Stepping after the end without ``reset`` raises
+    :meth:`envs.rewards.EpisodeMetrics.summary`) and what the robot did to people
+    (:class:`envs.reaction.DisturbanceMetrics`: ``ped_disturbed``, ``ped_deviation_mean_m``,
+    ``ped_deviation_max_m``, ``ped_delay_s``; all 0 under ``reaction="none"``); ``info["episode"]`` is left to
+    Gymnasium's ``RecordEpisodeStatistics`` and SB3's ``Monitor``. Stepping after the end without ``reset`` raises
     ``RuntimeError``.
 
     ## Arguments
@@ -257,6 +304,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     | argument | default | meaning |
     |---|---|---|
     | ``predictor`` | per id | ``none``, ``cv``, ``mesrnn``, ``srnn``, ``vlstm``, ``oracle``, ``noisy_oracle``, or an object with ``forecast(history, mask)`` |
+    | ``reaction`` | ``"none"`` | how pedestrians react to the robot: ``none``, ``pause``, ``orca``, ``social_force`` |
+    | ``reaction_params`` | defaults | overrides of :class:`envs.reaction.ReactionParams` (trigger distance, bounds, model constants) |
     | ``crowd`` | ``"auto"`` | ``auto``, ``replay``, ``synthetic``, ``empty``, or a :class:`~crowdnav_mesrnn.data.Recording` |
     | ``split`` | ``"zara1"`` | leave-one-out split choosing the recordings |
     | ``part`` | ``"train"`` | ``train`` (four other scenes) or ``test`` (held-out scene) |
@@ -274,6 +323,10 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     * v0, ``env_revision`` 1: the pop-in rule (a pedestrian whose track begins on the robot is a contact-less,
       unperceived ghost until clear of it; ``popin_events`` in the episode metrics). Episodes in which a track
       begins within 0.7 m of the robot's centre change; every other episode is unchanged.
+    * v0, ``env_revision`` 1 (unchanged): ``reaction`` and ``reaction_params``; the reset ``info`` names them and the
+      episode metrics add the disturbance metrics (0 without a reaction). ``reaction="none"``, the default, gives the
+      episodes of revision 1 bit for bit (observations, rewards and every earlier info key; tested), so results of
+      revision 1 stay valid for it; a reaction model is named beside the revision (:func:`env_rules`).
     """
 
     metadata: dict[str, Any] = {"render_modes": ["human", "rgb_array"], "render_fps": 2.5}  # noqa: RUF012
@@ -328,6 +381,18 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self.uncertainty: UncertaintySource | None = None
         if cfg.forecast_uncertainty and self.with_forecasts:  # the none arm has no forecasts to be uncertain about
             self.uncertainty = make_uncertainty_source(cfg, self.forecaster, predictor_obj)
+        self.reaction: str = cfg.reaction
+        self._reactive: ReactiveWorld | None = None
+        if cfg.reaction != "none":  # under none no crowd object exists: the replay is the world
+            if self.forecaster.memory == "carried":
+                raise ConfigError(
+                    f"reaction {cfg.reaction!r} needs forecast_memory 'window': carried forecasts keep hidden states "
+                    "from each pedestrian's first appearance in the recording, which reacting pedestrians change; only "
+                    "window forecasts can be taken from the cache where the observed histories are the recorded ones"
+                )
+            self._reactive = ReactiveWorld(
+                cfg.reaction, cfg.reaction_parameters, cfg.robot_radius_m, cfg.pedestrian_radius_m
+            )
         self.sampler = EpisodeSampler(
             self.recordings,
             dt_s=cfg.dt_s,
@@ -429,6 +494,46 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             raise RuntimeError("call reset() first")
         return self._replay
 
+    def _tracked(self) -> Replay:
+        """What the robot's tracker reads: the replay, or with a reaction model the record of where the pedestrians
+        actually were at the annotation times (:class:`envs.reactive.ObservedReplay`)."""
+        assert self._replay is not None
+        if self._reactive is not None and self._reactive.observed is not None:
+            return self._reactive.observed
+        return self._replay
+
+    @property
+    def pedestrians(self) -> tuple[np.ndarray, np.ndarray]:
+        """The world's pedestrians now: ``(N, 2)`` positions, metres, and ``(N,)`` presence (pop-in ghosts absent),
+        rows of :attr:`replay`. With a reaction model, where they actually are; otherwise the recording."""
+        if self._replay is None:
+            raise RuntimeError("call reset() first")
+        return self._last["positions"].copy(), self._last["present"].copy()
+
+    def reaction_snapshot(self) -> ReactionSnapshot:
+        """The reacting crowd now, to roll the reaction model forward for candidate robot paths
+        (:meth:`envs.reactive.ReactionSnapshot.simulate`) without touching the episode: a privileged planner's hook
+        (it reads the model and every recorded future; nothing of it enters an observation).
+
+        Raises:
+            RuntimeError: before ``reset``, or under ``reaction="none"`` (the pedestrians are the recording: their
+                future is :attr:`replay`'s).
+        """
+        if self._reactive is None:
+            raise RuntimeError(
+                "reaction='none': the pedestrians are the recording; their future is env.replay.positions_at(times)"
+            )
+        if self._replay is None or self.episode is None:
+            raise RuntimeError("call reset() first")
+        k0, t0_s, dt_s, n, offsets = self._k0, self.episode.t0_s, self.config.dt_s, self._n, self._sub_offsets.copy()
+
+        def substep_times(m: int) -> np.ndarray:
+            return np.append(_grid_time(k0, t0_s, dt_s, n + m) + offsets, _grid_time(k0, t0_s, dt_s, n + m + 1))
+
+        return ReactionSnapshot(
+            self._reactive, self._popin, self._replay, substep_times, self.world.robot_position, self._substep_s
+        )
+
     @property
     def time_s(self) -> float:
         """Current time, seconds since the recording's first frame."""
@@ -438,9 +543,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """Time of step ``n``: ``(k0 + n) * dt_s`` when t0 is on the dt grid (one float per grid time, so
         forecast caches are exact across episodes), else ``t0 + n * dt_s``."""
         assert self.episode is not None
-        if self._k0 is not None:
-            return (self._k0 + n) * self.config.dt_s
-        return self.episode.t0_s + n * self.config.dt_s
+        return _grid_time(self._k0, self.episode.t0_s, self.config.dt_s, n)
 
     @property
     def robot_position(self) -> np.ndarray:
@@ -508,7 +611,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         pos, present = self._world_positions(self._time(0) + self._obs_offsets)
         present[0] &= ~self._popin.ghost
         obs, _ = self._observe(self._time(0), pos, present, ep.start)
-        info = reset_info(ep, self.crowd_kind, self.predictor_name)
+        info = reset_info(ep, self.crowd_kind, self.predictor_name, self.reaction, self.config.reaction_params)
         if self.render_mode == "human":
             self.render()
         return obs, info
@@ -528,7 +631,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._heading = math.atan2(ep.goal[1] - ep.start[1], ep.goal[0] - ep.start[0])
         self._velocity = np.zeros(2)
         self._forecast_log: list[tuple[float, np.ndarray, np.ndarray]] = []
-        self._metrics = EpisodeMetrics.of_episode(ep, cfg.dt_s, cfg.discomfort_dist_m)
+        self._metrics = EpisodeMetrics.of_episode(ep, cfg.dt_s, cfg.discomfort_dist_m, cfg.goal_tolerance_m)
         self._done = False
         self._started = True
         self._collided_last = False
@@ -537,6 +640,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._trails: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=cfg.render_trail_steps)
         k0 = round(ep.t0_s / cfg.dt_s)
         self._k0: int | None = k0 if abs(ep.t0_s - k0 * cfg.dt_s) < 1e-9 else None
+        if self._reactive is not None:
+            self._reactive.reset(self._replay, self._time(0))
         return ep
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
@@ -586,8 +691,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 
     @timed("physics")
     def _physics(self, velocities: list[tuple[float, float]]) -> _Moved:
-        """Move the robot through the replayed crowd for one control step (pymunk substeps), with contacts and the
-        smallest gap during the step; the replay at the substep boundaries and over the horizon after it."""
+        """Move the robot through the crowd for one control step (pymunk substeps), with contacts and the smallest gap
+        during the step; the pedestrians at the substep boundaries (replayed, or moved by the reaction model) and
+        what each would do without the robot over the horizon after it (the recording)."""
         s = self._substeps
         # the substep ends of the step (as substep_times), then its end + h * dt_s
         pos_times = np.concatenate(
@@ -597,10 +703,19 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         robot0 = self.world.robot_position
         sub_pos = pos[: s + 1]
         # the pop-in rule: ghosts at the substep ends take no part in the step (no body, no contact, no gap)
-        ghost = self._popin.step(
-            self._replay, pos_times[: s + 1], sub_pos, present[: s + 1], lambda: self._robot_path(robot0, velocities)
-        )
-        sub_present = present[: s + 1] if ghost is None else present[: s + 1] & ~ghost
+        if self._reactive is None:
+            ghost = self._popin.step(
+                self._replay,
+                pos_times[: s + 1],
+                sub_pos,
+                present[: s + 1],
+                lambda: self._robot_path(robot0, velocities),
+            )
+            sub_present = present[: s + 1] if ghost is None else present[: s + 1] & ~ghost
+        else:
+            pos, present = self._react(pos_times, pos, present, self._robot_path(robot0, velocities))
+            sub_pos, sub_present = pos[: s + 1], present[: s + 1]
+            ghost = None  # applied by the reaction step
         d_sub = np.hypot(sub_pos[..., 0] - robot0[0], sub_pos[..., 1] - robot0[1])
         d_sub = np.where(sub_present, d_sub, np.inf)
         near = np.flatnonzero(d_sub.min(axis=0) < self._near_m) if d_sub.size else np.zeros(0, dtype=np.int64)
@@ -626,16 +741,33 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         )  # fmt: skip
 
     def _robot_path(self, robot0: np.ndarray, velocities: list[tuple[float, float]]) -> np.ndarray:
-        """``(S + 1, 2)`` robot centre at the substep ends of a step commanding ``velocities``, integrated as pymunk
-        does (``p += v * h`` per substep; nothing pushes the robot)."""
-        h = self._substep_s
-        path = np.empty((len(velocities) + 1, 2))
-        x, y = float(robot0[0]), float(robot0[1])
-        path[0] = x, y
-        for k, (vx, vy) in enumerate(velocities):
-            x, y = x + vx * h, y + vy * h
-            path[k + 1] = x, y
-        return path
+        """``(S + 1, 2)`` robot centre at the substep ends of a step commanding ``velocities``
+        (:func:`envs.world.robot_path`)."""
+        return robot_path(robot0, velocities, self._substep_s)
+
+    @timed("reaction")
+    def _react(
+        self, times_s: np.ndarray, recorded: np.ndarray, present: np.ndarray, robot: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The pedestrians of a step under the reaction model: the pop-in rule on the recording (ghosts take no part
+        in the model), the model over the substeps (:meth:`envs.reactive.ReactiveWorld.move`), then what each would
+        do without the robot over the horizon (:meth:`envs.reactive.ReactiveWorld.future`).
+
+        Args:
+            times_s: ``(S + 1 + H,)`` the substep ends, then the step's end + ``h * dt_s``, seconds.
+            recorded: ``(S + 1 + H, N, 2)`` the recording there, metres; present: ``(S + 1 + H, N)``.
+            robot: ``(S + 1, 2)`` the robot's centre at the substep ends, metres.
+
+        Returns:
+            positions ``(S + 1 + H, N, 2)`` and presence (ghosts absent) at ``times_s``.
+        """
+        assert self._reactive is not None and self._replay is not None
+        sub = slice(0, self._substeps + 1)
+        ahead = slice(self._substeps + 1, None)
+        ghost = self._popin.step(self._replay, times_s[sub], recorded[sub], present[sub], robot)
+        motion = self._reactive.move(times_s[sub], recorded[sub], present[sub], ghost, robot, self._substep_s)
+        future, future_present = self._reactive.future(self._replay, times_s[ahead], recorded[ahead], present[ahead])
+        return np.concatenate([motion.positions, future]), np.concatenate([motion.present, future_present])
 
     @timed("reward")
     def _reward(self, moved: _Moved, sensed: _Sensed) -> tuple[float, bool, bool, dict[str, Any]]:
@@ -655,8 +787,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         truncated = (not terminated) and self._n >= ep.max_steps
         step_m = math.hypot(after[0] - before[0], after[1] - before[1])
         self._metrics.update(
-            reward, step_m, self._velocity, min_gap, sensed.intruding, moved.new_contacts, moved.fault, sensed.visible
-        )
+            reward, step_m, self._velocity, min_gap, sensed.intruding, moved.new_contacts, moved.fault, sensed.visible,
+            sensed.ttc_s,
+        )  # fmt: skip
         info: dict[str, Any] = {
             "time_s": round(self._n * cfg.dt_s, 9),
             "distance_to_goal_m": dist_after,
@@ -680,6 +813,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             self._forecast_errors()
             self._metrics.popin_events = self._popin.events
             info["episode_metrics"] = self._metrics.summary(outcome, self._n * cfg.dt_s, self.with_forecasts)
+            info["episode_metrics"].update(UNDISTURBED if self._reactive is None else self._reactive.metrics.summary())
         return reward, terminated, truncated, info
 
     # ------------------------------------------------------------------ internals
@@ -711,7 +845,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """
         cfg = self.config
         assert self.episode is not None and self._replay is not None
-        seen = self._replay.perceived_at(t_s)
+        tracked = self._tracked()
+        seen = tracked.perceived_at(t_s)
         # a pedestrian that was a pop-in ghost at the reported annotation is not perceived (causal: see envs.popin)
         perceived = seen.present & ~self._popin.dropped(seen.index, len(seen.present))
         rows, _ = nearest_visible(robot, seen.positions, perceived, cfg.sensor_range_m, cfg.num_pedestrians)
@@ -727,7 +862,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         fc = self._forecast(t_s, rows, seen.positions, positions, present) if len(rows) else None
         unc = None
         if self.uncertainty is not None and fc is not None:
-            unc = self.uncertainty.radius(self._replay, t_s, rows, seen.age_s, seen.index)
+            unc = self.uncertainty.radius(tracked, t_s, rows, seen.age_s, seen.index)
         time_left = 1.0 - self._n / self.episode.max_steps
         obs = self._builder.build(
             robot,
@@ -741,9 +876,19 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             seen.age_s,
             unc,
         )
+        ttc = self._time_to_collision(robot, p_now, pres_now) if self._n > 0 else math.inf
         self._trails.append((p_now, pres_now))
         self._last = {"rows": rows, "forecasts": fc, "positions": p_now, "present": pres_now}
-        return obs, _Sensed(gap, intruding, len(rows))
+        return obs, _Sensed(gap, intruding, len(rows), ttc)
+
+    def _time_to_collision(self, robot: np.ndarray, p_now: np.ndarray, pres_now: np.ndarray) -> float:
+        """The smallest constant-velocity time to collision with a present pedestrian at the end of a step: the
+        robot's velocity over the step, each pedestrian's over the same step in the world (0 for one that was not
+        there at its start); see :func:`envs.rewards.min_time_to_collision`."""
+        before, was = self._last["positions"], self._last["present"]
+        both = (pres_now & was)[:, None]
+        velocities = np.where(both, (p_now - np.where(both, before, p_now)) / self.config.dt_s, 0.0)
+        return min_time_to_collision(robot, self._velocity, p_now, velocities, pres_now, self._r_sum)
 
     @timed("forecasts")
     def _forecast(
@@ -760,13 +905,25 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             # a perceived pedestrian may have left the world since its annotation: hold the perceived position
             current = np.where(present[0, rows, None], positions[0, rows], perceived[rows])
             truth = TrueFuture(fill_forward(future, valid, current), valid)
-        fc = self.forecaster.forecast(self._replay, t_s, rows, truth, self._forecast_rng)
+        reactive = self._reactive
+        if (
+            reactive is not None
+            and reactive.observed is not None
+            and isinstance(self.forecaster, PredictorForecast)
+            and needs_observed(self.forecaster, reactive.observed, t_s)
+        ):  # someone in the histories was off the recording: forecast from what the robot observed
+            fc = observed_forecasts(self.forecaster, reactive.observed, t_s, rows, reactive.forecast_memo)
+        else:
+            fc = self.forecaster.forecast(self._replay, t_s, rows, truth, self._forecast_rng)
         if fc is not None:
             self._forecast_log.append((t_s, rows, fc))
         return fc
 
     def _forecast_errors(self) -> None:
-        """Displacement errors of every forecast of the episode against the replay's true future, at once."""
+        """Displacement errors of every forecast of the episode against the pedestrians' true future, at once: the
+        replay's; with a reaction model, where the pedestrians were in the world up to the episode's end, then what
+        each would do without the robot from there (as the world's future rows: the recording, ``pause``'s
+        time-shifted)."""
         if not self._forecast_log:
             return
         assert self._replay is not None
@@ -774,16 +931,40 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         times = np.array([t for t, _, _ in self._forecast_log])[:, None] + cfg.dt_s * np.arange(
             1, cfg.horizon_steps + 1
         )
-        pos, present = self._replay.positions_at(times.reshape(-1))
         steps = len(self._forecast_log)
+        pos, present = self._replay.positions_at(times.reshape(-1))
         pos = pos.reshape(steps, cfg.horizon_steps, -1, 2)
         present = present.reshape(steps, cfg.horizon_steps, -1)
+        if self._reactive is not None:
+            self._world_departures(times[:, 0] - cfg.dt_s, pos, present)
         step_of = np.concatenate([np.full(len(r), k) for k, (_, r, _) in enumerate(self._forecast_log)])
         rows = np.concatenate([r for _, r, _ in self._forecast_log])
         fc = np.concatenate([f for _, _, f in self._forecast_log])
         truth, valid = pos[step_of, :, rows], present[step_of, :, rows]
         self._metrics.add_forecast_errors(np.hypot(*(fc - truth).transpose(2, 0, 1)), valid)
         self._forecast_log = []
+
+    def _world_departures(self, made_s: np.ndarray, pos: np.ndarray, present: np.ndarray) -> None:
+        """Where the world departed from the recording at the forecast times (in place): the forecast made at step
+        ``n`` (time ``made_s``), at horizon ``h``, meets the world at step ``n + h`` while the episode ran, then the
+        world's future rows at its last step.
+
+        Args:
+            made_s: ``(F,)`` times of the forecasts, seconds; pos: ``(F, H, N, 2)`` metres; present: ``(F, H, N)``.
+        """
+        assert self._reactive is not None
+        cfg = self.config
+        departures = self._reactive.departures
+        ran = len(departures)
+        made = np.rint((made_s - self._time(0)) / cfg.dt_s).astype(np.int64)
+        step = made[:, None] + np.arange(1, cfg.horizon_steps + 1)[None, :]  # (F, H) the world's step
+        for k, h in zip(*np.nonzero(step <= ran), strict=True):
+            rows, where, here = departures[step[k, h] - 1]
+            pos[k, h, rows], present[k, h, rows] = where, here
+        rows, where, here = self._reactive.future_departures
+        if len(rows):
+            for k, h in zip(*np.nonzero(step > ran), strict=True):
+                pos[k, h, rows], present[k, h, rows] = where[step[k, h] - ran - 1], here[step[k, h] - ran - 1]
 
     # ------------------------------------------------------------------ rendering
 

@@ -67,27 +67,98 @@ def total_reward(components: dict[str, float]) -> float:
     return float(sum(components[k] for k in REWARD_COMPONENTS))
 
 
-#: A readable name of every key of the episode metrics (:meth:`EpisodeMetrics.summary`), with its unit.
+def time_to_collision(rel_position: np.ndarray, rel_velocity: np.ndarray, radius_sum_m: float) -> np.ndarray:
+    """Constant-velocity time to collision of pairs of disks, seconds.
+
+    Two disks whose centres are ``p`` apart (``rel_position``, the other's centre minus one's) and move apart at
+    ``v`` (``rel_velocity``, the other's velocity minus one's) touch when ``|p + v t| = radius_sum_m``. The time is
+    the smallest ``t >= 0`` solving it: ``0`` for disks already touching or overlapping, ``inf`` for disks that
+    never touch (moving apart, at rest relative to each other, or passing wide). Head-on at distance ``d`` and
+    closing speed ``s``: ``(d - radius_sum_m) / s``.
+
+    Args:
+        rel_position: ``(N, 2)`` metres.
+        rel_velocity: ``(N, 2)`` m/s.
+        radius_sum_m: sum of the two radii, metres.
+
+    Returns:
+        ``(N,)`` seconds (``inf`` where the disks never touch).
+    """
+    p = np.asarray(rel_position, dtype=np.float64).reshape(-1, 2)
+    v = np.asarray(rel_velocity, dtype=np.float64).reshape(-1, 2)
+    a = np.einsum("ij,ij->i", v, v)
+    b = np.einsum("ij,ij->i", p, v)  # < 0: closing
+    c = np.einsum("ij,ij->i", p, p) - radius_sum_m**2
+    disc = b * b - a * c
+    hit = (b < 0) & (a > 0) & (disc >= 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(hit, (-b - np.sqrt(np.maximum(disc, 0.0))) / np.where(a > 0, a, 1.0), np.inf)
+    return np.where(c <= 0, 0.0, t)
+
+
+def min_time_to_collision(
+    robot_position: np.ndarray,
+    robot_velocity: np.ndarray,
+    positions: np.ndarray,
+    velocities: np.ndarray,
+    present: np.ndarray,
+    radius_sum_m: float,
+) -> float:
+    """The smallest constant-velocity :func:`time_to_collision` between the robot and the present pedestrians,
+    seconds (``inf`` when none is on a collision course).
+
+    Args:
+        robot_position: ``(2,)`` metres; robot_velocity: ``(2,)`` m/s.
+        positions: ``(N, 2)`` pedestrian positions, metres; velocities: ``(N, 2)`` m/s.
+        present: ``(N,)`` bool: which rows hold a pedestrian.
+        radius_sum_m: robot radius plus pedestrian radius, metres.
+    """
+    mask = np.asarray(present, dtype=bool)
+    if not mask.any():
+        return math.inf
+    rel_p = np.asarray(positions, dtype=np.float64)[mask] - np.asarray(robot_position, dtype=np.float64)
+    rel_v = np.asarray(velocities, dtype=np.float64)[mask] - np.asarray(robot_velocity, dtype=np.float64)
+    return float(time_to_collision(rel_p, rel_v, radius_sum_m).min())
+
+
+#: A readable name of every key of the episode metrics (:meth:`EpisodeMetrics.summary`), with its unit. Outputs
+#: for people print the key itself beside its label (:func:`metric_label`), so a line of the demo or of an
+#: evaluation's table names the JSON key it shows.
 METRIC_LABELS: Final[dict[str, str]] = {
     "outcome": "outcome",
     "collision_fault": "collision: who moved into whom",
     "collisions": "collisions (contacts begun)",
     "navigation_time_s": "navigation time, s",
     "path_length_m": "path length, m",
-    "path_ratio": "path length / straight-line distance",
-    "min_gap_m": "closest gap to a pedestrian, m",
+    "path_ratio": "path length / straight-line distance (goal tolerance not subtracted)",
+    "path_ratio_required": "path length / distance required (straight line minus goal tolerance)",
+    "spl": "SPL: success x distance required / max(path length, distance required)",
+    "min_gap_m": "closest surface gap to a pedestrian, m (negative: overlap in a collision)",
+    "min_clearance_m": "closest surface distance to a pedestrian, m (0 at contact)",
+    "min_ttc_s": "minimum time to collision at constant velocities, s",
     "discomfort_frequency": "share of steps closer than the discomfort distance",
     "intrusion_ratio": "share of steps on a pedestrian's future path",
+    "mean_speed_mps": "mean speed, m/s",
+    "mean_accel_mps2": "mean acceleration, m/s^2",
     "mean_jerk_mps3": "mean jerk, m/s^3",
     "forecast_ade_m": "forecast error, average over the horizon (ADE), m",
     "forecast_fde_m": "forecast error at the horizon's end (FDE), m",
     "mean_visible_pedestrians": "pedestrians observed per step (mean)",
     "crowd_density": "crowd density: pedestrians near the straight path (mean)",
     "pedestrians_near_path": "pedestrians near the straight path (distinct)",
+    "popin_events": "tracks that began on the robot (kept as contact-less ghosts)",
     "steps": "steps",
+    "return": "return (sum of rewards)",
     "r": "return (sum of rewards)",
     "l": "length, steps",
 }
+
+
+def metric_label(key: str) -> str:
+    """``key`` with its readable label (:data:`METRIC_LABELS`), the one way outputs for people name a metric:
+    ``"min_gap_m (closest surface gap ...)"``; an unknown key alone."""
+    label = METRIC_LABELS.get(key)
+    return key if label is None or label == key else f"{key} ({label})"
 
 
 @dataclass
@@ -101,6 +172,8 @@ class EpisodeMetrics:
         discomfort_dist_m: gap below which a step counts as uncomfortable, metres.
         crowd_density: the episode's policy-independent crowd density (see :func:`envs.episodes.crowd_near_path`).
         pedestrians_near_path: pedestrians within sensor range of the start-goal segment during the episode.
+        goal_tolerance_m: the goal counts as reached within this distance, metres; the distance an episode
+            requires is the straight line minus it (``path_ratio_required``, ``spl``).
     """
 
     start: np.ndarray
@@ -109,6 +182,7 @@ class EpisodeMetrics:
     discomfort_dist_m: float
     crowd_density: float = 0.0
     pedestrians_near_path: int = 0
+    goal_tolerance_m: float = 0.0
     visible_sum: int = 0
     steps: int = 0
     episode_return: float = 0.0
@@ -125,10 +199,12 @@ class EpisodeMetrics:
     fde_count: int = 0
     jerk_sum: float = 0.0
     jerk_count: int = 0
+    accel_sum: float = 0.0
+    min_ttc_s: float = math.inf
     _velocities: list[np.ndarray] = field(default_factory=list)
 
     @classmethod
-    def of_episode(cls, episode: Any, dt_s: float, discomfort_dist_m: float) -> EpisodeMetrics:
+    def of_episode(cls, episode: Any, dt_s: float, discomfort_dist_m: float, goal_tolerance_m: float) -> EpisodeMetrics:
         """Fresh metrics of an :class:`envs.episodes.Episode` (its start, goal and crowd density)."""
         return cls(
             episode.start.copy(),
@@ -137,6 +213,7 @@ class EpisodeMetrics:
             discomfort_dist_m,
             crowd_density=episode.crowd_density,
             pedestrians_near_path=episode.pedestrians_near_path,
+            goal_tolerance_m=goal_tolerance_m,
         )
 
     def update(
@@ -149,10 +226,13 @@ class EpisodeMetrics:
         new_contacts: int,
         fault: str | None,
         num_visible: int = 0,
+        ttc_s: float = math.inf,
     ) -> None:
         """Record one step (``velocity``: ``(2,)`` m/s average over the step; ``num_visible``: pedestrians in the
-        observation at its end)."""
+        observation at its end; ``ttc_s``: the smallest constant-velocity time to collision with a pedestrian at
+        its end, :func:`min_time_to_collision`, ``inf`` when none is on a collision course)."""
         self.steps += 1
+        self.min_ttc_s = min(self.min_ttc_s, ttc_s)
         self.visible_sum += num_visible
         self.episode_return += reward
         self.path_length_m += displacement_m
@@ -168,6 +248,8 @@ class EpisodeMetrics:
             del v[0]
         # velocities before the first step are 0 (the robot starts at rest)
         vs = [np.zeros(2)] * max(0, 3 - len(v)) + v
+        accel = (vs[2] - vs[1]) / self.dt_s
+        self.accel_sum += float(np.hypot(accel[0], accel[1]))
         if self.steps >= 2:
             jerk = (vs[2] - 2 * vs[1] + vs[0]) / self.dt_s**2
             self.jerk_sum += float(np.hypot(jerk[0], jerk[1]))
@@ -188,9 +270,16 @@ class EpisodeMetrics:
 
         Keys: ``outcome`` (success, collision, timeout), ``collision_fault`` (robot, pedestrian or
         None), ``collisions`` (contacts begun), ``navigation_time_s``, ``path_length_m``,
-        ``path_ratio`` (path length / straight line), ``min_gap_m``, ``discomfort_frequency``
-        (share of steps with a gap below discomfort_dist_m), ``intrusion_ratio`` (share of steps
-        on a pedestrian's true future path), ``mean_jerk_mps3``, ``forecast_ade_m``,
+        ``path_ratio`` (path length / straight line; below 1 for a trip that stops within the goal tolerance),
+        ``path_ratio_required`` (path length / the distance required: straight line minus ``goal_tolerance_m``; at
+        least 1 for a success), ``spl`` (success weighted by path length, Anderson et al. 2018: the distance required
+        / max(path length, distance required) for a success, 0 otherwise), ``min_gap_m`` (smallest surface gap to
+        a pedestrian, negative while overlapping in a collision), ``min_clearance_m`` (the same, 0 at contact),
+        ``min_ttc_s`` (smallest constant-velocity time to collision with a present pedestrian at the end of a step,
+        :func:`min_time_to_collision`; 0 at contact, None when no pedestrian was ever on a collision course),
+        ``discomfort_frequency`` (share of steps with a gap below discomfort_dist_m), ``intrusion_ratio`` (share of
+        steps on a pedestrian's true future path), ``mean_speed_mps`` (path length / time), ``mean_accel_mps2``
+        (mean magnitude of the change of velocity per step / dt, from rest), ``mean_jerk_mps3``, ``forecast_ade_m``,
         ``forecast_fde_m`` (the arm's forecasts of the observed pedestrians against the replay's
         truth), ``mean_visible_pedestrians`` (pedestrians in the observation, mean over steps),
         ``crowd_density`` and ``pedestrians_near_path`` (as in the reset info), ``popin_events`` (pedestrians
@@ -199,7 +288,9 @@ class EpisodeMetrics:
         (return and length; kept so the metrics are complete without a monitoring wrapper).
         """
         straight = float(np.linalg.norm(self.goal - self.start))
+        required = straight - self.goal_tolerance_m
         n = max(self.steps, 1)
+        success = outcome == "success"
         return {
             "outcome": outcome,
             "collision_fault": self.collision_fault,
@@ -207,9 +298,15 @@ class EpisodeMetrics:
             "navigation_time_s": round(time_s, 9),
             "path_length_m": self.path_length_m,
             "path_ratio": self.path_length_m / straight if straight > 0 else None,
+            "path_ratio_required": self.path_length_m / required if required > 0 else None,
+            "spl": (required / max(self.path_length_m, required) if success else 0.0) if required > 0 else None,
             "min_gap_m": None if math.isinf(self.min_gap_m) else self.min_gap_m,
+            "min_clearance_m": None if math.isinf(self.min_gap_m) else max(self.min_gap_m, 0.0),
+            "min_ttc_s": None if math.isinf(self.min_ttc_s) else self.min_ttc_s,
             "discomfort_frequency": self.discomfort_steps / n,
             "intrusion_ratio": self.intrusion_steps / n,
+            "mean_speed_mps": self.path_length_m / (self.steps * self.dt_s) if self.steps else 0.0,
+            "mean_accel_mps2": self.accel_sum / self.steps if self.steps else 0.0,
             "mean_jerk_mps3": self.jerk_sum / self.jerk_count if self.jerk_count else 0.0,
             "forecast_ade_m": (self.ade_sum / self.ade_count) if (has_forecasts and self.ade_count) else None,
             "forecast_fde_m": (self.fde_sum / self.fde_count) if (has_forecasts and self.fde_count) else None,

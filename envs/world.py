@@ -74,6 +74,19 @@ def fault_of(
     return ("robot" if robot_app > ped_app else "pedestrian"), robot_app, ped_app
 
 
+def robot_path(start: np.ndarray, velocities: Sequence[tuple[float, float]], substep_s: float) -> np.ndarray:
+    """``(S + 1, 2)`` the robot's centre at the substep ends of a control step commanding ``velocities`` (``S`` pairs,
+    m/s) from ``start`` (metres), integrated as pymunk moves the robot (``p += v * h`` per substep; nothing pushes
+    it), so the same floats as :attr:`WorldStep.robot_positions`."""
+    path = np.empty((len(velocities) + 1, 2))
+    x, y = float(start[0]), float(start[1])
+    path[0] = x, y
+    for k, (vx, vy) in enumerate(velocities):
+        x, y = x + vx * substep_s, y + vy * substep_s
+        path[k + 1] = x, y
+    return path
+
+
 class World:
     """The pymunk space.
 

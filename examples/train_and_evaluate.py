@@ -14,8 +14,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from agents.evaluate import evaluate, format_summary
-from agents.train import load_train_config, train
+from agents.evaluation import evaluate, format_summary
+from agents.training import load_train_config, train
 
 #: Overrides that shrink a run to seconds: tiny networks, a two-episode warm start and validation.
 TINY = {

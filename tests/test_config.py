@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from crowdnav_mesrnn.config import ConfigError, check_keys, close_matches
+from crowdnav_mesrnn.config import ConfigError, UnknownKeyError, check_keys, close_matches
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -54,7 +54,7 @@ def _reset_option() -> None:
 
 def _train(key: str) -> Callable[[], Any]:
     def load() -> Any:
-        from agents.train import load_train_config
+        from agents.training.config import load_train_config
 
         return load_train_config(REPO / "configs" / "agent" / "ppo.yaml", None, {key: 1, "env.crowd": "synthetic"})
 
@@ -106,3 +106,38 @@ def test_several_unknown_keys_each_get_their_suggestion() -> None:
     assert str(info.value) == (
         "unknown env config keys 'num_pedestrian' (did you mean 'num_pedestrians'?), 'qqq' (valid keys: num_pedestrians)"
     )
+
+
+def test_an_unknown_keyword_of_the_environment_is_a_type_error_naming_it() -> None:
+    """Libraries probing a constructor (TorchRL's GymEnv passes frameskip=) take only a TypeError as "not
+    supported"; the project's callers still catch it as a ConfigError (a ValueError)."""
+    import gymnasium as gym
+
+    import crowdnav_mesrnn  # noqa: F401 (registers the ids)
+
+    with pytest.raises(TypeError) as info:
+        gym.make("CrowdNav-MESRNN-v0", frameskip=4)
+    assert isinstance(info.value, UnknownKeyError) and isinstance(info.value, ConfigError)
+    assert isinstance(info.value, ValueError)
+    assert "unknown env config key 'frameskip'" in str(info.value)
+    assert "unexpected keyword argument 'frameskip'" in str(info.value)  # Python's wording, which peers look for
+    with pytest.raises(TypeError, match=r"'num_pedestrian'; did you mean 'num_pedestrians'\?"):
+        gym.make("CrowdNav-CV-v0", crowd="empty", num_pedestrian=3)
+
+
+@pytest.mark.parametrize("kwargs", [{"dt_s": -0.4}, {"split": "paris"}, {"terminate_on_collision": "no"}])
+def test_a_bad_value_of_a_known_key_stays_a_value_error(kwargs: dict[str, Any]) -> None:
+    import gymnasium as gym
+
+    import crowdnav_mesrnn  # noqa: F401 (registers the ids)
+
+    with pytest.raises(ConfigError) as info:
+        gym.make("CrowdNav-CV-v0", crowd="empty", **kwargs)
+    assert not isinstance(info.value, TypeError)
+
+
+def test_an_unknown_key_of_a_config_file_is_not_called_a_keyword_argument(tmp_path: Path) -> None:
+    with pytest.raises(UnknownKeyError) as info:
+        _env_yaml(tmp_path)
+    assert isinstance(info.value, TypeError) and info.value.keys == ("sensor_rang_m",)
+    assert "keyword argument" not in str(info.value)

@@ -62,6 +62,6 @@ def test_train_and_evaluate_example_runs(data_dir: Path, tmp_path: Path) -> None
         check=False,
     )
     assert done.returncode == 0, done.stderr[-2000:]
-    assert "--- planner" in done.stdout and "success rate" in done.stdout
+    assert "--- planner" in done.stdout and "success_rate" in done.stdout
     assert (tmp_path / "out" / "policy" / "DONE").is_file()
     assert (tmp_path / "out" / "policy" / "episodes.csv").is_file()

@@ -10,13 +10,17 @@ The grid
     ADE, and uncertainty arms ``cv_unc``, ``mesrnn_unc``, ``srnn_unc``, ``vlstm_unc``: the source's forecasts plus
     their calibrated regions, which the ``planner``/``search`` policies keep clear of), policies (learned
     ``ppo``/``sac`` with an agent config and a training budget; non-learned ``planner``/``search``/``straight``/
-    ``privileged``), training seeds, held-out splits and the fixed evaluation episode list.
+    ``privileged``), training seeds, held-out splits and the fixed evaluation episode list. A planner policy may
+    carry environment settings of its own on top of the grid's ``env`` (``policies.search@orca: {kind: search, env:
+    {reaction: orca}}``): a policy that sets the pedestrians' ``reaction`` is keyed ``<planner>@<reaction>``, and the
+    reaction's every parameter is resolved into its cells' specs (``configs/ablation/reactive.yaml``). A policy's
+    ``priority`` orders the running of cells.
     It expands into *cells*:
 
-    - ``train/<split>/<policy>/<arm>/seed<k>``: one training run (``agents.train.train``) of a learned
+    - ``train/<split>/<policy>/<arm>/seed<k>``: one training run (:func:`agents.training.run.train`) of a learned
       policy on the split's training scenes;
     - ``eval/<split>/<policy>/<arm>[/seed<k>]``: the trained model (its ``best`` or ``final`` model) or a
-      planner evaluated with ``agents.evaluate.evaluate`` on the split's held-out scene over the fixed
+      planner evaluated with :func:`agents.evaluation.run.evaluate` on the split's held-out scene over the fixed
       episode list (``evaluation.episodes`` episodes from ``evaluation.seed``), identical in every cell.
 
 Cells and their state
@@ -59,9 +63,12 @@ The answer
     density bins, the pre-declared paired tests (exact McNemar on success, Wilcoxon signed-rank on the
     navigation time of episodes both arms finished, pairs = (training seed, episode)), Holm-corrected per
     endpoint with the family size stated, and the difference in success rate each McNemar design detects at
-    the configured power. It also writes ``cells.json`` (every cell's state, timings and spec) and
-    ``episodes.csv.gz`` (every evaluated episode, values as written); the statistics are computed from that
-    archive, and a cell without a run folder is read from it, so the committed results alone render the
+    the configured power. Where pedestrians react, it adds the disturbance metrics per arm (means with bootstrap
+    percentile intervals), the declared change of each gain across reactions (``reaction_comparisons``: an exact
+    sign-flip test of the per-episode difference of paired differences, Holm) and the declared disturbance comparisons
+    (``disturbance_comparisons``: Wilcoxon, Holm per metric). It also writes ``cells.json`` (every cell's state,
+    timings and spec) and ``episodes.csv.gz`` (every evaluated episode, values as written); the statistics are computed
+    from that archive, and a cell without a run folder is read from it, so the committed results alone render the
     same summary again. A summary never replaces one holding more (missing cells: refused, named; ``--force``
     overrides), and files whose content would not change are left untouched
     (:mod:`agents.ablation.results`).
@@ -69,20 +76,14 @@ The answer
 
 from __future__ import annotations
 
-from agents.ablation.backends import (
-    CellTask,
-    build_forecast_caches,
-    execute_cell,
-    replicate,
-    run_grid,
-    train_overrides,
-)
+from agents.ablation.backends import build_forecast_caches, replicate, run_grid
 from agents.ablation.cells import (
     Cell,
     CellStatus,
     cell_dir,
     cell_spec,
     cell_status,
+    check_environments,
     default_workers,
     dry_run,
     estimate_seconds,
@@ -101,11 +102,13 @@ from agents.ablation.config import (
     CELL_JSON,
     CELL_STATES,
     DONE,
+    GRID_ENV_KEYS,
     LEARNED_KINDS,
     LEARNED_SOURCES,
     MODEL_CHOICES,
     OUTCOMES,
     POLICY_KINDS,
+    REACTION_SEPARATOR,
     TRAIN_RUN,
     UNCERTAINTY_KINDS,
     UNCERTAINTY_SOURCES,
@@ -115,13 +118,24 @@ from agents.ablation.config import (
     PolicySpec,
     config_from_mapping,
     load_config,
+    resolve_env,
 )
 from agents.ablation.episodes import ARCHIVE_KEYS, aggregate, cell_record, episodes_archive, read_archive, read_episodes
+from agents.ablation.execute import CellTask, execute_cell, train_overrides
 from agents.ablation.plots import write_plots
 from agents.ablation.ray_backend import CONNECT_TIMEOUT_S, RayBackend, check_address, execute_shipped
 from agents.ablation.report import summary_markdown
 from agents.ablation.results import ResultsKept
-from agents.ablation.stats import by_density, density_edges, paired_tests
+from agents.ablation.stats import (
+    by_density,
+    density_edges,
+    disturbance_summary,
+    disturbance_tests,
+    paired_tests,
+    percentile_mean_ci,
+    reaction_tests,
+    sign_flip_exact,
+)
 from agents.ablation.summary import summarize
 
 __all__ = [
@@ -133,11 +147,13 @@ __all__ = [
     "CELL_STATES",
     "CONNECT_TIMEOUT_S",
     "DONE",
+    "GRID_ENV_KEYS",
     "LEARNED_KINDS",
     "LEARNED_SOURCES",
     "MODEL_CHOICES",
     "OUTCOMES",
     "POLICY_KINDS",
+    "REACTION_SEPARATOR",
     "TRAIN_RUN",
     "UNCERTAINTY_KINDS",
     "UNCERTAINTY_SOURCES",
@@ -159,9 +175,12 @@ __all__ = [
     "cell_spec",
     "cell_status",
     "check_address",
+    "check_environments",
     "config_from_mapping",
     "default_workers",
     "density_edges",
+    "disturbance_summary",
+    "disturbance_tests",
     "dry_run",
     "episodes_archive",
     "estimate_seconds",
@@ -172,13 +191,17 @@ __all__ = [
     "main",
     "measured_rates",
     "paired_tests",
+    "percentile_mean_ci",
     "plan",
+    "reaction_tests",
     "read_archive",
     "read_episodes",
     "replicate",
+    "resolve_env",
     "run_from_args",
     "run_grid",
     "select",
+    "sign_flip_exact",
     "summarize",
     "summary_markdown",
     "train_overrides",

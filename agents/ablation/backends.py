@@ -1,4 +1,5 @@
-"""Running cells: one cell in a folder, the serial/process-pool/Ray backends, the grid, and replication."""
+"""Running the grid: the serial and process-pool backends (the Ray one is :mod:`agents.ablation.ray_backend`), the
+grid itself, and replication. A cell runs as :func:`agents.ablation.execute.execute_cell`."""
 
 from __future__ import annotations
 
@@ -6,24 +7,23 @@ import dataclasses
 import os
 import shutil
 import signal
-import socket
 import threading
 import time
-import traceback
+import warnings
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Final
+from typing import Any
 
+from agents.ablation import execute
 from agents.ablation.cells import (
     Cell,
     CellStatus,
     _file_sha256,
     _hms,
-    _now,
     _read_json,
     cell_dir,
     cell_spec,
+    check_environments,
     default_workers,
     expand,
     plan,
@@ -32,171 +32,15 @@ from agents.ablation.cells import (
     weights_fingerprint,
 )
 from agents.ablation.config import (
-    AGENT_CONFIG,
     BACKENDS,
     CELL_JSON,
-    DONE,
-    TRAIN_RUN,
     AblationConfig,
-    training_overrides,
 )
 from agents.ablation.episodes import read_episodes
+from agents.ablation.execute import STOP_TIMEOUT_S, CellTask, _Backend, _single_thread, execute_cell
 from agents.ablation.results import ResultsKept
 from agents.ablation.summary import summarize
 from crowdnav_mesrnn.config import ConfigError
-from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text, code_version
-
-#: Seconds a second Ctrl-C waits for the stopped cells to write their checkpoint and ``cell.json``.
-STOP_TIMEOUT_S: Final[float] = 60.0
-
-
-@dataclass(frozen=True)
-class CellTask:
-    """What a worker needs to run one cell (picklable; paths are absolute or relative to the worker's cwd)."""
-
-    cell: Cell
-    folder: str
-    spec: Mapping[str, Any]
-    weights: Mapping[str, str]
-    episodes: int
-    eval_seed: int
-    env: Mapping[str, Any]
-    model: str | None = None
-    """Evaluation of a learned policy: the model zip to evaluate."""
-    model_sha256: str | None = None
-    command: str = ""
-    """The command line that reproduces the cell (recorded in a training run's ``command.txt``)."""
-    agent_config: str | None = None
-    """Training: the agent YAML's text (written into the cell as :data:`AGENT_CONFIG` and read from there,
-    so a worker on another machine needs no copy of the driver's files)."""
-
-
-def train_overrides(cell: Cell, env: Mapping[str, Any]) -> dict[str, Any]:
-    """Overrides of ``agents.train.load_train_config`` for a training cell (:func:`training_overrides`)."""
-    return training_overrides(cell.policy, cell.arm, cell.split, cell.seed, env)
-
-
-def _run_train(task: CellTask, folder: Path) -> dict[str, Any]:
-    """Train (or resume) one learned policy into ``folder / run``; returns counts for ``cell.json``."""
-    from agents.train import load_train_config, train
-
-    cfg = load_train_config(folder / AGENT_CONFIG, None, train_overrides(task.cell, task.env))
-    run = folder / TRAIN_RUN
-    result = train(cfg, run, resume=run.exists(), progress=False, command=task.command)
-    return {
-        "run_dir": Path(result).resolve().relative_to(folder.resolve()).as_posix(),
-        "steps": task.cell.policy.timesteps,
-    }
-
-
-def _run_eval(task: CellTask, folder: Path) -> dict[str, Any]:
-    """Evaluate a trained model or a planner on the held-out scene; writes episodes.csv and summary.json."""
-    from agents.evaluate import evaluate
-
-    cell = task.cell
-    spec = task.model if cell.policy.learned else cell.policy.kind
-    options = {**dict(cell.policy.options), **cell.arm.planner_options()}  # an uncertainty arm: uncertainty=True
-    result = evaluate(
-        spec,
-        cell.arm.predictor,
-        cell.split,
-        task.episodes,
-        seed=task.eval_seed,
-        out_dir=folder,
-        env_overrides={**task.env, **cell.arm.env_overrides()} or None,
-        **({"planner_kwargs": options} if options else {}),
-    )
-    rows = read_episodes(folder / "episodes.csv")
-    steps = sum(int(float(r.get("steps", 0) or 0)) for r in rows) if rows and "steps" in rows[0] else None
-    return {"episodes": int(result.get("episodes", len(rows))), "steps": steps}
-
-
-def execute_cell(task: CellTask) -> dict[str, Any]:
-    """Run one cell in ``task.folder``: ``cell.json`` first, the work, then ``cell.json`` again and ``DONE``.
-
-    Never raises for a failure of the work itself: the result (also in ``cell.json``) says ``ok`` and
-    ``error``, so one failed cell does not stop the grid.
-    """
-    _single_thread()
-    folder = Path(task.folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    here = weights_fingerprint(task.cell.arm.predictor)
-    if here != dict(task.weights):  # a Ray node with another installation than the driver's
-        error = f"predictor weights on {socket.gethostname()} differ from the driver's: {here} != {dict(task.weights)}"
-        return {"name": task.cell.name, "ok": False, "error": error, "wall_s": 0.0}
-    old = _read_json(folder / CELL_JSON) or {}
-    attempts = list(old.get("attempts", [])) if old.get("spec") == task.spec else []
-    meta: dict[str, Any] = {
-        "name": task.cell.name,
-        "spec": dict(task.spec),
-        "weights": dict(task.weights),
-        "model": task.model,
-        "model_sha256": task.model_sha256,
-        "code_version": code_version(),
-        "host": socket.gethostname(),
-        "pid": os.getpid(),
-        "status": "running",
-        "attempts": [*attempts, {"started": _now()}],
-    }
-    atomic_write_json(folder / CELL_JSON, meta)
-    if task.agent_config is not None:
-        atomic_write_text(folder / AGENT_CONFIG, task.agent_config)
-    t0 = time.perf_counter()
-    try:
-        counts = _run_train(task, folder) if task.cell.kind == "train" else _run_eval(task, folder)
-        ok, error = True, None
-    except Exception as exc:  # report and carry on with the other cells
-        counts, ok = {}, False
-        error = f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"
-    except KeyboardInterrupt:  # stopped (a second Ctrl-C, SIGTERM, ray.cancel): record the attempt, then stop
-        _finish_attempt(meta, time.perf_counter() - t0, False, "interrupted")
-        atomic_write_json(folder / CELL_JSON, meta)
-        raise
-    wall = time.perf_counter() - t0
-    _finish_attempt(meta, wall, ok, "done" if ok else "failed")
-    meta.update(counts)
-    meta["error"] = error
-    if ok:
-        if task.cell.kind == "train" and meta.get("steps"):
-            meta["steps_per_s"] = meta["steps"] / max(meta["wall_s"], 1e-9)
-        if task.cell.kind == "eval":
-            meta["episodes_per_s"] = meta.get("episodes", task.episodes) / max(wall, 1e-9)
-    atomic_write_json(folder / CELL_JSON, meta)
-    if ok:
-        atomic_write_text(folder / DONE, _now() + "\n")
-    return {"name": task.cell.name, "ok": ok, "error": error, "wall_s": wall}
-
-
-def _finish_attempt(meta: dict[str, Any], wall: float, ok: bool, status: str) -> None:
-    """Close the last attempt of a cell's ``cell.json`` content: its end, wall time and status."""
-    meta["attempts"][-1].update(finished=_now(), wall_s=round(wall, 3), ok=ok)
-    meta["wall_s"] = round(sum(a.get("wall_s", 0.0) for a in meta["attempts"]), 3)
-    meta["status"] = status
-
-
-def _single_thread() -> None:
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    import torch
-
-    torch.set_num_threads(1)
-
-
-class _Backend:
-    #: How many cells it runs at once (``None``: it queues whatever is submitted, e.g. Ray). The grid submits no more
-    #: than this, so a cell that waits is never handed to the backend: a first Ctrl-C then starts no other cell.
-    capacity: int | None = None
-
-    def submit(self, task: CellTask) -> Any:  # pragma: no cover - interface
-        raise NotImplementedError
-
-    def wait_one(self, handles: Iterable[Any]) -> tuple[Any, dict[str, Any]]:  # pragma: no cover - interface
-        raise NotImplementedError
-
-    def stop(self, handles: Mapping[Any, Any]) -> None:
-        """Stop the running cells now (a KeyboardInterrupt in each) and wait for them to record it."""
-
-    def close(self) -> None:
-        pass
 
 
 class _Serial(_Backend):
@@ -323,7 +167,7 @@ def _task(cfg: AblationConfig, cell: Cell) -> CellTask:
         weights=weights_fingerprint(cell.arm.predictor),
         episodes=cfg.episodes,
         eval_seed=cfg.eval_seed,
-        env=dict(cfg.env),
+        env=cfg.env_for(cell.policy),
         model=model,
         model_sha256=model_sha,
         command=f"python -m agents.ablation {cfg.source or '<config>'} --only {cell.name}",
@@ -388,6 +232,7 @@ def run_grid(
     statuses = plan(cfg, cells)
     todo = [s for s in statuses if s.state != "done"]
     out(f"grid {cfg.name}: {len(cells)} cells, {len(cells) - len(todo)} done, {len(todo)} to run ({backend} backend)")
+    check_environments(cfg, [s.cell for s in todo])
     for policy in {s.cell.policy.name: s.cell.policy for s in todo if s.cell.policy.learned}.values():
         if not Path(policy.config or "").is_file():
             raise FileNotFoundError(f"policies.{policy.name}.config: agent config {policy.config!r} not found")
@@ -545,3 +390,16 @@ def replicate(
         )
         differing += same != len(shared) or len(ours) != len(theirs) or len(shared) != len(ours)
     return differing
+
+
+def __getattr__(name: str) -> Any:
+    """``train_overrides`` moved to :mod:`agents.ablation.execute`: this path works for one release, with a warning."""
+    if name == "train_overrides":
+        warnings.warn(
+            "agents.ablation.backends.train_overrides is deprecated and will be removed in the next release: import "
+            "it from agents.ablation.execute (or agents.ablation)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return getattr(execute, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -23,7 +23,7 @@ from agents.ablation.config import (
     Arm,
     PolicySpec,
 )
-from crowdnav_mesrnn.config import load_yaml
+from crowdnav_mesrnn.config import ConfigError, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
 
 
@@ -58,7 +58,9 @@ class Cell:
 
 
 def expand(cfg: AblationConfig) -> list[Cell]:
-    """Every cell of the grid: training cells first, then evaluation cells (split, policy, arm, seed order)."""
+    """Every cell of the grid: training cells first, then evaluation cells, each in the order they run: by the
+    policies' ``priority`` (lower first), then split (in ``splits`` order), policy (config order), arm, seed. Without
+    priorities that is the split, policy, arm, seed order."""
     train: list[Cell] = []
     evals: list[Cell] = []
     for split in cfg.splits:
@@ -70,15 +72,56 @@ def expand(cfg: AblationConfig) -> list[Cell]:
                         evals.append(Cell("eval", split, policy, arm, seed))
                 else:
                     evals.append(Cell("eval", split, policy, arm, None))
-    return train + evals
+    # stable: within a priority and split the order above (policy, arm, seed) stays
+    return sorted(train, key=_run_order(cfg)) + sorted(evals, key=_run_order(cfg))
 
 
-def _canonical_yaml_sha256(path: str) -> str | None:
-    """sha256 of an agent YAML's parsed content (comments and layout do not count); None if missing."""
+def _run_order(cfg: AblationConfig) -> Callable[[Cell], tuple[int, int]]:
+    return lambda cell: (cell.policy.priority, cfg.splits.index(cell.split))
+
+
+def check_environments(cfg: AblationConfig, cells: Iterable[Cell]) -> None:
+    """Check the environment settings of every distinct evaluation environment of the planner cells ``cells`` with
+    the environment's own config check (``envs.config.config_from``: unknown keys listed with the valid ones, values
+    checked), as the cells would make them, so that a grid whose settings the environment refuses fails before any
+    cell starts. Raises :class:`ConfigError` naming ``policies.<name>.env`` (or ``env``) and the arm."""
+    from envs.config import config_from
+
+    seen: set[str] = set()
+    for cell in cells:
+        if cell.kind != "eval" or cell.policy.learned:
+            continue
+        env = {**cfg.env_for(cell.policy), **cell.arm.env_overrides()}
+        env.update(predictor=cell.arm.predictor, split=cell.split, part="test", episode_time="all")
+        key = json.dumps(env, sort_keys=True, default=str)
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            config_from(env, {})
+        except ConfigError as exc:
+            where = f"policies.{cell.policy.name}.env" if cell.policy.env else "env"
+            raise ConfigError(
+                f"ablation config key {where!r} (cell {cell.name}): the environment refuses these settings: {exc}"
+            ) from None
+
+
+def _canonical_yaml_sha256(path: str, timesteps: int | None = None) -> str | None:
+    """sha256 of an agent YAML's parsed content (comments and layout do not count) as a training cell reads it; None if
+    missing.
+
+    A cell's budget is the grid's ``timesteps`` (:func:`agents.ablation.config.training_overrides`), never the YAML's
+    ``n_timesteps``, so every entry's ``n_timesteps`` is hashed as ``float(timesteps)``: a budget written into an agent
+    YAML (e.g. made whole rollouts, ``100352``) does not make the cells that never read it stale, and the form is the
+    one the shipped YAMLs wrote before (``!!float 1e5``), so the committed grids' recorded specs stay the same."""
     try:
         content = load_yaml(path)
     except FileNotFoundError:
         return None
+    if timesteps is not None:
+        for key, entry in list(content.items()):
+            if isinstance(entry, dict) and "n_timesteps" in entry:  # a new mapping: YAML aliases share one
+                content[key] = {**entry, "n_timesteps": float(timesteps)}
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -93,7 +136,7 @@ def cell_spec(cfg: AblationConfig, cell: Cell) -> dict[str, Any]:
         "predictor": cell.arm.predictor,
         "noisy_oracle_ade_m": cell.arm.noisy_oracle_ade_m,
         "seed": cell.seed,
-        "env": dict(sorted(cfg.env.items())),
+        "env": dict(sorted(cfg.env_for(cell.policy).items())),
         "env_revision": _env_revision(),
     }
     if cell.arm.uncertainty:  # only then: the specs of every other arm stay as they were (their cells stay done)
@@ -101,7 +144,7 @@ def cell_spec(cfg: AblationConfig, cell: Cell) -> dict[str, Any]:
     if cell.kind == "train":
         spec.update(
             agent_config=cell.policy.config,
-            agent_config_sha256=_canonical_yaml_sha256(cell.policy.config or ""),
+            agent_config_sha256=_canonical_yaml_sha256(cell.policy.config or "", cell.policy.timesteps),
             timesteps=cell.policy.timesteps,
             n_envs=cell.policy.n_envs,
             overrides=dict(cell.policy.overrides),
@@ -178,13 +221,13 @@ def cell_dir(cfg: AblationConfig, cell: Cell | str) -> Path:
 
 
 def trained_model(train_dir: Path, which: str) -> Path | None:
-    """The ``best``/``final`` model zip of a finished training cell folder (``None`` if absent)."""
+    """The ``best``/``final`` model of a finished training cell folder (``None`` if absent): its policy file of the
+    project's format, which loads without unpickling (:func:`agents.runs.run_model`), else the SB3 zip of a run
+    trained before that format (whose evaluation then refuses to unpickle it and says how to convert it)."""
+    from agents.runs import run_model
+
     meta = _read_json(train_dir / CELL_JSON) or {}
-    run = train_dir / meta.get("run_dir", TRAIN_RUN)
-    for candidate in (run / f"{which}_model.zip", run / "final_model.zip"):
-        if candidate.is_file():
-            return candidate
-    return None
+    return run_model(train_dir / meta.get("run_dir", TRAIN_RUN), which)
 
 
 @dataclass
@@ -358,6 +401,10 @@ def dry_run(cfg: AblationConfig, cells: Sequence[Cell], workers: int, out: Calla
         f"seeds {', '.join(map(str, cfg.seeds))}; policies {pol}; {cfg.episodes} evaluation episodes per cell"
     )
     out(f"cells in {cfg.runs_path()}/, summaries in {cfg.out_path()}/")
+    try:
+        check_environments(cfg, [st.cell for st in statuses if st.state != "done"])
+    except ConfigError as exc:  # the dry run lists the cells anyway; running them is refused (run_grid)
+        out(f"WARNING: the grid would not run: {exc}")
     out(f"{'state':<8} {'estimate':>9}  {'from':<8} cell")
     total = 0.0
     counts = dict.fromkeys(CELL_STATES, 0)

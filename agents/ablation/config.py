@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from crowdnav_mesrnn import predictors
-from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml
+from crowdnav_mesrnn.config import ConfigError, check_keys, existing_config, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
 
 #: Forecast sources an arm may use (besides predictor plug-ins), from the registry (:mod:`crowdnav_mesrnn.predictors`).
@@ -42,12 +42,22 @@ UNCERTAINTY_KINDS: Final[tuple[str, ...]] = ("planner", "search")
 #: Policy kinds: learned ones are trained per arm and seed, the others only evaluated.
 POLICY_KINDS: Final[tuple[str, ...]] = ("ppo", "sac", "planner", "search", "privileged", "straight")
 
-#: The privileged ceiling (reads the replay's true future, :mod:`agents.privileged`): a measuring stick whose
+#: The privileged ceiling (reads the replay's true future, :mod:`agents.planners.privileged`): a measuring stick whose
 #: success every other policy is also reported as a fraction of, never a competitor.
 PRIVILEGED_KIND: Final[str] = "privileged"
 
 
 LEARNED_KINDS: Final[tuple[str, ...]] = ("ppo", "sac")
+
+
+#: A policy key ``<planner>@<reaction>`` (``search@orca``) names the reaction its environment sets (``policies.<key>.env:
+#: {reaction: orca}``, issue 28): the summary's ``policies.search@orca.arms.<arm>.by_split`` then reads as "the search
+#: planner among pedestrians who react by ORCA".
+REACTION_SEPARATOR: Final[str] = "@"
+
+
+#: Environment keys the grid sets in every cell itself (from ``arms``, ``splits``; evaluation on the held-out part).
+GRID_ENV_KEYS: Final[tuple[str, ...]] = ("predictor", "split", "part")
 
 
 #: Which model of a training run an evaluation cell uses.
@@ -89,6 +99,8 @@ _TOP_KEYS: Final[tuple[str, ...]] = (
     "env",
     "comparisons",
     "policy_comparisons",
+    "reaction_comparisons",
+    "disturbance_comparisons",
     "density_bins",
     "alpha",
     "power",
@@ -106,6 +118,8 @@ _POLICY_KEYS: Final[tuple[str, ...]] = (
     "model",
     "overrides",
     "options",
+    "env",
+    "priority",
 )
 
 
@@ -174,17 +188,29 @@ class PolicySpec:
     model: str = "best"
     """Learned kinds: ``best`` (selected on validation episodes of the training scenes) or ``final`` model."""
     overrides: Mapping[str, Any] = field(default_factory=dict)
-    """Learned kinds: further overrides passed to ``agents.train.load_train_config``."""
+    """Learned kinds: further overrides passed to ``agents.training.config.load_train_config``."""
     options: Mapping[str, Any] = field(default_factory=dict)
-    """Planner kinds: the planner's options (``agents.evaluate.evaluate``'s ``planner_kwargs``, e.g. the sampling
+    """Planner kinds: the planner's options (``agents.evaluation.run.evaluate``'s ``planner_kwargs``, e.g. the sampling
     planner's ``candidates: dense``); part of the cell's spec."""
     arms: tuple[str, ...] = ()
     """Arm labels this policy runs (empty = every arm of the grid); e.g. the cheap planner runs the
     noisy-oracle sweep while PPO trains only the main arms."""
+    env: Mapping[str, Any] = field(default_factory=dict)
+    """Planner kinds: environment settings of this policy's cells on top of the grid's ``env`` (e.g. ``{reaction:
+    orca}``), passed to the environment and part of every cell's spec (:meth:`AblationConfig.env_for`). A policy that
+    sets ``reaction`` is keyed ``<planner>@<reaction>``."""
+    priority: int = 0
+    """When this policy's cells run: lower first, then by split in the order of ``splits`` (so an interrupted grid
+    has its most informative cells); the order of running is not part of any cell's spec."""
 
     @property
     def learned(self) -> bool:
         return self.kind in LEARNED_KINDS
+
+    @property
+    def base(self) -> str:
+        """The planner a ``<planner>@<reaction>`` key names (``search`` for ``search@orca``; the key itself otherwise)."""
+        return self.name.split(REACTION_SEPARATOR, 1)[0]
 
     def uses(self, arm: Arm) -> bool:
         return not self.arms or arm.label in self.arms
@@ -200,7 +226,7 @@ class AblationConfig:
     seeds: tuple[int, ...]
     policies: tuple[PolicySpec, ...]
     episodes: int
-    """Evaluation episodes per cell (the fixed list of ``agents.evaluate.evaluation_seeds``)."""
+    """Evaluation episodes per cell (the fixed list of ``agents.rollout.evaluation_seeds``)."""
     eval_seed: int = 0
     """Seed of the fixed evaluation episode list."""
     env: Mapping[str, Any] = field(default_factory=dict)
@@ -211,6 +237,13 @@ class AblationConfig:
     """Arm pairs tested within every policy and split, declared before any result exists."""
     policy_comparisons: tuple[tuple[str, str], ...] = ()
     """Policy pairs tested within every arm and split."""
+    reaction_comparisons: tuple[tuple[str, str], ...] = ()
+    """Reaction pairs ``(r, baseline)``: for every planner run under both (``<planner>@r``, ``<planner>@baseline``) and
+    every arm pair of ``comparisons`` (a gain), the change of the gain from ``baseline`` to ``r`` on the same episodes
+    (:func:`agents.ablation.stats.reaction_tests`)."""
+    disturbance_comparisons: tuple[tuple[str, str], ...] = ()
+    """Arm pairs whose disturbance metrics (:data:`agents.rollout.DISTURBANCE_METRICS`) are compared within every
+    policy whose pedestrians react (:func:`agents.ablation.stats.disturbance_tests`)."""
     density_bins: int | tuple[float, ...] = 3
     """An integer = that many quantile bins of ``crowd_density`` over the fixed episode lists of all splits;
     a list = bin edges (pedestrians within sensor range)."""
@@ -233,6 +266,15 @@ class AblationConfig:
 
     def arm(self, label: str) -> Arm:
         return next(a for a in self.arms if a.label == label)
+
+    def env_for(self, policy: PolicySpec) -> dict[str, Any]:
+        """The environment settings of a policy's cells: the grid's ``env``, then the policy's own (:func:`resolve_env`:
+        with a ``reaction``, ``reaction_params`` holds every parameter). Equal to ``env`` for a policy without one."""
+        return resolve_env({**self.env, **policy.env})
+
+    def reaction(self, policy: PolicySpec) -> str | None:
+        """The reaction model of a policy's pedestrians (``None``: the environment's default, the replay)."""
+        return (dict(self.env) | dict(policy.env)).get("reaction")
 
     def runs_path(self) -> Path:
         return Path(self.runs_dir or f"runs/ablation/{self.name}")
@@ -294,6 +336,90 @@ def _pairs(value: Any, key: str, names: Sequence[str]) -> tuple[tuple[str, str],
     return tuple(out)
 
 
+def resolve_env(env: Mapping[str, Any]) -> dict[str, Any]:
+    """``env`` with, when it sets ``reaction``, ``reaction_params`` resolved to every parameter: the defaults of
+    ``envs.reaction.ReactionParams`` with the given overrides (``ReactionParams.to_dict()``), so that a cell's spec
+    names every constant of its reaction model and a changed default makes its cells stale. Without ``reaction`` the
+    mapping is returned as it is (the specs of grids without reactions stay as they were)."""
+    out = dict(env)
+    if "reaction" in out:
+        from envs.reaction import ReactionParams
+
+        out["reaction_params"] = ReactionParams.from_mapping(out.get("reaction_params")).to_dict()
+    return out
+
+
+def _env_mapping(value: Any, where: str) -> dict[str, Any]:
+    """An ``env`` mapping (the grid's or a policy's) checked for what the grid decides itself: a mapping of string keys,
+    none of :data:`GRID_ENV_KEYS`. Every other key is the environment's to check (:func:`check_environments`)."""
+    if value is None:
+        return {}
+    if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+        raise _bad(where, value, "a mapping of environment config keys")
+    if set(value) & set(GRID_ENV_KEYS):
+        raise _bad(where, value, "environment keys other than predictor, split and part (the grid sets those)")
+    return dict(value)
+
+
+def _check_reaction(env: Mapping[str, Any], where: str) -> None:
+    """``reaction`` one of ``envs.reaction.REACTION_MODELS`` and ``reaction_params`` overrides of its parameters (only
+    with a ``reaction``), each error naming the key (``where.reaction``, ``where.reaction_params``)."""
+    from envs.reaction import ReactionParams, check_model
+
+    for key, check in (("reaction", check_model), ("reaction_params", ReactionParams.from_mapping)):
+        if key not in env:
+            continue
+        if key == "reaction_params" and "reaction" not in env:
+            raise _bad(f"{where}.{key}", env[key], "only with a reaction (reaction: pause, orca or social_force)")
+        try:
+            check(env[key])
+        except ConfigError as exc:
+            raise ConfigError(f"ablation config key {where + '.' + key!r}: {exc}") from None
+
+
+def _check_policy_env(policy: PolicySpec, grid_env: Mapping[str, Any]) -> None:
+    """A policy's environment: its reaction settings (with the grid's) are valid, and its key names its reaction --
+    ``<planner>@<reaction>`` exactly when the policy sets ``reaction`` (or names one the grid's ``env`` sets)."""
+    where = f"policies.{policy.name}.env"
+    merged = {**grid_env, **policy.env}
+    _check_reaction(merged, where)
+    reaction = merged.get("reaction")
+    if REACTION_SEPARATOR in policy.name:
+        named = policy.name.split(REACTION_SEPARATOR, 1)[1]
+        if named != reaction:
+            raise _bad(
+                f"policies.{policy.name}",
+                dict(policy.env),
+                f"a policy keyed <planner>@<reaction> sets that reaction: env: {{reaction: {named}}} (here the "
+                f"reaction is {reaction!r})",
+            )
+    elif "reaction" in policy.env:
+        raise _bad(
+            f"{where}.reaction",
+            reaction,
+            f"a policy key that names it: {policy.name}{REACTION_SEPARATOR}{reaction} (the summary's key of this "
+            "policy then says which pedestrians it met)",
+        )
+
+
+def _check_planner_options(policy: PolicySpec) -> None:
+    """Build the planner with its options (``agents.planners.make_planner``, default environment settings), so an option
+    the planner does not know -- e.g. one another change has not implemented yet -- is refused when the grid is loaded,
+    naming ``policies.<name>.options``."""
+    if not policy.options:
+        return
+    from agents.planners import make_planner
+
+    try:
+        make_planner(policy.kind, None, **dict(policy.options))
+    except (TypeError, ValueError) as exc:
+        raise _bad(
+            f"policies.{policy.name}.options",
+            dict(policy.options),
+            f"options the {policy.kind!r} planner takes ({exc})",
+        ) from None
+
+
 def _noisy_label(ade: float) -> str:
     return f"noisy_oracle-{ade:g}"
 
@@ -316,7 +442,17 @@ def _policies(value: Any) -> tuple[PolicySpec, ...]:
         overrides = spec.get("overrides") or {}
         if not isinstance(overrides, dict):
             raise _bad(f"{where}.overrides", overrides, "a mapping")
+        priority = spec.get("priority", 0)
+        if isinstance(priority, bool) or not isinstance(priority, int):
+            raise _bad(f"{where}.priority", priority, "an integer (lower runs first)")
         if kind in LEARNED_KINDS:
+            if "env" in spec:
+                raise _bad(
+                    f"{where}.env",
+                    spec["env"],
+                    "nothing: a learned policy's environment is its agent config's and the grid's env (it is trained "
+                    "there too)",
+                )
             config = spec.get("config")
             if not isinstance(config, str) or not config:
                 raise _bad(f"{where}.config", config, "the path of an agent YAML (configs/agent/ppo.yaml)")
@@ -325,7 +461,9 @@ def _policies(value: Any) -> tuple[PolicySpec, ...]:
             cpus = _positive_int(spec.get("cpus", 1), f"{where}.cpus")
             if "options" in spec:
                 raise _bad(f"{where}.options", spec["options"], "nothing: a learned policy takes overrides")
-            out.append(PolicySpec(str(name), kind, config, timesteps, n_envs, cpus, model, overrides))
+            out.append(
+                PolicySpec(str(name), kind, config, timesteps, n_envs, cpus, model, overrides, priority=priority)
+            )
         else:
             extra = sorted(set(spec) & {"config", "timesteps", "n_envs", "cpus", "overrides"})
             if extra:
@@ -339,7 +477,10 @@ def _policies(value: Any) -> tuple[PolicySpec, ...]:
                     options["uncertainty"],
                     f"nothing: an uncertainty arm sets it ({', '.join(s + UNCERTAINTY_SUFFIX for s in UNCERTAINTY_SOURCES)})",
                 )
-            out.append(PolicySpec(str(name), kind, options=dict(options)))
+            env = _env_mapping(spec.get("env"), f"{where}.env")
+            policy = PolicySpec(str(name), kind, options=dict(options), env=env, priority=priority)
+            _check_planner_options(policy)
+            out.append(policy)
     return tuple(out)
 
 
@@ -391,7 +532,7 @@ def _check_uncertainty_arms(policies: Sequence[PolicySpec], arms: Sequence[Arm])
 def training_overrides(
     policy: PolicySpec, arm: Arm, split: str, seed: int | None, env: Mapping[str, Any]
 ) -> dict[str, Any]:
-    """Overrides of ``agents.train.load_train_config`` for one training run of the grid: the run (predictor,
+    """Overrides of ``agents.training.config.load_train_config`` for one training run of the grid: the run (predictor,
     split, seed), the budget (``n_timesteps``, ``n_envs``), the grid's and the arm's environment settings
     (``env.<key>``), then the policy's own ``overrides`` (which may not set the keys before them)."""
     cell_env = {**dict(env), **arm.env_overrides()}
@@ -420,7 +561,7 @@ def _did_you_mean(message: str, overrides: Mapping[str, Any]) -> str:
 
 def _check_training(policies: Sequence[PolicySpec], arms: Sequence[Arm], split: str, seed: int, env: Mapping) -> None:
     """Load the training config of every learned policy with each forecast source it trains on, as a cell
-    would (``agents.train.load_train_config``), so a wrong override or agent config fails now, not when the
+    would (``agents.training.config.load_train_config``), so a wrong override or agent config fails now, not when the
     cell starts. Raises :class:`ConfigError` naming ``policies.<name>``."""
     for policy in (p for p in policies if p.learned):
         where = f"policies.{policy.name}"
@@ -433,7 +574,7 @@ def _check_training(policies: Sequence[PolicySpec], arms: Sequence[Arm], split: 
                 )
         if not Path(policy.config or "").is_file():
             raise _bad(f"{where}.config", policy.config, "an existing agent YAML (relative to the working directory)")
-        from agents.train import load_train_config
+        from agents.training.config import load_train_config
 
         seen: set[str] = set()
         for arm in (a for a in arms if policy.uses(a)):
@@ -514,13 +655,21 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
     check_keys(evaluation, _EVAL_KEYS, "ablation config 'evaluation'")
     episodes = _positive_int(evaluation.get("episodes"), "evaluation.episodes")
     eval_seed = _positive_int(evaluation.get("seed", 0), "evaluation.seed", minimum=0)
-    env = raw.get("env") or {}
-    if not isinstance(env, dict):
-        raise _bad("env", env, "a mapping of environment config keys")
-    if "predictor" in env or "split" in env or "part" in env:
-        raise _bad("env", env, "environment keys other than predictor, split and part (the grid sets those)")
+    env = _env_mapping(raw.get("env") or {}, "env")
+    _check_reaction(env, "env")
+    for policy in policies:
+        _check_policy_env(policy, env)
     comparisons = _pairs(raw.get("comparisons"), "comparisons", labels)
     policy_comparisons = _pairs(raw.get("policy_comparisons"), "policy_comparisons", [p.name for p in policies])
+    reactions = [r for r in dict.fromkeys((dict(env) | dict(p.env)).get("reaction") for p in policies) if r]
+    reaction_comparisons = _pairs(raw.get("reaction_comparisons"), "reaction_comparisons", reactions)
+    if reaction_comparisons and not comparisons:
+        raise _bad(
+            "reaction_comparisons",
+            raw["reaction_comparisons"],
+            "nothing without comparisons (the gains whose change across reactions is tested)",
+        )
+    disturbance_comparisons = _pairs(raw.get("disturbance_comparisons"), "disturbance_comparisons", labels)
     bins = raw.get("density_bins", 3)
     if isinstance(bins, list):
         if len(bins) < 2 or not all(isinstance(v, int | float) for v in bins) or list(bins) != sorted(set(bins)):
@@ -553,6 +702,8 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
         runs_dir=raw.get("runs_dir", ""),
         comparisons=comparisons,
         policy_comparisons=policy_comparisons,
+        reaction_comparisons=reaction_comparisons,
+        disturbance_comparisons=disturbance_comparisons,
         density_bins=bins,
         alpha=float(alpha),
         power=float(power),
@@ -565,6 +716,7 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
 
 def load_config(path: str | os.PathLike[str]) -> AblationConfig:
     """Read and validate a grid YAML (:class:`ConfigError` messages start with the file name)."""
+    path = existing_config(path, "ablation")  # a missing file lists the grids under configs/ablation/
     try:
         return config_from_mapping(load_yaml(path), source=str(path))
     except ConfigError as exc:

@@ -60,10 +60,10 @@ class _Episodes:
 
 
 def aggregate(episodes: _Episodes) -> dict[str, Any]:
-    """The evaluation's own aggregates (:func:`agents.evaluate.summarise`) of the pooled episodes: rates with
+    """The evaluation's own aggregates (:func:`agents.evaluation.summary.summarise`) of the pooled episodes: rates with
     Wilson intervals, metric means with bootstrap intervals (navigation time and path ratio over successful
     episodes; the forecast ADE is undefined in the ``none`` arm)."""
-    from agents.evaluate import summarise
+    from agents.evaluation.summary import summarise
 
     return summarise(episodes.rows)
 
@@ -116,11 +116,18 @@ def cell_record(st: CellStatus) -> dict[str, Any]:
 
 
 #: Leading columns of the results' combined ``episodes.csv.gz`` (the cell and the episode), then every
-#: per-episode metric of :data:`agents.evaluate.METRICS`.
+#: per-episode metric of :data:`agents.rollout.METRICS` the episodes record (:func:`agents.rollout.recorded_metrics`).
 ARCHIVE_KEYS: Final[tuple[str, ...]] = ("policy", "arm", "split", "seed", "episode", "outcome")
 #: Per-episode counts archived after the metrics: pop-in events (a track that began on the robot, ``envs.popin``),
 #: which the summary counts per cell (``popin_episodes``, ``popin_events``).
 ARCHIVE_COUNTS: Final[tuple[str, ...]] = ("popin_events",)
+
+
+def _has_disturbance(pooled: Mapping[tuple[str, str], _Episodes]) -> bool:
+    """Whether any episode reports a disturbance metric (:data:`agents.rollout.DISTURBANCE_METRICS`)."""
+    from agents.rollout import DISTURBANCE_METRICS
+
+    return any(row.get(m) not in (None, "") for eps in pooled.values() for row in eps.rows for m in DISTURBANCE_METRICS)
 
 
 def _exact(value: str | None) -> str:
@@ -135,20 +142,27 @@ def _exact(value: str | None) -> str:
 def episodes_archive(pooled: Mapping[tuple[str, str], _Episodes]) -> bytes:
     """Every evaluated episode in one gzipped CSV (:data:`ARCHIVE_KEYS` and the metrics, each value exactly as
     the evaluation wrote it; byte-identical for identical inputs), committed beside the summary: the summary is
-    computed from this file (:func:`read_archive`), so the results alone reproduce it."""
+    computed from this file (:func:`read_archive`), so the results alone reproduce it.
+
+    The disturbance metrics (:data:`agents.rollout.DISTURBANCE_METRICS`) are the last columns when some episode
+    reports them; an archive of episodes that do not (every grid before reacting pedestrians) has no such columns, so
+    it is written byte for byte as before, and its episodes read them as absent (blank), never as zero."""
     import gzip
 
-    from agents.evaluate import METRICS
+    from agents.rollout import DISTURBANCE_METRICS, recorded_metrics
 
+    # the metrics the episodes record: one added since an archive was written stays out of it (agents.rollout)
+    metrics = recorded_metrics([row for eps in pooled.values() for row in eps.rows])
+    extra = (*ARCHIVE_COUNTS, *(DISTURBANCE_METRICS if _has_disturbance(pooled) else ()))
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow((*ARCHIVE_KEYS, *METRICS, *ARCHIVE_COUNTS))
+    writer.writerow((*ARCHIVE_KEYS, *metrics, *extra))
     for (policy, arm), eps in sorted(pooled.items()):
         for (split, seed, ep), row in sorted(
             zip(eps.keys, eps.rows, strict=True),
             key=lambda kr: (kr[0][0], -1 if kr[0][1] is None else kr[0][1], kr[0][2]),
         ):
-            values = [_exact(row.get(col)) for col in (*METRICS, *ARCHIVE_COUNTS)]
+            values = [_exact(row.get(col)) for col in (*metrics, *extra)]
             writer.writerow([policy, arm, split, "" if seed is None else seed, ep, row.get("outcome", ""), *values])
     return gzip.compress(buf.getvalue().encode("utf-8"), mtime=0)
 

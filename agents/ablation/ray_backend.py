@@ -45,9 +45,9 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, Final
 
-from agents.ablation.backends import STOP_TIMEOUT_S, CellTask, _Backend, execute_cell
 from agents.ablation.cells import _read_json
 from agents.ablation.config import CELL_JSON, TRAIN_RUN
+from agents.ablation.execute import STOP_TIMEOUT_S, CellTask, _Backend, execute_cell
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.utils import atomic_write_json
 

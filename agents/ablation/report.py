@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import itertools
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,26 +27,51 @@ def _pct(rate: Any, ci: Any) -> str:
     return f"{100 * rate:.1f}{bounds}"
 
 
-def _mean(entry: Mapping[str, Any], metric: str, digits: int = 2) -> str:
+def _mean(entry: Mapping[str, Any], metric: str, digits: int = 2, missing: str = "-") -> str:
+    """``mean [lo, hi]`` of ``entry``'s ``<metric>_mean`` and ``<metric>_ci``; ``missing`` when there is none."""
     v = entry.get(f"{metric}_mean")
     if v is None:
-        return "-"
+        return missing
     lo, hi = entry.get(f"{metric}_ci") or (None, None)
     bounds = f" [{lo:.{digits}f}, {hi:.{digits}f}]" if lo is not None and hi is not None else ""
     return f"{v:.{digits}f}{bounds}"
 
 
+#: Columns of the rate tables after the rates: (header, metric, digits). The metrics of issue 31 replace or join
+#: the older ones only where the episodes record them (summaries of older archives render as they did).
+_METRIC_COLUMNS: tuple[tuple[str, str, int], ...] = (
+    ("nav. time s (successes)", "navigation_time_s", 1),
+    ("path ratio (successes)", "path_ratio", 2),
+    ("min gap m", "min_gap_m", 2),
+    ("forecast ADE m", "forecast_ade_m", 2),
+)
+_CURRENT_COLUMNS: tuple[tuple[str, str, int], ...] = (
+    ("nav. time s (successes)", "navigation_time_s", 1),
+    ("path ratio to required (successes)", "path_ratio_required", 2),
+    ("SPL", "spl", 2),
+    ("min clearance m", "min_clearance_m", 2),
+    ("min TTC s", "min_ttc_s", 2),
+    ("forecast ADE m", "forecast_ade_m", 2),
+)
+
+
+def _columns(entries: Mapping[str, Mapping[str, Any]]) -> tuple[tuple[str, str, int], ...]:
+    """The current columns when any entry records the metrics of issue 31 (``spl``), else the older ones."""
+    return _CURRENT_COLUMNS if any("spl_mean" in e for e in entries.values()) else _METRIC_COLUMNS
+
+
 def _rate_table(entries: Mapping[str, Mapping[str, Any]], with_seeds: bool) -> list[str]:
+    columns = _columns(entries)
     head = "| arm | " + ("seeds | " if with_seeds else "") + "episodes | success % | collision % | timeout % | "
-    head += "nav. time s (successes) | path ratio (successes) | min gap m | forecast ADE m |"
+    head += " | ".join(h for h, _, _ in columns) + " |"
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for arm, e in entries.items():
         seeds = (", ".join(map(str, e.get("seeds", []))) + " | ") if with_seeds else ""
+        means = " | ".join(_mean(e, key, digits) for _, key, digits in columns)
         lines.append(
             f"| {arm} | {seeds}{e['episodes']} | {_pct(e['success_rate'], e['success_ci'])} | "
             f"{_pct(e['collision_rate'], e['collision_ci'])} | {_pct(e['timeout_rate'], e['timeout_ci'])} | "
-            f"{_mean(e, 'navigation_time_s', 1)} | {_mean(e, 'path_ratio')} | {_mean(e, 'min_gap_m')} | "
-            f"{_mean(e, 'forecast_ade_m')} |"
+            f"{means} |"
         )
     return lines
 
@@ -58,27 +83,192 @@ def _p(v: Any) -> str:
 
 
 def _ceiling_lines(summary: Mapping[str, Any]) -> list[str]:
-    """The section of success as a fraction of the privileged ceiling (nothing when the grid has none)."""
-    ceiling = summary.get("ceiling")
-    if not ceiling:
+    """The section of success as a fraction of the privileged ceiling (nothing when the grid has none); a grid with
+    several (one per reaction) has one table each, dividing the policies in the same environment."""
+    ceilings = summary.get("ceilings") or [summary.get("ceiling")]
+    if not ceilings[0]:
         return []
-    splits = [sp for sp in summary["splits"] if sp in ceiling["by_split"]]
-    rates = ", ".join(f"{sp} {100 * ceiling['by_split'][sp]:.1f} %" for sp in splits)
+    lines = ["## Fraction of the privileged ceiling", ""]
+    for ceiling in ceilings:
+        splits = [sp for sp in summary["splits"] if sp in ceiling["by_split"]]
+        rates = ", ".join(f"{sp} {100 * ceiling['by_split'][sp]:.1f} %" for sp in splits)
+        lines += [
+            f"`{ceiling['policy']}` is PRIVILEGED: it reads the replay's true future of every pedestrian, which no "
+            f"policy's observation carries -- a measuring stick, not a competitor. Its success: {rates}. Each cell "
+            "below is a policy's success divided by the ceiling's on the same episodes (pooled over seeds).",
+            "",
+            "| policy | arm | " + " | ".join(splits) + " |",
+            "|---|---" + "|---" * len(splits) + "|",
+        ]
+        for name, arms in ceiling["fractions"].items():
+            for arm, by_split in arms.items():
+                cells = [f"{by_split[sp]:.3f}" if by_split.get(sp) is not None else "-" for sp in splits]
+                lines.append(f"| {name} | {arm} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return lines
+
+
+def _points(value: Any, ci: Any = None) -> str:
+    """A difference of rates in percentage points, signed, with its interval."""
+    if value is None:
+        return "-"
+    lo, hi = ci if ci else (None, None)
+    bounds = f" [{100 * lo:+.1f}, {100 * hi:+.1f}]" if lo is not None and hi is not None else ""
+    return f"{100 * value:+.1f}{bounds}"
+
+
+def _value(value: Any, ci: Any = None, digits: int = 2, sign: bool = False) -> str:
+    if value is None:
+        return "-"
+    lo, hi = ci if ci else (None, None)
+    fmt = f"{'+' if sign else ''}.{digits}f"
+    bounds = f" [{lo:{fmt}}, {hi:{fmt}}]" if lo is not None and hi is not None else ""
+    return f"{value:{fmt}}{bounds}"
+
+
+def _test_rows(
+    tests: Sequence[Mapping[str, Any]],
+    head: Callable[[Mapping[str, Any]], str],
+    body: Callable[[Mapping[str, Any]], str],
+) -> list[str]:
+    """Table rows of tests: ``head`` (the first cells, ``| a | b |``) then ``body``'s cells with the Holm-adjusted p
+    starred when significant, or ``missing`` for a test whose cells have not run."""
+    rows = []
+    for t in tests:
+        if t.get("missing"):
+            rows.append(f"{head(t)} missing |")
+            continue
+        star = " *" if t.get("significant") else ""
+        rows.append(f"{head(t)} {body(t)} | {_p(t['p_value'])} | {_p(t['p_holm'])}{star} |")
+    return rows
+
+
+def _reaction_lines(summary: Mapping[str, Any]) -> list[str]:
+    """The section on reacting crowds (policies keyed ``<planner>@<reaction>``; nothing in a grid without them): success
+    per planner, arm and reaction, the change of each gain across reactions, and what the robot did to people."""
+    reacting = {n: p for n, p in summary["policies"].items() if p.get("reaction")}
+    if not reacting:
+        return []
+    reactions = list(dict.fromkeys(p["reaction"] for p in reacting.values()))
     lines = [
-        "## Fraction of the privileged ceiling",
+        "## Reacting crowds",
         "",
-        f"`{ceiling['policy']}` is PRIVILEGED: it reads the replay's true future of every pedestrian, which no "
-        f"policy's observation carries -- a measuring stick, not a competitor. Its success: {rates}. Each cell "
-        "below is a policy's success divided by the ceiling's on the same episodes (pooled over seeds).",
+        "A policy keyed `<planner>@<reaction>` ran among pedestrians who react to the robot (the environment's "
+        "`reaction`, docs/reaction.md: each follows its recording until the robot comes near, reacts through the "
+        "model, and rejoins its recording); `@none` is the replay. Every reaction runs the same fixed episodes. "
+        "`oracle` is the recorded future, what people would have done without the robot: once they react it is a "
+        "counterfactual, not the truth.",
         "",
-        "| policy | arm | " + " | ".join(splits) + " |",
-        "|---|---" + "|---" * len(splits) + "|",
+        "Success % [95 % Wilson interval], pooled over the splits:",
+        "",
+        "| planner | arm | " + " | ".join(reactions) + " |",
+        "|---|---" + "|---" * len(reactions) + "|",
     ]
-    for name, arms in ceiling["fractions"].items():
-        for arm, by_split in arms.items():
-            cells = [f"{by_split[sp]:.3f}" if by_split.get(sp) is not None else "-" for sp in splits]
-            lines.append(f"| {name} | {arm} | " + " | ".join(cells) + " |")
+    for planner in dict.fromkeys(n.split("@", 1)[0] for n in reacting):
+        by_reaction = {p["reaction"]: p for n, p in reacting.items() if n.split("@", 1)[0] == planner}
+        for arm in dict.fromkeys(a for p in by_reaction.values() for a in p["arms"]):
+            entries = [by_reaction.get(r, {}).get("arms", {}).get(arm) for r in reactions]
+            cells = [_pct(e["success_rate"], e["success_ci"]) if e else "" for e in entries]
+            lines.append(f"| {planner} | {arm} | " + " | ".join(cells) + " |")
+    lines.append("")
+    return lines + _gain_change_lines(summary) + _disturbance_lines(summary, reacting)
+
+
+def _gain_change_lines(summary: Mapping[str, Any]) -> list[str]:
+    """The declared change of each gain across reactions (``reaction_tests``), pooled and per split."""
+    tests = summary.get("reaction_tests") or []
+    if not tests:
+        return []
+    fam = summary["multiple_comparisons"]["family_sizes"].get("success_gain_change", 0)
+
+    def head(t: Mapping[str, Any]) -> str:
+        return f"| {t['planner']} | {t['gain']['a']} - {t['gain']['b']} | {t['reaction']} vs {t['baseline']} |"
+
+    def body(t: Mapping[str, Any]) -> str:
+        counts = " / ".join(str(t["d_counts"].get(str(k), 0)) for k in (-2, -1, 0, 1, 2))
+        gains = f"{_points(t['gain_reaction'], t['gain_reaction_ci'])} | {_points(t['gain_baseline'], t['gain_baseline_ci'])}"
+        return f"{t['n']} | {gains} | {_points(t['difference'], t['difference_ci'])} | {counts}"
+
+    lines = [
+        "### Does a forecast's gain survive when people react?",
+        "",
+        "A gain is `a - b`, the difference in success of two arms on the same episodes (points). Declared in the config "
+        "before any result: for each planner run under both reactions and each arm comparison, the change of the gain "
+        "from the baseline reaction to the reaction, on the same episodes pooled over the splits: per episode "
+        "`d = (s_a,r - s_b,r) - (s_a,baseline - s_b,baseline)` in {-2, ..., 2} (`s` = 1 for a success), the change = "
+        "mean `d` with a bootstrap percentile interval over episodes; exact sign-flip test of `d` (H0: `d` symmetric "
+        f"about 0, the McNemar null generalised), Holm-Bonferroni over the {fam} tests; significant = Holm-adjusted "
+        f"p <= {summary['multiple_comparisons']['alpha']}. A negative change: the gain shrinks where people react; the "
+        "counts of `d` say how many episodes moved each way.",
+        "",
+        "| planner | gain | reaction vs baseline | episodes | gain there [95 % CI] | gain at baseline [95 % CI] | "
+        "change [95 % CI] | d = -2 / -1 / 0 / +1 / +2 | p | p Holm |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+        *_test_rows(tests, head, body),
+        "",
+        "Per split (descriptive: the same estimate and test on each split's episodes, not in the Holm family):",
+        "",
+        "| planner | gain | reaction vs baseline | split | episodes | change [95 % CI] | p (unadjusted) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for t in tests:
+        for split, e in ({} if t.get("missing") else t["by_split"]).items():
+            change = _points(e["difference"], e["difference_ci"])
+            lines.append(f"{head(t)} {split} | {e['n']} | {change} | {_p(e['p_value'])} |")
     return [*lines, ""]
+
+
+def _disturbance_lines(summary: Mapping[str, Any], reacting: Mapping[str, Any]) -> list[str]:
+    """The disturbance metrics per reacting policy and arm, and the declared comparisons (``disturbance_tests``)."""
+    from agents.rollout import DISTURBANCE_METRICS
+
+    lines: list[str] = []
+    shown = {n: p for n, p in reacting.items() if any("ped_disturbed_mean" in e for e in p["arms"].values())}
+    if shown:
+        lines += [
+            "### What the robot does to people",
+            "",
+            "Per episode, measured against the recordings (docs/reaction.md): `ped_disturbed` pedestrians that "
+            "deviated from their recording, their mean and largest deviation (m), `ped_delay_s` the time they still "
+            "needed beyond the recording (summed). Means over every episode of the arm (0 where nobody was disturbed; "
+            "0 by definition under `none`) with 95 % bootstrap percentile intervals, which stay within the metric's "
+            "range; disturbed = episodes that disturbed anyone (% with Wilson interval).",
+            "",
+            "| policy | arm | episodes | disturbed % | pedestrians disturbed | deviation mean m | deviation max m | "
+            "delay s |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for name, pol in shown.items():
+            for arm, e in ((a, e) for a, e in pol["arms"].items() if "ped_disturbed_mean" in e):
+                rate = _pct(e.get("disturbed_episode_rate"), e.get("disturbed_episode_ci"))
+                metrics = " | ".join(_value(e.get(f"{m}_mean"), e.get(f"{m}_ci")) for m in DISTURBANCE_METRICS)
+                lines.append(f"| {name} | {arm} | {e['episodes']} | {rate} | {metrics} |")
+        lines.append("")
+    tests = summary.get("disturbance_tests") or []
+    if tests:
+        fam = summary["multiple_comparisons"]["family_sizes"]
+        sizes = ", ".join(f"{fam.get(m, 0)} for `{m}`" for m in DISTURBANCE_METRICS)
+        lines += [
+            "### Does planning with forecasts disturb people less?",
+            "",
+            "Declared in the config before any result: arm comparisons within every policy whose pedestrians react, "
+            "on the episodes both arms finished successfully (the same trip completed), pooled over the splits: "
+            "means of both arms, the mean difference a - b with a bootstrap percentile interval over pairs, and the "
+            f"Wilcoxon signed-rank test, Holm-Bonferroni within each metric ({sizes}). Negative: arm a disturbs less.",
+            "",
+            "| policy | a | b | metric | pairs | mean a | mean b | a - b [95 % CI] | p | p Holm |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+            *_test_rows(
+                tests,
+                lambda t: f"| {t['policy']} | {t['a']} | {t['b']} | {t['endpoint']} |",
+                lambda t: (
+                    f"{t['pairs']} | {_value(t['mean_a'])} | {_value(t['mean_b'])} | "
+                    f"{_value(t['difference'], t['difference_ci'], sign=True)}"
+                ),
+            ),
+            "",
+        ]
+    return lines
 
 
 def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: Sequence[str] = ()) -> str:
@@ -126,6 +316,15 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         "episodes, scored against the replay).",
         "",
     ]
+    if any(_columns(pol["arms"]) is _CURRENT_COLUMNS for pol in summary["policies"].values()):
+        lines += [
+            "Path ratio to required: path length / (straight line - goal tolerance), at least 1 for a success. SPL: "
+            "success weighted by path length (Anderson et al. 2018), over all episodes. Min clearance: closest "
+            "surface distance to a pedestrian (0 at contact). Min TTC: smallest constant-velocity time to collision "
+            "with a pedestrian, averaged over the episodes that had one on a collision course. Definitions: "
+            "docs/env.md, episode metrics.",
+            "",
+        ]
     for name, pol in summary["policies"].items():
         lines += [f"### {name}", "", *_rate_table(pol["arms"], bool(pol["timesteps"])), ""]
         for split in summary["splits"] if len(summary["splits"]) > 1 else ():
@@ -133,6 +332,7 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
             if per:
                 lines += [f"{name} on `{split}`:", "", *_rate_table(per, False), ""]
     lines += _ceiling_lines(summary)
+    lines += _reaction_lines(summary)
     edges = summary["density_bins"]
     if edges:
         lines += [
@@ -169,9 +369,25 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         f"approximation), at alpha = {mc['alpha']} and at the strictest Holm level alpha / {max(fam.get('success', 0), 1)}; "
         "'-' where no difference the observed discordance allows reaches that power (or no pair is discordant).",
         "",
-        "| split | a | b | n | b10 (a only) | b01 (b only) | success diff a-b [95 % CI] | p | p Holm | MDD | MDD Holm |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    exact = any("difference_exact_ci" in t for t in summary["tests"])
+    if exact:
+        lines += [
+            "The interval of a success difference is the exact conditional one (the Clopper-Pearson interval of the "
+            "discordant pairs' split, mapped onto the difference): it excludes 0 exactly when p < 0.05. The verdict "
+            f"reads the Holm-adjusted p at alpha = {mc['alpha']}, so a comparison whose interval excludes 0 can still "
+            "show no difference once the family of tests is counted; 'no difference shown' is not a finding of "
+            "equality.",
+            "",
+            "| split | a | b | n | b10 (a only) | b01 (b only) | success diff a-b [95 % CI] | p | p Holm | verdict "
+            "| MDD | MDD Holm |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
+    else:
+        lines += [
+            "| split | a | b | n | b10 (a only) | b01 (b only) | success diff a-b [95 % CI] | p | p Holm | MDD | MDD Holm |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
 
     def side(s: Mapping[str, str]) -> str:
         return f"{s['policy']}/{s['arm']}"
@@ -180,16 +396,18 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         if t["endpoint"] != "success":
             continue
         if t.get("missing"):
-            lines.append(f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | missing | | | | | | | |")
+            empty = " | | | | | | |" + (" |" if exact else "")
+            lines.append(f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | missing |{empty}")
             continue
-        lo, hi = t["difference_ci"]
+        lo, hi = t["difference_exact_ci"] if exact else t["difference_ci"]
         diff = f"{100 * t['difference']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}]" if lo is not None else "-"
         mdd = "-" if t.get("mdd") is None else f"{100 * t['mdd']:.1f}"
         mddh = "-" if t.get("mdd_holm_strictest") is None else f"{100 * t['mdd_holm_strictest']:.1f}"
         star = " *" if t.get("significant") else ""
+        verdict = f" {t.get('verdict', '-')} |" if exact else ""
         lines.append(
             f"| {t['split']} | {side(t['a'])} | {side(t['b'])} | {t['n']} | {t['b10']} | {t['b01']} | {diff} | "
-            f"{_p(t['p_value'])} | {_p(t['p_holm'])}{star} | {mdd} | {mddh} |"
+            f"{_p(t['p_value'])} | {_p(t['p_holm'])}{star} |{verdict} {mdd} | {mddh} |"
         )
     seed_rows = [t for t in summary["tests"] if t["endpoint"] == "success" and t.get("seed_level")]
     if seed_rows:

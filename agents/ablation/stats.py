@@ -121,8 +121,14 @@ def paired_tests(
     cfg: AblationConfig, pooled: Mapping[tuple[str, str], _Episodes]
 ) -> tuple[list[dict[str, Any]], dict[str, int]]:
     """The declared comparisons: exact McNemar on success and Wilcoxon on navigation time (both succeeded),
-    Holm-adjusted within each endpoint over every test performed; returns the tests and the family sizes."""
-    from agents.stats import holm, mcnemar_exact, mcnemar_min_detectable_difference, wilcoxon_paired
+    Holm-adjusted within each endpoint over every test performed; returns the tests and the family sizes.
+
+    A success test of episodes that record the metrics added in issue 31 (:data:`agents.rollout.ADDED_METRICS`)
+    carries ``difference_exact_ci`` (:func:`agents.stats.mcnemar_difference_ci`) and ``verdict``
+    (:func:`agents.stats.paired_verdict` on the Holm-adjusted p); one of an older archive carries the paired bootstrap
+    ``difference_ci`` it was first summarised with."""
+    from agents.rollout import ADDED_METRICS, recorded_metrics
+    from agents.stats import holm, mcnemar_exact, mcnemar_min_detectable_difference, paired_verdict, wilcoxon_paired
 
     planned: list[tuple[str, str, str, str, str, str]] = []  # (policy_a, arm_a, policy_b, arm_b, split, kind)
     for policy in cfg.policies:
@@ -133,6 +139,11 @@ def paired_tests(
         for arm in cfg.arms:
             if cfg.policy(p).uses(arm) and cfg.policy(q).uses(arm):
                 planned += [(p, arm.label, q, arm.label, split, "policies") for split in cfg.splits]
+    # The success difference's interval: episodes recorded with the metrics of issue 31 get the exact conditional
+    # interval, which excludes 0 exactly when the McNemar test rejects, and a verdict; archives written before keep
+    # the paired bootstrap interval they were summarised with (under its own key), so their summaries stay as they are.
+    current = bool(set(ADDED_METRICS) & set(recorded_metrics([r for eps in pooled.values() for r in eps.rows])))
+    intervals = ("exact",) if current else ("bootstrap",)
     tests: list[dict[str, Any]] = []
     for pa, aa, pb, ab, split, kind in planned:
         base = {"comparison": kind, "split": split, "a": {"policy": pa, "arm": aa}, "b": {"policy": pb, "arm": ab}}
@@ -144,7 +155,7 @@ def paired_tests(
         if sa.size == 0:
             tests.append({**base, "endpoint": "success", "missing": True})
             continue
-        mc = mcnemar_exact(sa, sb)
+        mc = mcnemar_exact(sa, sb, intervals=intervals)
         seed_level = _seed_level(ea, eb, keys, sa, sb, 0.95)
         tests.append({**base, "endpoint": "success", **mc, **({"seed_level": seed_level} if seed_level else {})})
         both = sa & sb
@@ -158,6 +169,8 @@ def paired_tests(
             t["p_holm"] = adj
             t["family_size"] = len(members)
             t["significant"] = bool(adj <= cfg.alpha)
+            if current and endpoint == "success":
+                t["verdict"] = paired_verdict(t["difference"], adj, cfg.alpha)
     seed_tests = [t["seed_level"] for t in tests if t.get("seed_level") and math.isfinite(t["seed_level"]["p_value"])]
     families["success_seed_level"] = len(seed_tests)
     for st, adj in zip(seed_tests, holm([st["p_value"] for st in seed_tests]), strict=True):
@@ -185,3 +198,280 @@ def _clean(obj: Any) -> Any:
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
+
+
+# ----------------------------------------------------------------------------- reacting pedestrians (issue 28)
+
+
+def percentile_mean_ci(
+    values: Sequence[float] | np.ndarray, confidence: float = 0.95, n_resamples: int = 2000, seed: int = 0
+) -> tuple[float, float]:
+    """Bootstrap percentile interval of the mean (``scipy.stats.bootstrap``, ``method="percentile"``; non-finite values
+    dropped; none gives ``(nan, nan)``, a constant ``(v, v)``).
+
+    Its bounds are means of resamples of the values, so they stay within the values' range: the interval of a
+    non-negative metric (a count, a distance, a delay) is non-negative, and that of a paired difference of {0, 1}
+    outcomes within [-2, 2] -- which a normal interval of skewed, zero-heavy data need not be."""
+    from scipy import stats
+
+    x = np.asarray(values, dtype=float).ravel()
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return (math.nan, math.nan)
+    if np.all(x == x[0]):
+        return (float(x[0]), float(x[0]))
+    res = stats.bootstrap(
+        (x,), np.mean, n_resamples=n_resamples, confidence_level=confidence, method="percentile",
+        vectorized=True, rng=np.random.default_rng(seed),
+    )  # fmt: skip
+    return (float(res.confidence_interval.low), float(res.confidence_interval.high))
+
+
+def sign_flip_exact(d: Sequence[int] | np.ndarray) -> dict[str, Any]:
+    """Exact two-sided sign-flip test of integer paired values ``d`` (e.g. a difference of paired differences of
+    successes, in {-2, ..., 2}): H0 is that ``d`` is symmetric about 0 (``P(d = k) = P(d = -k)``), the McNemar null
+    generalised.
+
+    Conditional on the magnitudes, flipping each sign with probability 1/2 makes ``S = sum(d) = sum_k k (2 X_k - n_k)``
+    with independent ``X_k ~ Binomial(n_k, 1/2)``, ``n_k`` the number of values of magnitude ``k``: its exact
+    distribution is the convolution of the binomial pmfs (``scipy.stats.binom``) placed on multiples of ``k``, and
+    ``p = P(|S| >= |s|)`` (``S`` is symmetric). The enumeration ``scipy.stats.permutation_test`` would do is the same
+    distribution over ``2**n`` sign vectors, beyond reach for hundreds of non-zero values; with magnitude 1 only this
+    is the exact McNemar test (``scipy.stats.binomtest`` on the discordant pairs).
+
+    Returns ``n``, ``n_nonzero``, ``counts`` (values by ``d``), ``statistic`` (``S``), ``mean`` (``S / n``) and
+    ``p_value`` (1 without a non-zero value).
+    """
+    from scipy import stats
+
+    x = np.asarray(d, dtype=float).ravel()
+    if x.size and not np.all(x == np.round(x)):
+        raise ValueError(f"sign_flip_exact needs integer values, got {x[x != np.round(x)][:3]}")
+    v = x.astype(np.int64)
+    n = int(v.size)
+    s = int(v.sum())
+    counts = {str(k): int(c) for k, c in zip(*np.unique(v, return_counts=True), strict=True)}
+    out: dict[str, Any] = {"test": "exact sign-flip", "n": n, "n_nonzero": int(np.count_nonzero(v))}
+    out.update(counts=counts, statistic=s, mean=s / n if n else math.nan)
+    magnitudes = np.abs(v[v != 0])
+    if magnitudes.size == 0:
+        out["p_value"] = 1.0
+        return out
+    pmf = np.ones(1)  # of T = sum_k k X_k, on 0 .. sum_k k n_k
+    for k, n_k in zip(*np.unique(magnitudes, return_counts=True), strict=True):
+        spread = np.zeros(int(k) * int(n_k) + 1)
+        spread[:: int(k)] = stats.binom.pmf(np.arange(n_k + 1), n_k, 0.5)
+        pmf = np.convolve(pmf, spread)
+    total = int(magnitudes.sum())
+    values = 2 * np.arange(total + 1) - total  # S = 2 T - total
+    # S = 0 is the centre: every outcome is as extreme (summing the pmf would give 1 minus rounding)
+    out["p_value"] = 1.0 if s == 0 else float(min(1.0, pmf[np.abs(values) >= abs(s)].sum()))
+    return out
+
+
+def _episode_index(eps: _Episodes) -> dict[tuple[str, int | None, int], int]:
+    return {key: i for i, key in enumerate(eps.keys)}
+
+
+def _success(eps: _Episodes, idx: Sequence[int]) -> np.ndarray:
+    return np.asarray(eps.outcome()[list(idx)] == "success", dtype=float)
+
+
+def _policy_of(cfg: AblationConfig, base: str, reaction: str) -> Any:
+    return next((p for p in cfg.policies if p.base == base and cfg.reaction(p) == reaction), None)
+
+
+def reaction_tests(
+    cfg: AblationConfig, pooled: Mapping[tuple[str, str], _Episodes], confidence: float = 0.95
+) -> tuple[list[dict[str, Any]], int]:
+    """The declared change of each gain across reactions (``reaction_comparisons`` x ``comparisons``).
+
+    For a planner run under reactions ``r`` and ``baseline`` (policies ``<planner>@r`` and ``<planner>@baseline``)
+    and a gain ``a - b`` (an arm pair of ``comparisons``), every episode of the fixed lists (each split's, pooled over
+    the splits; keyed by split, seed and episode) gives ``d = (s_a,r - s_b,r) - (s_a,baseline - s_b,baseline)`` in
+    {-2, ..., 2}, ``s`` its success (1/0) in each of the four cells. ``difference`` = mean ``d`` = the gain under ``r``
+    minus the gain under the baseline, with a bootstrap percentile interval over episodes (the four outcomes of an
+    episode resampled together); the test is :func:`sign_flip_exact` on ``d``, Holm-adjusted over every test here.
+    ``by_split`` gives the same per split, descriptive (its p-values are not in the family).
+
+    Returns the tests (in the order reaction pair, planner, gain) and the family size.
+    """
+    tests: list[dict[str, Any]] = []
+    bases = list(dict.fromkeys(p.base for p in cfg.policies))
+    for r, r0 in cfg.reaction_comparisons:
+        for base in bases:
+            pol, pol0 = _policy_of(cfg, base, r), _policy_of(cfg, base, r0)
+            if pol is None or pol0 is None:
+                continue
+            for a, b in cfg.comparisons:
+                if not all(p.uses(cfg.arm(x)) for p in (pol, pol0) for x in (a, b)):
+                    continue
+                entry: dict[str, Any] = {
+                    "comparison": "reactions",
+                    "endpoint": "success",
+                    "planner": base,
+                    "reaction": r,
+                    "baseline": r0,
+                    "policy": pol.name,
+                    "baseline_policy": pol0.name,
+                    "gain": {"a": a, "b": b},
+                }
+                cells = [pooled.get((p.name, x)) for p, x in ((pol, a), (pol, b), (pol0, a), (pol0, b))]
+                if any(c is None for c in cells):
+                    tests.append({**entry, "missing": True})
+                    continue
+                indexes = [_episode_index(c) for c in cells if c is not None]
+                keys = [k for k in cells[0].keys if all(k in ix for ix in indexes)] if cells[0] else []
+                if not keys:
+                    tests.append({**entry, "missing": True})
+                    continue
+                sa, sb, sa0, sb0 = (_success(c, [ix[k] for k in keys]) for c, ix in zip(cells, indexes, strict=True))
+                splits = np.asarray([k[0] for k in keys], dtype=object)
+                tests.append(
+                    {
+                        **entry,
+                        **_change_of_gain(sa, sb, sa0, sb0, confidence),
+                        "by_split": {
+                            sp: _change_of_gain(
+                                sa[splits == sp], sb[splits == sp], sa0[splits == sp], sb0[splits == sp], confidence
+                            )
+                            for sp in cfg.splits
+                            if np.any(splits == sp)
+                        },
+                    }
+                )
+    _holm_family([t for t in tests if not t.get("missing")], cfg.alpha)
+    return tests, sum(not t.get("missing") for t in tests)
+
+
+def _change_of_gain(
+    sa: np.ndarray, sb: np.ndarray, sa0: np.ndarray, sb0: np.ndarray, confidence: float
+) -> dict[str, Any]:
+    """The gain under the reaction and the baseline (means of paired differences, with percentile intervals) and
+    the test of their difference (:func:`sign_flip_exact` on ``d``)."""
+    d = (sa - sb) - (sa0 - sb0)
+    test = sign_flip_exact(d)
+    return {
+        "test": test["test"],
+        "n": test["n"],
+        "gain_reaction": float(np.mean(sa - sb)),
+        "gain_reaction_ci": list(percentile_mean_ci(sa - sb, confidence)),
+        "gain_baseline": float(np.mean(sa0 - sb0)),
+        "gain_baseline_ci": list(percentile_mean_ci(sa0 - sb0, confidence)),
+        "difference": test["mean"],
+        "difference_ci": list(percentile_mean_ci(d, confidence)),
+        "d_counts": test["counts"],
+        "statistic": test["statistic"],
+        "p_value": test["p_value"],
+    }
+
+
+def _holm_family(tests: Sequence[dict[str, Any]], alpha: float) -> None:
+    """Holm-adjust the tests' ``p_value`` as one family (``p_holm``, ``family_size``, ``significant``), in place."""
+    from agents.stats import holm
+
+    for t, adj in zip(tests, holm([t["p_value"] for t in tests]), strict=True):
+        t["p_holm"] = adj
+        t["family_size"] = len(tests)
+        t["significant"] = bool(adj <= alpha)
+
+
+def disturbance_summary(eps: _Episodes, confidence: float = 0.95) -> dict[str, Any]:
+    """An arm's disturbance metrics (:data:`agents.rollout.DISTURBANCE_METRICS`) over its episodes: for each,
+    ``<metric>_mean``, ``<metric>_ci`` (:func:`percentile_mean_ci`, within the metric's range) and ``<metric>_n``;
+    and ``disturbed_episodes`` (episodes that disturbed anyone), ``disturbed_episode_rate`` with its Wilson interval.
+    Empty when no episode reports them (an archive from before reacting pedestrians: absent, not zero)."""
+    from agents.rollout import DISTURBANCE_METRICS
+    from agents.stats import wilson_interval
+
+    out: dict[str, Any] = {}
+    for metric in DISTURBANCE_METRICS:
+        x = eps.metric(metric)
+        x = x[np.isfinite(x)]
+        if x.size == 0:
+            continue
+        lo, hi = percentile_mean_ci(x, confidence)
+        out.update({f"{metric}_mean": float(x.mean()), f"{metric}_ci": [lo, hi], f"{metric}_n": int(x.size)})
+    disturbed = eps.metric("ped_disturbed")
+    known = np.isfinite(disturbed)
+    if known.any():
+        k, n = int(np.sum(disturbed[known] > 0)), int(known.sum())
+        out.update(
+            disturbed_episodes=k,
+            disturbed_episode_rate=k / n,
+            disturbed_episode_ci=list(wilson_interval(k, n, confidence)),
+        )
+    return out
+
+
+def disturbance_tests(
+    cfg: AblationConfig, pooled: Mapping[tuple[str, str], _Episodes], confidence: float = 0.95
+) -> tuple[list[dict[str, Any]], dict[str, int]]:
+    """The declared disturbance comparisons (``disturbance_comparisons``) within every policy whose pedestrians react
+    (a reaction other than ``none``, where every disturbance metric is 0 by definition).
+
+    Pairs: the episodes of the fixed lists both arms finished successfully (so both completed the same trip; a
+    collision ends an episode early, a timeout lingers), pooled over the splits. For each metric: the means of both
+    arms, the mean difference ``a - b`` with a bootstrap percentile interval over pairs, and the Wilcoxon signed-rank
+    test (``agents.stats.wilcoxon_paired``, zero differences dropped), Holm-adjusted within each metric over the
+    tests here; ``by_split`` the same estimates per split, descriptive. A pair of cells without the metrics (an
+    environment that does not report them) is ``missing``.
+
+    Returns the tests and the family size per metric.
+    """
+    from agents.rollout import DISTURBANCE_METRICS
+    from agents.stats import wilcoxon_paired
+
+    tests: list[dict[str, Any]] = []
+    for policy in cfg.policies:
+        if cfg.reaction(policy) in (None, "none"):
+            continue
+        for a, b in cfg.disturbance_comparisons:
+            if not (policy.uses(cfg.arm(a)) and policy.uses(cfg.arm(b))):
+                continue
+            base = {"comparison": "disturbance", "policy": policy.name, "reaction": cfg.reaction(policy)}
+            base.update(a=a, b=b, population="episodes both arms finished successfully")
+            ea, eb = pooled.get((policy.name, a)), pooled.get((policy.name, b))
+            if ea is None or eb is None:
+                tests += [{**base, "endpoint": m, "missing": True} for m in DISTURBANCE_METRICS]
+                continue
+            ib = _episode_index(eb)
+            keys = [k for k in ea.keys if k in ib]
+            ia = _episode_index(ea)
+            both = [k for k in keys if ea.rows[ia[k]].get("outcome") == "success" == eb.rows[ib[k]].get("outcome")]
+            splits = np.asarray([k[0] for k in both], dtype=object)
+            for metric in DISTURBANCE_METRICS:
+                x = ea.metric(metric)[[ia[k] for k in both]] if both else np.zeros(0)
+                y = eb.metric(metric)[[ib[k] for k in both]] if both else np.zeros(0)
+                if not (np.isfinite(ea.metric(metric)).any() and np.isfinite(eb.metric(metric)).any()):
+                    tests.append({**base, "endpoint": metric, "missing": True})
+                    continue
+                entry = {**base, "endpoint": metric, **_paired_metric(x, y, confidence)}
+                entry.update(wilcoxon_paired(x, y))
+                entry["by_split"] = {
+                    sp: _paired_metric(x[splits == sp], y[splits == sp], confidence)
+                    for sp in cfg.splits
+                    if np.any(splits == sp)
+                }
+                tests.append(entry)
+    families: dict[str, int] = {}
+    for metric in DISTURBANCE_METRICS:
+        members = [t for t in tests if t["endpoint"] == metric and not t.get("missing")]
+        _holm_family(members, cfg.alpha)
+        families[metric] = len(members)
+    return tests, families
+
+
+def _paired_metric(x: np.ndarray, y: np.ndarray, confidence: float) -> dict[str, Any]:
+    """Means of paired values (pairs with a non-finite member dropped) and of their difference, with a percentile
+    interval."""
+    keep = np.isfinite(x) & np.isfinite(y)
+    x, y = x[keep], y[keep]
+    n = int(x.size)
+    return {
+        "pairs": n,
+        "mean_a": float(x.mean()) if n else math.nan,
+        "mean_b": float(y.mean()) if n else math.nan,
+        "difference": float((x - y).mean()) if n else math.nan,
+        "difference_ci": list(percentile_mean_ci(x - y, confidence)),
+    }

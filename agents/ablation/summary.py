@@ -20,27 +20,38 @@ from agents.ablation.episodes import _Episodes, aggregate, cell_info, episodes_a
 from agents.ablation.plots import write_plots
 from agents.ablation.report import summary_markdown
 from agents.ablation.results import ARCHIVE, CELLS, STAMPS, _load_json, _strip, check_replace, gather
-from agents.ablation.stats import _clean, by_density, density_edges, paired_tests
+from agents.ablation.stats import (
+    _clean,
+    by_density,
+    density_edges,
+    disturbance_summary,
+    disturbance_tests,
+    paired_tests,
+    reaction_tests,
+)
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
 
 
-def ceiling_fractions(cfg: AblationConfig, policies: dict[str, Any]) -> dict[str, Any] | None:
+def ceiling_fractions(cfg: AblationConfig, policies: dict[str, Any], which: int = 0) -> dict[str, Any] | None:
     """Every policy's success per arm and split as a fraction of the privileged ceiling's on the same episodes
     (``None`` when the grid has no ``privileged`` policy). The ceiling is a measuring stick: it reads the replay's
     true future, which no other policy's observation carries; it runs one arm (its forecast input is unused).
+    ``which``: the grid's ``which``-th privileged policy; only the policies in the same environment as it (the same
+    reaction, :meth:`AblationConfig.env_for`) are divided by it.
 
     Returns ``{"policy": NAME, "by_split": {split: rate}, "fractions": {policy: {arm: {split: fraction}}}}``.
     """
     from agents.ablation.config import PRIVILEGED_KIND
 
     names = [p.name for p in cfg.policies if p.kind == PRIVILEGED_KIND]
-    if not names or not policies.get(names[0], {}).get("arms"):
+    if len(names) <= which or not policies.get(names[which], {}).get("arms"):
         return None
-    ceiling_arm = next(iter(policies[names[0]]["arms"].values()))
+    ceiling_arm = next(iter(policies[names[which]]["arms"].values()))
     rates = {sp: e["success_rate"] for sp, e in ceiling_arm["by_split"].items()}
+    env = cfg.env_for(cfg.policy(names[which]))
     fractions: dict[str, Any] = {}
     for name, pol in policies.items():
-        if name == names[0]:
+        if name == names[which] or cfg.env_for(cfg.policy(name)) != env:
             continue
         fractions[name] = {
             arm: {
@@ -50,7 +61,7 @@ def ceiling_fractions(cfg: AblationConfig, policies: dict[str, Any]) -> dict[str
             }
             for arm, entry in pol["arms"].items()
         }
-    return {"policy": names[0], "by_split": rates, "fractions": fractions}
+    return {"policy": names[which], "by_split": rates, "fractions": fractions}
 
 
 def summarize(
@@ -87,9 +98,12 @@ def summarize(
                 "seeds": sorted({s for _, s, _ in eps.keys if s is not None}),
                 "splits": sorted({sp for sp, _, _ in eps.keys}),
                 **aggregate(eps),
+                **disturbance_summary(eps),  # nothing for episodes without them (grids before reacting pedestrians)
             }
             entry["by_split"] = {
-                split: aggregate(eps.subset([k[0] == split for k in eps.keys])) for split in entry["splits"]
+                split: {**aggregate(sub), **disturbance_summary(sub)}
+                for split in entry["splits"]
+                for sub in [eps.subset([k[0] == split for k in eps.keys])]
             }
             entry["by_density"] = by_density(eps, edges)
             arms[arm.label] = entry
@@ -99,10 +113,22 @@ def summarize(
             "n_envs": policy.n_envs if policy.learned else None,
             "model": policy.model if policy.learned else None,
             "agent_config": policy.config,
+            # a policy in its own environment (a reaction): which, with every parameter; absent in other grids
+            **({"reaction": cfg.reaction(policy), "env": cfg.env_for(policy)} if policy.env else {}),
             "arms": arms,
         }
     ceiling = ceiling_fractions(cfg, policies)
+    privileged = sum(p.kind == "privileged" for p in cfg.policies)
+    ceilings = [c for i in range(privileged) if (c := ceiling_fractions(cfg, policies, i))] if privileged > 1 else []
     tests, families = paired_tests(cfg, pooled)
+    extra: dict[str, Any] = {}  # only for grids that declare them: the summaries of the others stay as they were
+    if ceilings:
+        extra["ceilings"] = ceilings
+    if cfg.reaction_comparisons:
+        extra["reaction_tests"], families["success_gain_change"] = reaction_tests(cfg, pooled)
+    if cfg.disturbance_comparisons:
+        extra["disturbance_tests"], sizes = disturbance_tests(cfg, pooled)
+        families.update(sizes)
     summary = {
         "name": cfg.name,
         "config": cfg.source,
@@ -119,6 +145,7 @@ def summarize(
         "policies": policies,
         "ceiling": ceiling,
         "tests": tests,
+        **extra,
         "multiple_comparisons": {
             "method": "Holm-Bonferroni within each endpoint",
             "alpha": cfg.alpha,

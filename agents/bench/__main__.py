@@ -2,7 +2,7 @@
 
 import sys
 
-from agents.bench import main
+from agents.bench.cli import main
 
 if __name__ == "__main__":
     sys.exit(main())

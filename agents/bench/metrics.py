@@ -21,11 +21,12 @@ import numpy as np
 import torch
 
 from crowdnav_mesrnn.data.constants import OBS_LEN, SPLITS, check_split
-from crowdnav_mesrnn.data.windows import split_windows
+from crowdnav_mesrnn.data.windows import Window, split_windows, window_locator
 from crowdnav_mesrnn.evaluation.metrics import cv_predict_batch, window_errors
 from crowdnav_mesrnn.evaluation.protocol import split_norm
 from crowdnav_mesrnn.evaluation.statistics import DEFAULT_BLOCK_LEN, PairedErrors, average_ci, block_bootstrap_ci
 from crowdnav_mesrnn.models.base import Predictor
+from crowdnav_mesrnn.predictors import check_forecast, label_of
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json
 
 #: Metrics compared against constant velocity.
@@ -34,12 +35,17 @@ BENCH_METRICS: tuple[str, ...] = ("ade_m", "fde_m")
 MIN_SCORED: int = 2
 
 
-def protocol_batch_fn(model: Predictor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+def protocol_batch_fn(
+    model: Predictor, windows: Sequence[Window] = ()
+) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
     """A :data:`~crowdnav_mesrnn.evaluation.BatchPredictFn` calling ``model.forecast`` once per window.
 
     Each window passes the pedestrians present in any of its first ``OBS_LEN`` steps (``(OBS_LEN, n, 2)`` metres
     and ``(OBS_LEN, n)`` mask); the forecast ``(n, pred_len, 2)`` is scattered back into ``(B, pred_len, N, 2)``.
+    Every forecast passes :func:`~crowdnav_mesrnn.predictors.check_forecast` (shape, finite for the pedestrians
+    present at the last observed step); its error names the window among ``windows`` (recording and frame).
     """
+    locate = window_locator(windows)
 
     def predict(positions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         pos = positions[:, :OBS_LEN].numpy()
@@ -51,13 +57,15 @@ def protocol_batch_fn(model: Predictor) -> Callable[[torch.Tensor, torch.Tensor]
             if len(seen) == 0:
                 continue
             hist = np.where(m[i][:, seen, None], pos[i][:, seen], 0.0).astype(np.float32)
-            pred = np.asarray(model.forecast(hist, m[i][:, seen]), dtype=np.float32)
-            if pred.shape != (len(seen), model.pred_len, 2):
-                raise ValueError(
-                    f"predictor {getattr(model, 'name', model)!r} returned shape {pred.shape} for {len(seen)} "
-                    f"pedestrians, expected {(len(seen), model.pred_len, 2)}"
-                )
-            out[i][:, seen] = pred.transpose(1, 0, 2)
+            now = m[i][-1, seen]  # the rows read (the protocol leaves the others unread)
+            pred = check_forecast(
+                model.forecast(hist, m[i][:, seen]),
+                name=label_of(model),
+                expected_shape=(len(seen), model.pred_len, 2),
+                rows=now,
+                **locate(positions[i].numpy(), mask[i].numpy()),
+            )
+            out[i][:, seen[now]] = pred[now].transpose(1, 0, 2)
         return torch.from_numpy(out)
 
     return predict
@@ -90,7 +98,7 @@ def _split_sums(
             pass  # unreadable or another predictor's: recompute
     windows = split_windows(split, "test", min_scored=MIN_SCORED, data_dir=data_dir)
     norm = split_norm(split, data_dir)
-    ours = window_errors(protocol_batch_fn(model), windows, norm)
+    ours = window_errors(protocol_batch_fn(model, windows), windows, norm)
     cv = window_errors(cv_predict_batch, windows, norm)
     sums = {"pedestrians": ours["pedestrians"]}
     for k in BENCH_METRICS:

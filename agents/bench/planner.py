@@ -20,7 +20,7 @@ import numpy as np
 from agents.ablation.cells import Cell, cell_dir, expand
 from agents.ablation.config import AblationConfig, config_from_mapping
 from agents.ablation.episodes import read_episodes
-from agents.stats import holm, mcnemar_exact, wilson_interval
+from agents.stats import holm, mcnemar_exact, paired_verdict, wilson_interval
 from crowdnav_mesrnn.config import ConfigError
 
 #: Held-out scenes of the planning-aid ablation (its planner cells).
@@ -29,6 +29,8 @@ DEFAULT_SCENES: tuple[str, ...] = ("univ", "zara1")
 NOISY_ORACLE_ADE_M: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
 #: The arms the benchmarked predictor is tested against (paired, Holm-corrected over scenes and references).
 REFERENCES: tuple[str, ...] = ("cv", "oracle")
+#: Family-wise error rate of the verdicts (Holm-adjusted p at most this: "better" or "worse").
+ALPHA: float = 0.05
 
 
 def bench_grid(
@@ -84,7 +86,10 @@ def run_planner_cells(
 
 def planner_results(cfg: AblationConfig, predictor: str) -> dict[str, Any]:
     """Per scene and arm: success rate with its Wilson interval and closed-loop forecast ADE; and the paired tests
-    (exact McNemar on success, same episodes) of ``predictor`` against each reference, Holm-corrected over all."""
+    (exact McNemar on success, same episodes) of ``predictor`` against each reference, Holm-corrected over all, each
+    with the exact conditional interval of the difference (``difference_exact_ci``: excludes 0 exactly when
+    ``p_value < 0.05``, :func:`agents.stats.mcnemar_difference_ci`) and a plain ``verdict`` (``better``, ``worse``,
+    ``no difference shown``: :func:`agents.stats.paired_verdict` on the Holm-adjusted p at :data:`ALPHA`)."""
     arms: dict[str, dict[str, Any]] = {}
     success: dict[tuple[str, str], np.ndarray] = {}
     for cell in expand(cfg):
@@ -105,7 +110,8 @@ def planner_results(cfg: AblationConfig, predictor: str) -> dict[str, Any]:
             tests.append({"scene": scene, "a": a, "b": b, **t})
     for t, adj in zip(tests, holm([t["p_value"] for t in tests]) if tests else [], strict=True):
         t["p_holm"] = adj
-    return {"arms": arms, "tests": tests}
+        t["verdict"] = paired_verdict(t["difference"], adj, ALPHA)
+    return {"arms": arms, "tests": tests, "alpha": ALPHA}
 
 
 def _cell_outcomes(cfg: AblationConfig, cell: Cell) -> tuple[np.ndarray, float | None]:

@@ -22,6 +22,11 @@ def _ci(ci: list[float], digits: int = 3) -> str:
     return f"[{_signed(ci[0], digits)}, {_signed(ci[1], digits)}]"
 
 
+def _plain(verdict: str, reference: str) -> str:
+    """A planner cell's verdict as a phrase: ``better than cv``, ``worse than cv``, ``no difference shown``."""
+    return f"{verdict} than {reference}" if verdict in ("better", "worse") else verdict
+
+
 def _verdict(ci: list[float]) -> str:
     if ci[1] < 0:
         return "better than CV"
@@ -87,16 +92,22 @@ def render_markdown(report: Mapping[str, Any]) -> str:
         lines += [
             "",
             f"Paired tests on the same episodes (exact McNemar on success), Holm-corrected over the "
-            f"{len(planner['tests'])} tests:",
+            f"{len(planner['tests'])} tests. The interval is the exact conditional one that matches the test (the "
+            "Clopper-Pearson interval of how the discordant episodes split, mapped onto the difference): it "
+            "excludes 0 exactly when p < 0.05. The verdict reads the Holm-adjusted p at "
+            f"alpha = {planner.get('alpha', 0.05)}: an interval can exclude 0 and the verdict still be 'no "
+            "difference shown' once the number of tests is counted; 'no difference shown' is not a finding of "
+            "equality.",
             "",
-            "| scene | comparison | difference, points [95 %] | p | Holm p |",
-            "|---|---|---|---|---|",
+            "| scene | comparison | difference, points [95 %] | p | Holm p | verdict |",
+            "|---|---|---|---|---|---|",
         ]
         for t in planner["tests"]:
-            lo, hi = t["difference_ci"]
+            lo, hi = t["difference_exact_ci"]
             lines.append(
                 f"| {t['scene']} | {t['a']} − {t['b']} | {_signed(100 * t['difference'], 1)} "
-                f"[{_signed(100 * lo, 1)}, {_signed(100 * hi, 1)}] | {t['p_value']:.3g} | {t['p_holm']:.3g} |"
+                f"[{_signed(100 * lo, 1)}, {_signed(100 * hi, 1)}] | {t['p_value']:.3g} | {t['p_holm']:.3g} | "
+                f"{_plain(t['verdict'], t['b'])} |"
             )
         lines += [
             "",

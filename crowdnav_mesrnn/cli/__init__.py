@@ -27,6 +27,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "agent": ("agents.cli:add_agent", "train and evaluate navigation policies (PPO, SAC, planners)"),
     "ablation": ("agents.cli:add_ablation", "run the planning-aid ablation grid and summarise it"),
     "bench": ("agents.bench:add_parser", "benchmark any predictor: ADE/FDE vs CV and the planner cells, one page"),
+    "bench-policy": (
+        "agents.policy_bench:add_parser",
+        "benchmark your own policy against the shipped planners and the privileged ceiling, one page",
+    ),
 }
 
 

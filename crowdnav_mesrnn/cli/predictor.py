@@ -16,13 +16,36 @@ from typing import Any
 import yaml
 
 from crowdnav_mesrnn import predictors
+from crowdnav_mesrnn.config import existing_config
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
 
 #: The shipped structural RNNs (weights per split), as the registry lists them.
 LEARNED_MODELS: tuple[str, ...] = predictors.names(predictors.PRETRAINED, plugins=False)
-#: Every shipped predictor: constant velocity and :data:`LEARNED_MODELS`.
-MODELS: tuple[str, ...] = predictors.names(predictors.BASELINE, predictors.PRETRAINED, plugins=False)
+#: The kinds of shipped predictor ``evaluate`` and ``calibrate`` take, and how their help describes each.
+_MODEL_KINDS: dict[str, str] = {
+    predictors.BASELINE: "a point forecast, no parameters",
+    predictors.FITTED_BASELINE: "constant velocity with a Gaussian of scale a + b*h, parameters fitted per split",
+    predictors.PRETRAINED: "structural RNNs, shipped weights per split",
+}
+#: Every shipped predictor, as the registry lists them: constant velocity, cv_gaussian and :data:`LEARNED_MODELS`.
+MODELS: tuple[str, ...] = predictors.names(*_MODEL_KINDS, plugins=False)
+#: The shipped predictors with a distribution without choosing a head (``cv_gaussian``).
+DISTRIBUTION_BASELINES: tuple[str, ...] = predictors.names(predictors.FITTED_BASELINE, plugins=False)
+
+
+def _models_help(lead: str) -> str:
+    """``lead`` and the shipped predictors grouped by kind, from the registry."""
+    groups = [f"{', '.join(predictors.names(k, plugins=False))} ({text})" for k, text in _MODEL_KINDS.items()]
+    return f"{lead}: {'; '.join(groups)}"
+
+
+def _check_checkpoint(args: argparse.Namespace) -> None:
+    """``--checkpoint`` holds structural RNN weights: refuse it for a predictor without them."""
+    if args.checkpoint and args.model not in LEARNED_MODELS:
+        raise ValueError(
+            f"--checkpoint holds the weights of a structural RNN ({', '.join(LEARNED_MODELS)}); {args.model!r} has none"
+        )
 
 
 def _parse_sets(items: list[str] | None) -> dict[str, Any]:
@@ -36,6 +59,8 @@ def _parse_sets(items: list[str] | None) -> dict[str, Any]:
 
 
 def _train(args: argparse.Namespace) -> int:
+    if args.config is not None:  # a missing file is named before torch is imported
+        existing_config(args.config, "predictor")
     import torch
 
     from crowdnav_mesrnn.training.trainer import Trainer, load_configs
@@ -76,6 +101,18 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_checkpoints(args: argparse.Namespace) -> None:
+    """Refuse a ``--checkpoint`` for a predictor without weights, or one that names no file for one of the splits,
+    before torch is imported."""
+    if not args.checkpoint:
+        return
+    _check_checkpoint(args)
+    for split in SPLITS if args.split == "all" else (args.split,):
+        path = Path(args.checkpoint.format(split=split, model=args.model))
+        if not path.is_file():
+            raise FileNotFoundError(f"no predictor checkpoint at {path}")
+
+
 def _checkpoint_loader(args: argparse.Namespace) -> Any:
     """``split -> LearnedPredictor`` from ``--checkpoint`` (a path that may hold ``{split}`` and ``{model}``), or None."""
     if not args.checkpoint:
@@ -91,11 +128,15 @@ def _checkpoint_loader(args: argparse.Namespace) -> Any:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    if args.versus and args.checkpoint:
+        raise ValueError("--versus compares shipped weights; it takes no --checkpoint")
+    _check_checkpoints(args)
     import torch
 
     from crowdnav_mesrnn.evaluation.protocol import evaluate_model, evaluate_versus, format_result
 
     torch.set_num_threads(args.threads)
+    _check_checkpoint(args)
     head = args.head or ("gaussian" if args.samples else "point")
     common: dict[str, Any] = {
         "data_dir": args.data_dir,
@@ -108,8 +149,6 @@ def _eval(args: argparse.Namespace) -> int:
         "n_resamples": args.resamples,
     }
     if args.versus:
-        if args.checkpoint:
-            raise ValueError("--versus compares shipped weights; it takes no --checkpoint")
         result = evaluate_versus(args.model, args.versus, splits=args.split, **common)
     else:
         result = evaluate_model(args.model, args.split, checkpoint_for=_checkpoint_loader(args), **common)
@@ -127,11 +166,13 @@ def _emit(args: argparse.Namespace, result: dict[str, Any], fmt: Callable[[dict[
 
 
 def _calibrate(args: argparse.Namespace) -> int:
+    _check_checkpoints(args)
     import torch
 
     from crowdnav_mesrnn.uncertainty.calibration import calibrate_model, format_calibration
 
     torch.set_num_threads(args.threads)
+    _check_checkpoint(args)
     predictor_for = _checkpoint_loader(args)
     result = calibrate_model(
         args.model,
@@ -186,6 +227,19 @@ def _fit_head(args: argparse.Namespace) -> int:
     for split, src, dest in jobs:
         fit_head(src, dest, cfg, model=args.model, split=split, command=" ".join(sys.argv))
     return 0
+
+
+def _fit_cv_gaussian(args: argparse.Namespace) -> int:
+    from crowdnav_mesrnn.models import cv_gaussian_fit
+    from crowdnav_mesrnn.models.cv_gaussian import PARAMS_DIR, params_path
+
+    out_dir = Path(args.out_dir) if args.out_dir else PARAMS_DIR
+    splits = list(SPLITS) if args.split == "all" else [args.split]
+    held = [p for p in (params_path(s, out_dir) for s in splits) if p.exists()]
+    if held and not args.force:
+        raise ValueError(f"{held[0]} exists: pass --force to replace it (or --out-dir for another folder)")
+    argv = ["--split", args.split, "--out-dir", str(out_dir)]
+    return cv_gaussian_fit.main([*argv, *(["--data-dir", args.data_dir] if args.data_dir else [])])
 
 
 def _export(args: argparse.Namespace) -> int:
@@ -295,6 +349,7 @@ def _report_claims(args: argparse.Namespace, out: Path) -> int:
 
 def main_plan(args: argparse.Namespace) -> int:
     """``crowdnav-mesrnn predictor plan``: run a stage of a comparison plan, or print its budget (``--dry-run``)."""
+    existing_config(args.file, "predictor")  # a missing plan file is named before torch is imported
     import torch
 
     from crowdnav_mesrnn.studies.plan import execute, load_plan, parse_shard
@@ -356,10 +411,14 @@ def _add_evaluate(psub: Any) -> None:
         "evaluate",
         aliases=["eval"],
         help="ADE/FDE on the test parts with a true autoregressive rollout (alias: eval)",
-        description="ADE/FDE of a shipped model, a checkpoint or constant velocity on the leave-one-out test (or "
-        "val) parts. Any predictor plug-in: crowdnav-mesrnn bench PREDICTOR --no-planner.",
+        description="ADE/FDE of a shipped predictor or a checkpoint on the leave-one-out test (or val) parts; with "
+        "--samples K, a distribution's scores: NLL, energy score, best-of-K ADE/FDE per pedestrian and per scene "
+        "(Social-GAN's) and the calibrated coverage of its 90 % regions, with paired block-bootstrap intervals "
+        "against other predictors (--versus). Any predictor plug-in: crowdnav-mesrnn bench PREDICTOR --no-planner.",
     )
-    e.add_argument("--model", required=True, choices=MODELS, help="which model (shipped weights unless --checkpoint)")
+    e.add_argument(
+        "--model", required=True, choices=MODELS, help=_models_help("which predictor (shipped unless --checkpoint)")
+    )
     e.add_argument("--split", default="all", choices=(*SPLITS, "all"), help="split(s) to score (default: all)")
     e.add_argument("--part", default="test", choices=("test", "val"), help="part of the split (default: test)")
     e.add_argument("--checkpoint", default=None, help="checkpoint path; may contain {split} and {model}")
@@ -369,23 +428,29 @@ def _add_evaluate(psub: Any) -> None:
         "--samples",
         type=int,
         default=0,
-        help="with a distribution head: best-of-K ADE/FDE over K sampled futures (min_ade_m, min_fde_m, with "
-        "block-bootstrap intervals); implies --head gaussian for shipped weights",
+        help=f"with a distribution ({', '.join(DISTRIBUTION_BASELINES)}, or the gaussian head of "
+        f"{', '.join(LEARNED_MODELS)}), draw K sampled futures per pedestrian and report best-of-K ADE/FDE per "
+        "pedestrian (min_ade_m, min_fde_m) and per scene (scene_min_ade_m, scene_min_fde_m: in each window the "
+        "sample with the smallest error summed over its pedestrians, Social-GAN's), the energy score of the 12-step "
+        "future (energy_m, K >= 2) and, on test, the coverage of the 90 %% regions calibrated on validation "
+        "(coverage_90), each with block-bootstrap intervals; implies --head gaussian for shipped weights (default 0: "
+        "none)",
     )
     e.add_argument(
         "--sampling",
         default="coherent",
         choices=("marginal", "coherent", "feedback"),
-        help="coherent (default): each step drawn from its Gaussian of the mean rollout, one draw per sample shared "
-        "by all steps; marginal: one draw per step (Social-STGCNN's protocol); feedback: every draw fed back as the "
-        "next input",
+        help="coherent (the default): each step drawn from its Gaussian of the mean rollout, one standard normal "
+        "draw per sample and pedestrian shared by all 12 steps; marginal: an independent draw per step "
+        "(Social-STGCNN's protocol); feedback: every draw fed back as the next input (structural RNNs only)",
     )
     e.add_argument("--seed", type=int, default=0, help="seed of the samples (default 0)")
     e.add_argument(
         "--head",
         default=None,
         choices=("point", "gaussian"),
-        help="which shipped weights (default point; gaussian with --samples); a distribution head also gets nll_m",
+        help=f"which shipped weights of {', '.join(LEARNED_MODELS)} (default point; gaussian with --samples); a "
+        f"distribution also gets nll_m ({', '.join(DISTRIBUTION_BASELINES)} always has one)",
     )
     e.add_argument(
         "--versus",
@@ -393,9 +458,10 @@ def _add_evaluate(psub: Any) -> None:
         default=None,
         choices=MODELS,
         metavar="MODEL",
-        help="also evaluate these shipped models with the same head, samples, sampling and seed, and give the paired "
-        "differences (--model minus each) of ADE/FDE, NLL and best-of-K with block-bootstrap intervals (the JSON's "
-        "versus key)",
+        help="also evaluate these shipped predictors with the same head, samples, sampling and seed, and give the "
+        "paired differences (--model minus each) of ADE/FDE and every distribution score with block-bootstrap "
+        f"intervals (the JSON's versus key); {', '.join(DISTRIBUTION_BASELINES)} is the trivial distribution every "
+        "head must beat",
     )
     _add_bootstrap_and_runtime(e)
     e.set_defaults(func=_eval)
@@ -407,12 +473,14 @@ def _add_calibrate(psub: Any) -> None:
         "calibrate",
         help="conformal uncertainty regions: calibrate on validation windows, coverage on test",
         description="Split conformal calibration per horizon step on each split's validation windows (never its "
-        "test scene), then the fraction of true test positions inside the 50/90/95 %% regions, per step and pooled, "
+        "test scene), then the fraction of true test positions inside the 50/90/95 % regions, per step and pooled, "
         "with block-bootstrap intervals, and the model's own (uncalibrated) regions. Point forecasts (constant "
         "velocity, point weights) get an error model fitted on the split's training windows "
         "(crowdnav_mesrnn.calibration).",
     )
-    c.add_argument("--model", required=True, choices=MODELS, help="which model (shipped weights unless --checkpoint)")
+    c.add_argument(
+        "--model", required=True, choices=MODELS, help=_models_help("which predictor (shipped unless --checkpoint)")
+    )
     c.add_argument("--split", default="all", choices=(*SPLITS, "all"), help="split(s) to calibrate (default: all)")
     c.add_argument(
         "--score",
@@ -446,7 +514,13 @@ def _add_calibrate(psub: Any) -> None:
         "scenes; experts: a tracker per step size of the grid, mixed online by their pinball loss (no validation "
         "choice)",
     )
-    c.add_argument("--head", default="point", choices=("point", "gaussian"), help="which shipped weights")
+    c.add_argument(
+        "--head",
+        default="point",
+        choices=("point", "gaussian"),
+        help=f"which shipped weights of {', '.join(LEARNED_MODELS)} (default point; "
+        f"{', '.join(DISTRIBUTION_BASELINES)} always uses its own Gaussians)",
+    )
     c.add_argument("--checkpoint", default=None, help="checkpoint path instead; may contain {split} and {model}")
     c.add_argument("--levels", type=float, nargs="+", default=[0.5, 0.9, 0.95], help="coverage levels")
     c.add_argument("--json", action="store_true", help="print the result as one JSON object")
@@ -483,6 +557,28 @@ def _add_fit_head(psub: Any) -> None:
     f.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     f.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     f.set_defaults(func=_fit_head)
+
+
+def _add_fit_cv_gaussian(psub: Any) -> None:
+    """``predictor fit-cv-gaussian``."""
+    f = psub.add_parser(
+        "fit-cv-gaussian",
+        help="fit cv_gaussian's scale a + b*h per split on its training windows (cv_gaussian_SPLIT.json)",
+        description="Constant velocity with an isotropic Gaussian of scale a + b*h metres at horizon step h: fits a "
+        "and b (a, b >= 0) by NLL on each split's training windows for the forms a + b*h, b*h and a, keeps the one "
+        "with the lowest validation NLL (the two-parameter form only when it beats the better one-parameter form "
+        "by more than 0.001 nats) and writes cv_gaussian_SPLIT.json; the held-out scene is never read "
+        "(crowdnav_mesrnn.models.cv_gaussian_fit).",
+    )
+    f.add_argument("--split", default="all", choices=(*SPLITS, "all"), help="split(s) to fit (default: all)")
+    f.add_argument(
+        "--out-dir",
+        default=None,
+        help="folder of the parameter files (default: the shipped crowdnav_mesrnn/pretrained)",
+    )
+    f.add_argument("--force", action="store_true", help="replace existing parameter files")
+    f.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
+    f.set_defaults(func=_fit_cv_gaussian)
 
 
 def _add_export(psub: Any) -> None:
@@ -572,6 +668,7 @@ def add_parser(sub: Any) -> None:
         _add_evaluate,
         _add_calibrate,
         _add_fit_head,
+        _add_fit_cv_gaussian,
         _add_export,
         _add_select,
         _add_report,

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,6 +107,32 @@ def collate(windows: Sequence[Window]) -> tuple[np.ndarray, np.ndarray, np.ndarr
         pres[i, :, :k] = w.present
         scored[i, :k] = w.scored
     return pos, pres, scored
+
+
+def window_locator(windows: Sequence[Window]) -> Callable[[np.ndarray, np.ndarray], dict[str, str]]:
+    """Where a window of a :func:`collate` batch was cut from, for messages naming it.
+
+    Returns:
+        A function of one batch entry's positions ``(T, N, 2)`` and presence ``(T, N)`` (as padded by
+        :func:`collate`) returning ``{"recording": name, "frame": label}`` of the window of ``windows`` it is (the
+        keywords of :func:`crowdnav_mesrnn.predictors.check_forecast`), or ``{"recording": "an unknown window",
+        "frame": "?"}``.
+    """
+    places = {_content(w.positions, w.present): w for w in windows}
+
+    def locate(positions: np.ndarray, present: np.ndarray) -> dict[str, str]:
+        seen = np.flatnonzero(np.asarray(present).any(axis=0))
+        k = int(seen[-1]) + 1 if len(seen) else 0
+        w = places.get(_content(np.asarray(positions)[:, :k], np.asarray(present)[:, :k]))
+        if w is None:
+            return {"recording": "an unknown window", "frame": "?"}
+        return {"recording": w.recording, "frame": f"{w.start_frame} (the window's first observed step)"}
+
+    return locate
+
+
+def _content(positions: np.ndarray, present: np.ndarray) -> bytes:
+    return np.ascontiguousarray(present, dtype=bool).tobytes() + np.ascontiguousarray(positions, np.float32).tobytes()
 
 
 def all_positions(windows: Iterable[Window]) -> np.ndarray:

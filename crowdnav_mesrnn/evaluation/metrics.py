@@ -55,8 +55,14 @@ def predicted_batches(
         ``(chunk, positions, present, scored, pred)``: the indices into ``windows``; positions
         ``(B, T, N, 2)`` metres and present ``(B, T, N)`` (tensors, :func:`collate`); scored ``(B, N)``
         bool array; the forecast ``(B, pred_len, N, 2)`` metres.
+
+    A labelled progress bar (stderr) appears when the windows take over two seconds.
     """
-    for chunk in batches(windows, batch_size):
+    from tqdm.auto import tqdm
+
+    groups = list(batches(windows, batch_size))
+    desc = f"forecasting {len(windows):,} windows"
+    for chunk in tqdm(groups, desc=desc, unit="batch", delay=2.0, leave=False):
         pos, pres, scored = collate([windows[i] for i in chunk])
         pos_t, pres_t = torch.from_numpy(pos), torch.from_numpy(pres)
         with torch.no_grad():
@@ -117,6 +123,12 @@ class ScoredForecasts:
         rho: ``(M, P)`` float64 correlations (None without a distribution).
         min_ade: ``(M,)`` float64 best-of-K ADE of each pedestrian, metres (None without samples).
         min_fde: ``(M,)`` float64 best-of-K FDE, metres, the sample chosen independently of ``min_ade``'s.
+        energy: ``(M,)`` float64 energy score of each pedestrian's 12-step future from its samples
+            (:func:`energy_score`), metres (None without samples, or with fewer than 2).
+        scene_min_ade: ``(W,)`` float64 per window, ``min_k Σ_i ADE_ik`` over its scored pedestrians ``i``, sample
+            ``k`` shared by all of them (Social-GAN's per-scene best-of-K), metres; 0 for a window without a scored
+            pedestrian (None without samples).
+        scene_min_fde: ``(W,)`` the same for FDE, its sample chosen independently of ``scene_min_ade``'s.
         observed: ``(M, P)`` bool, with ``rows="observed"`` (:func:`collect_forecasts`) only: step ``h``'s true
             position is observed with the pedestrian present in every frame through it (``error`` is 0 elsewhere);
             None when every row is scored (every step observed).
@@ -131,6 +143,9 @@ class ScoredForecasts:
     min_ade: np.ndarray | None = None
     min_fde: np.ndarray | None = None
     observed: np.ndarray | None = None
+    energy: np.ndarray | None = None
+    scene_min_ade: np.ndarray | None = None
+    scene_min_fde: np.ndarray | None = None
 
     @property
     def counts(self) -> np.ndarray:
@@ -145,6 +160,28 @@ class ScoredForecasts:
         return np.stack([self.window_sums(values[:, j]) for j in range(values.shape[1])], axis=1)
 
 
+def energy_score(samples: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """The unbiased sample estimate of the energy score ``ES = E‖X − y‖ − ½ E‖X − X'‖`` (Gneiting & Raftery 2007)
+    of each row's samples against its truth, ``‖·‖`` the Euclidean norm over all ``D`` coordinates:
+    ``(1/K) Σ_k ‖X_k − y‖ − 1/(2K(K − 1)) Σ_{k≠l} ‖X_k − X_l‖``, whose expectation over the samples is ``ES``.
+
+    Args:
+        samples: ``(M, K, D)`` ``K >= 2`` draws per row (a pedestrian's 12 future positions flattened: ``D = 24``,
+            metres).
+        truth: ``(M, D)`` the true values.
+
+    Returns:
+        ``(M,)`` float64 scores, in the units of the inputs.
+    """
+    x, y = samples.double(), truth.double()
+    k = x.shape[1]
+    if k < 2:
+        raise ValueError(f"the energy score needs at least 2 samples per row, got {k}")
+    to_truth = (x - y[:, None]).norm(dim=-1).mean(1)
+    between = torch.cdist(x, x).sum((1, 2)) / (k * (k - 1))  # the diagonal is 0: the sum is over k != l
+    return to_truth - 0.5 * between
+
+
 def collect_forecasts(
     windows: Sequence[Window],
     predict: BatchPredictFn | None = None,
@@ -156,7 +193,9 @@ def collect_forecasts(
 ) -> ScoredForecasts:
     """Run a point forecast (``predict``) or a distribution (``distribution``; its means are the forecast) over
     ``windows`` and keep, per scored pedestrian, the error, the last observed speed, the Gaussians and, with
-    ``sample`` and ``samples > 0``, the best-of-``samples`` ADE/FDE (per pedestrian, over its own samples).
+    ``sample`` and ``samples > 0``, the best-of-``samples`` ADE/FDE (per pedestrian, over its own samples), the
+    per-scene best-of-``samples`` sums of each window (sample ``k`` of every scored pedestrian of the window together)
+    and, with ``samples >= 2``, each pedestrian's energy score over its 12-step future (:func:`energy_score`).
 
     ``rows="observed"`` keeps every pedestrian present in all ``OBS_LEN`` observed frames instead (the scored ones
     and those who leave before the window ends), with ``observed`` marking the steps through which each stays
@@ -170,7 +209,10 @@ def collect_forecasts(
     if rows == "observed" and samples:
         raise ValueError("rows='observed' takes no samples")
     parts_observed: list[np.ndarray] = []
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("error", "speed", "window", "sigma", "rho", "ade", "fde")}
+    parts: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("error", "speed", "window", "sigma", "rho", "ade", "fde", "energy")
+    }
+    scene = np.zeros((2, len(windows))) if samples and sample is not None else None
     for chunk in batches(windows, batch_size):
         pos, pres, scored = collate([windows[i] for i in chunk])
         pos_t, pres_t = torch.from_numpy(pos), torch.from_numpy(pres)
@@ -198,9 +240,20 @@ def collect_forecasts(
             parts["sigma"].append(dist.sigma.double().numpy()[b_idx, :, n_idx])
             parts["rho"].append(dist.rho.double().numpy()[b_idx, :, n_idx])
         if sampled is not None:
-            d = (sampled.double() - torch.from_numpy(truth).double()[:, None]).norm(dim=-1)  # (B, K, P, N)
-            parts["ade"].append(d.mean(2).min(1).values.numpy()[b_idx, n_idx])
-            parts["fde"].append(d[:, :, -1].min(1).values.numpy()[b_idx, n_idx])
+            truth_t = torch.from_numpy(truth).double()
+            d = (sampled.double() - truth_t[:, None]).norm(dim=-1)  # (B, K, P, N)
+            ade, fde = d.mean(2), d[:, :, -1]  # (B, K, N)
+            parts["ade"].append(ade.min(1).values.numpy()[b_idx, n_idx])
+            parts["fde"].append(fde.min(1).values.numpy()[b_idx, n_idx])
+            s = torch.from_numpy(scored).double()[:, None]  # (B, 1, N)
+            assert scene is not None
+            scene[0, chunk] = (ade * s).sum(-1).min(1).values.numpy()
+            scene[1, chunk] = (fde * s).sum(-1).min(1).values.numpy()
+            if samples >= 2:
+                bt, nt = torch.from_numpy(b_idx), torch.from_numpy(n_idx)
+                rows_k = sampled.double()[bt, :, :, nt]  # (M, K, P, 2): advanced indices come first
+                flat = rows_k.reshape(len(b_idx), samples, -1)
+                parts["energy"].append(energy_score(flat, truth_t[bt, :, nt].reshape(len(b_idx), -1)).numpy())
     window = np.concatenate(parts["window"]) if parts["window"] else np.zeros(0, np.int64)
     order = np.argsort(window, kind="stable")
 
@@ -226,6 +279,9 @@ def collect_forecasts(
         cat("ade"),
         cat("fde"),
         observed,
+        cat("energy"),
+        None if scene is None else scene[0],
+        None if scene is None else scene[1],
     )
 
 
@@ -245,15 +301,18 @@ def evaluate_windows(
     return summarise(window_errors(predict, windows, norm, batch_size))
 
 
-#: Metrics of a distribution (:func:`distribution_metrics`), each with a ``_ci`` interval.
-DISTRIBUTION_KEYS = ("nll_m", "min_ade_m", "min_fde_m")
+#: Metrics of a distribution (:func:`distribution_metrics`), each with a ``_ci`` interval: the NLL, the best-of-K
+#: ADE/FDE per pedestrian (``min_*``) and per scene (``scene_min_*``), the energy score, and the calibrated coverage
+#: of the 90 % regions (added by :func:`crowdnav_mesrnn.evaluation.protocol.evaluate_model`, which calibrates).
+DISTRIBUTION_KEYS = ("nll_m", "min_ade_m", "min_fde_m", "scene_min_ade_m", "scene_min_fde_m", "energy_m", "coverage_90")
 
 
 def distribution_metrics(
     scored: ScoredForecasts, block_len: int = 20, n_resamples: int = 10_000
 ) -> tuple[dict[str, float], dict[str, PairedErrors]]:
-    """NLL (nats per position, metres, averaged over every scored pedestrian and step) and best-of-K ADE/FDE of
-    one split, whichever ``scored`` holds, each with its block-bootstrap interval (``KEY_ci``), and the per-window
+    """NLL (nats per position, metres, averaged over every scored pedestrian and step), best-of-K ADE/FDE per
+    pedestrian and per scene and the energy score (metres, averaged over every scored pedestrian) of one split,
+    whichever ``scored`` holds, each with its block-bootstrap interval (``KEY_ci``), and the per-window
     sums behind them (for intervals of averages over splits)."""
     counts = scored.counts
     keep = counts > 0
@@ -264,6 +323,11 @@ def distribution_metrics(
     if scored.min_ade is not None and scored.min_fde is not None:
         sums["min_ade_m"] = PairedErrors(scored.window_sums(scored.min_ade)[keep], counts[keep])
         sums["min_fde_m"] = PairedErrors(scored.window_sums(scored.min_fde)[keep], counts[keep])
+    if scored.scene_min_ade is not None and scored.scene_min_fde is not None:
+        sums["scene_min_ade_m"] = PairedErrors(scored.scene_min_ade[keep], counts[keep])
+        sums["scene_min_fde_m"] = PairedErrors(scored.scene_min_fde[keep], counts[keep])
+    if scored.energy is not None:
+        sums["energy_m"] = PairedErrors(scored.window_sums(scored.energy)[keep], counts[keep])
     out: dict[str, float] = {}
     for key, e in sums.items():
         out[key] = e.estimate

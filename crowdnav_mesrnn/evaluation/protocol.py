@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import SPLITS, check_split
 from crowdnav_mesrnn.data.normalization import MinMax
 from crowdnav_mesrnn.data.recordings import load_split
@@ -22,6 +23,7 @@ from crowdnav_mesrnn.evaluation.metrics import (
     DISTRIBUTION_KEYS,
     METRIC_KEYS,
     BatchPredictFn,
+    ScoredForecasts,
     collect_forecasts,
     cv_predict_batch,
     distribution_metrics,
@@ -56,6 +58,62 @@ def split_norm(split: str, data_dir: str | os.PathLike[str] | None = None) -> Mi
 SAMPLINGS: tuple[str, ...] = ("marginal", "coherent", "feedback")
 #: Metrics whose paired differences :func:`paired_differences` gives (the point forecast's, then the distribution's).
 PAIRED_KEYS = ("ade_m", "fde_m", *DISTRIBUTION_KEYS)
+#: Level of the calibrated regions whose coverage ``evaluate --samples`` reports (``coverage_90``).
+COVERAGE_LEVEL = 0.9
+
+
+def load_shipped(model: str, split: str, head: str = "point") -> Any:
+    """The shipped predictor ``model`` of ``split``: the pretrained weights of ``head`` for a structural RNN, else
+    the registry's predictor (:func:`crowdnav_mesrnn.predictors.load`; ``cv_gaussian``'s parameters of ``split``,
+    which has a distribution whatever ``head`` says)."""
+    if predictors.kind(model) == predictors.PRETRAINED:
+        from crowdnav_mesrnn.models.pretrained import load_pretrained
+
+        return load_pretrained(model, split, head=head)
+    return predictors.load(model, split)
+
+
+def predictor_record(predictor: Any) -> Any:
+    """What a result says of the predictor used on a split: a checkpoint's selection or training config, or a fitted
+    baseline's form and parameters."""
+    info = getattr(predictor, "info", {}) or {}
+    if "a_m" in info and "b_m" in info:
+        return {k: info[k] for k in ("form", "a_m", "b_m") if k in info}
+    return info.get("selection") or info.get("train_config")
+
+
+def calibrated_coverage(
+    predictor: Any,
+    model: str,
+    split: str,
+    scored: ScoredForecasts,
+    data_dir: str | os.PathLike[str] | None = None,
+    min_scored: int = 2,
+    batch_size: int = 64,
+    level: float = COVERAGE_LEVEL,
+) -> PairedErrors:
+    """Per-window sums behind the coverage of the ``level`` regions of a distribution, calibrated by split conformal
+    on ``split``'s validation windows with the ``scaled`` score (as ``calibrate --head gaussian``), on the forecasts
+    ``scored`` (its test windows): each scored pedestrian counts the share of its steps covered, so the estimate is
+    the fraction of covered positions, all steps pooled."""
+    # The conformal primitives directly (crowdnav_mesrnn.uncertainty.calibration imports this module).
+    from crowdnav_mesrnn.uncertainty.conformal import (
+        Calibration,
+        conformal_thresholds,
+        level_key,
+        measure_coverage,
+        region_scores,
+    )
+
+    val = collect_forecasts(
+        split_windows(split, "val", min_scored=min_scored, data_dir=data_dir),
+        distribution=predictor.predict_distribution_batch,
+        batch_size=batch_size,
+    )
+    thresholds = conformal_thresholds(region_scores(val, "scaled"), (level,))
+    cal = Calibration(model, "gaussian", split, "scaled", thresholds, None, val.num_windows, len(val.speed))
+    covered = measure_coverage(cal, scored, (level,)).covered[level_key(level)]  # (W, P) windows with a scored one
+    return PairedErrors(covered.sum(1) / covered.shape[1], scored.counts[scored.counts > 0])
 
 
 def evaluate_model(
@@ -75,15 +133,20 @@ def evaluate_model(
     n_resamples: int = 10_000,
     distribution_sums: dict[str, dict[str, PairedErrors]] | None = None,
 ) -> dict[str, Any]:
-    """Evaluate ``cv`` or a learned model on each split's ``part``; averaged over the splits.
+    """Evaluate a shipped predictor (``cv``, ``cv_gaussian`` or a learned model) on each split's ``part``; averaged
+    over the splits.
 
     Args:
-        checkpoint_for: ``split -> LearnedPredictor`` (default: the shipped pretrained weights of ``head``).
+        checkpoint_for: ``split -> LearnedPredictor`` (default: the shipped predictor, :func:`load_shipped`).
         window_sums: if given, filled with ``split ->`` :func:`window_errors` (windows in time order),
             for paired comparisons.
-        samples: with a distribution head, also the best-of-``samples`` ADE/FDE (``min_ade_m``, ``min_fde_m``:
-            per pedestrian, the closest of its samples, ADE and FDE chosen independently) with their
-            block-bootstrap intervals; 0 for none.
+        samples: with a distribution, also (each with its block-bootstrap interval) the best-of-``samples`` ADE/FDE
+            per pedestrian (``min_ade_m``, ``min_fde_m``: the closest of its own samples, ADE and FDE chosen
+            independently) and per scene (``scene_min_ade_m``, ``scene_min_fde_m``: Social-GAN's, in each window
+            the sample with the smallest error summed over its scored pedestrians), the energy score of each
+            pedestrian's 12-step future (``energy_m``, metres; ``samples >= 2``) and, on the test part, the coverage
+            of the 90 % regions calibrated on the split's validation windows (``coverage_90``,
+            :func:`calibrated_coverage`); 0 for none.
         sampling: how samples are drawn (:data:`SAMPLINGS`).
         seed: seeds the samples (one stream per split).
         head: which shipped weights to load when ``checkpoint_for`` is None (``point`` or ``gaussian``).
@@ -101,31 +164,33 @@ def evaluate_model(
         raise ValueError(f"unknown sampling {sampling!r}; valid: {', '.join(SAMPLINGS)}")
     if samples < 0:
         raise ValueError(f"samples must be >= 0, got {samples}")
-    if samples and model == "cv":
-        raise ValueError("--samples needs a model with a distribution head; constant velocity forecasts one point")
+    baseline = predictors.kind(model) == predictors.BASELINE
+    if samples and baseline:
+        raise ValueError(
+            f"--samples needs a model with a distribution; {model!r} forecasts one point (its distributional "
+            "counterpart is cv_gaussian)"
+        )
     result: dict[str, Any] = {"model": model, "part": part, "splits": {}}
     if samples:
         result["samples"] = samples
         result["sampling"] = sampling
+        if part == "test":
+            result["coverage"] = (
+                f"coverage_90: the {COVERAGE_LEVEL:g} regions of the model's Gaussians, calibrated by split conformal "
+                "(scaled score, per horizon step) on the split's validation windows; all 12 steps pooled"
+            )
     dist_sums: dict[str, dict[str, PairedErrors]] = {}
     rngs = np.random.default_rng(seed).spawn(len(splits))
     for split, rng in zip(splits, rngs, strict=True):
         windows = split_windows(split, part, min_scored=min_scored, data_dir=data_dir)
         norm = split_norm(split, data_dir)
         predictor: Any = None
-        if model == "cv":
+        if baseline:
             predict: BatchPredictFn = cv_predict_batch
         else:
-            if checkpoint_for is None:
-                from crowdnav_mesrnn.models.pretrained import load_pretrained
-
-                predictor = load_pretrained(model, split, head=head)
-            else:
-                predictor = checkpoint_for(split)
+            predictor = load_shipped(model, split, head) if checkpoint_for is None else checkpoint_for(split)
             predict = predictor.predict_batch
-            result.setdefault("checkpoints", {})[split] = predictor.info.get("selection") or predictor.info.get(
-                "train_config"
-            )
+            result.setdefault("checkpoints", {})[split] = predictor_record(predictor)
         errors = window_errors(predict, windows, norm, batch_size)
         result["splits"][split] = summarise(errors)
         if window_sums is not None:
@@ -142,6 +207,13 @@ def evaluate_model(
                 windows, distribution=predictor.predict_distribution_batch, sample=draw, samples=samples
             )
             metrics, dist_sums[split] = distribution_metrics(scored, block_len, n_resamples)
+            if samples and part == "test":
+                cov = calibrated_coverage(predictor, model, split, scored, data_dir, min_scored, batch_size)
+                dist_sums[split]["coverage_90"] = cov
+                metrics |= {
+                    "coverage_90": cov.estimate,
+                    "coverage_90_ci": list(block_bootstrap_ci(cov, block_len, n_resamples)),
+                }
             result["splits"][split] |= metrics
             if distribution_sums is not None:
                 distribution_sums[split] = dist_sums[split]
@@ -277,17 +349,25 @@ def format_result(result: dict[str, Any]) -> str:
     if extra:
         how = f" ({result['samples']} samples, {result['sampling']})" if "samples" in result else ""
         lines.append(f"distribution{how}; 95 % block-bootstrap intervals in brackets")
-        lines.append(f"{'split':<9}" + "".join(f"{k:>26}" for k in extra))
-        lines += _interval_rows(result["splits"], extra)
+        lines += _interval_table(result["splits"], extra)
     for other, v in result.get("versus", {}).items():
         lines += ["", format_result(v["result"]), ""]
         keys = [k for k in PAIRED_KEYS if any(k in r for r in v["difference"].values())]
         lines.append(
             f"paired differences {result['model']} − {other} (the same windows; 95 % block-bootstrap intervals)"
         )
-        lines.append(f"{'split':<9}" + "".join(f"{k:>26}" for k in keys))
-        lines += _interval_rows(v["difference"], keys)
+        lines += _interval_table(v["difference"], keys)
     return "\n".join(lines)
+
+
+def _interval_table(splits: Mapping[str, Mapping[str, Any]], keys: Sequence[str], per_row: int = 4) -> list[str]:
+    """A header and :func:`_interval_rows` for every ``per_row`` keys (so a table stays under 120 characters)."""
+    lines: list[str] = []
+    for i in range(0, len(keys), per_row):
+        part = keys[i : i + per_row]
+        lines.append(f"{'split':<9}" + "".join(f"{k:>26}" for k in part))
+        lines += _interval_rows(splits, part)
+    return lines
 
 
 def _interval_rows(splits: Mapping[str, Mapping[str, Any]], keys: Sequence[str]) -> list[str]:

@@ -49,7 +49,7 @@ from crowdnav_mesrnn.data.constants import PRED_LEN, SPLIT_TEST_RECORDINGS, SPLI
 from crowdnav_mesrnn.data.paths import DATA_DIR_HELP, find_data_dir
 from crowdnav_mesrnn.data.recordings import load_split
 from crowdnav_mesrnn.data.windows import Window, split_windows
-from crowdnav_mesrnn.evaluation import collect_forecasts
+from crowdnav_mesrnn.evaluation.metrics import collect_forecasts
 from crowdnav_mesrnn.models.cv_gaussian import (
     FORMS,
     NAME,

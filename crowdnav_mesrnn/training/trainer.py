@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from crowdnav_mesrnn.config import ConfigError, check_keys, load_yaml, replace_checked
+from crowdnav_mesrnn.config import ConfigError, check_keys, existing_config, load_yaml, replace_checked
 from crowdnav_mesrnn.data.constants import OBS_LEN, check_split
 from crowdnav_mesrnn.data.normalization import MinMax
 from crowdnav_mesrnn.data.recordings import load_split
@@ -102,7 +102,8 @@ def load_configs(
 
     The YAML holds two mappings, ``model:`` and ``train:``; unknown keys are errors listing valid keys.
     """
-    path = Path(config_path) if config_path else CONFIG_DIR / f"{model}.yaml"
+    # a config named but missing is an error (listing those under configs/predictor/), never the defaults
+    path = existing_config(config_path, "predictor") if config_path else CONFIG_DIR / f"{model}.yaml"
     raw = load_yaml(path) if path.is_file() else {}
     check_keys(raw, ["model", "train"], f"{path.name}")
     mraw = dict(raw.get("model") or {})

@@ -30,7 +30,7 @@ import numpy as np
 from crowdnav_mesrnn.data.constants import PRED_LEN, check_split
 from crowdnav_mesrnn.data.windows import Window, split_windows
 from crowdnav_mesrnn.evaluation.metrics import ScoredForecasts, collect_forecasts, cv_predict_batch
-from crowdnav_mesrnn.evaluation.protocol import resolve_splits
+from crowdnav_mesrnn.evaluation.protocol import load_shipped, predictor_record, resolve_splits
 from crowdnav_mesrnn.evaluation.statistics import (
     DEFAULT_BLOCK_LEN,
     DEFAULT_RESAMPLES,
@@ -79,16 +79,15 @@ class Forecaster:
 
 
 def forecaster_for(model: str, split: str, head: str = "point", predictor: Any = None) -> Forecaster:
-    """Constant velocity, or a learned predictor (the shipped weights of ``head`` unless ``predictor`` is given)."""
+    """Constant velocity, or a shipped predictor with weights or parameters per split (:func:`load_shipped`: a
+    structural RNN's weights of ``head``, ``cv_gaussian``'s distribution) unless ``predictor`` is given."""
     if model == "cv":
         if head != "point":
             raise ValueError("constant velocity has only a point forecast (head point)")
         return Forecaster("cv", "point", point=cv_predict_batch)
     if predictor is None:
-        from crowdnav_mesrnn.models.pretrained import load_pretrained
-
-        predictor = load_pretrained(model, split, head=head)
-    info = predictor.info.get("selection") or predictor.info.get("train_config")
+        predictor = load_shipped(model, split, head)
+    info = predictor_record(predictor)
     if predictor.has_distribution:
         return Forecaster(model, "gaussian", distribution=predictor.predict_distribution_batch, info=info)
     return Forecaster(model, "point", point=predictor.predict_batch, info=info)

@@ -17,7 +17,8 @@ recording and a digest of a :class:`TableKey`:
 The environment's ``dt_s`` and ``horizon_steps`` are not part of the key: the files hold the predictor's raw
 forecasts on the annotation grid, and their resampling onto ``t + h * dt_s`` happens at lookup.
 
-Files are written atomically (:func:`crowdnav_mesrnn.utils.atomic_write`) under a per-file lock, so processes
+A chunk is written only when its forecasts pass :func:`crowdnav_mesrnn.predictors.check_forecast` (the promised shape,
+finite). Files are written atomically (:func:`crowdnav_mesrnn.utils.atomic_write`) under a per-file lock, so processes
 started together (vectorised environments, grid workers) compute each chunk once and the others load it. A file
 that cannot be read, or whose stored key or shapes do not match, is reported with a warning and rebuilt.
 
@@ -46,6 +47,7 @@ import numpy as np
 
 from crowdnav_mesrnn.data.recordings import Recording
 from crowdnav_mesrnn.models.base import ConstantVelocity
+from crowdnav_mesrnn.predictors import check_forecast
 from crowdnav_mesrnn.utils import atomic_write, file_lock
 
 #: Bump when the content or layout of the files changes (old files then no longer match and are rebuilt). Files hold
@@ -109,8 +111,9 @@ def predictor_fingerprint(model: Any) -> str | None:
 
     A predictor object may define ``cache_fingerprint() -> str`` itself; otherwise one with a torch ``net``
     and a ``norm`` (:class:`crowdnav_mesrnn.models.learned.LearnedPredictor`) is hashed. A plug-in loaded by name
-    (:func:`crowdnav_mesrnn.predictors.load`) is keyed on its identity (name, target, distribution version, module
-    source) plus that digest, so it is disk-cached even without weights. Any other object (constant velocity,
+    (:func:`crowdnav_mesrnn.predictors.load`) is keyed on its identity (name, target, distribution version, every
+    file of the plug-in: :mod:`crowdnav_mesrnn.plugin_files`) plus that digest, so it is disk-cached even without
+    weights, and any change to its files recomputes its forecasts. Any other object (constant velocity,
     test doubles passed as objects) is not disk-cached.
     """
     held = _FINGERPRINTS.get(id(model))
@@ -307,7 +310,20 @@ class ForecastStore:
         return out
 
     def save(self, key: TableKey, chunk: int, data: FrameTable) -> Path | None:
-        """Write one chunk atomically; None (after one :class:`CacheWarning`) when the folder cannot be written."""
+        """Write one chunk atomically; None (after one :class:`CacheWarning`) when the folder cannot be written.
+
+        Raises:
+            crowdnav_mesrnn.predictors.ForecastError: the chunk's forecasts are not ``(M, pred_len, 2)`` or not
+                finite (:func:`~crowdnav_mesrnn.predictors.check_forecast`); nothing is written.
+        """
+        row_frames = chunk * CHUNK_FRAMES + np.repeat(np.arange(data.num_frames), np.diff(data.offsets))
+        check_forecast(
+            data.forecasts,
+            name=key.predictor,
+            expected_shape=(len(data.columns), key.pred_len, 2),
+            recording=key.recording,
+            frame=row_frames,
+        )
         if self.unwritable is not None:
             return None
         meta = np.array(json.dumps(key.meta(), sort_keys=True))

@@ -15,6 +15,7 @@ import numpy as np
 from crowdnav_mesrnn.config import ConfigError
 from crowdnav_mesrnn.data.constants import PRED_LEN
 from crowdnav_mesrnn.data.recordings import Recording
+from crowdnav_mesrnn.predictors import check_forecast, label_of
 from envs.forecasting.cache import ForecastStore, FrameTable, chunk_frames, num_chunks
 from envs.forecasting.sources import ForecastModel
 from envs.forecasting.window import PredictorForecast
@@ -27,8 +28,9 @@ class _CarriedWalk:
     one) and returns the forecast at frame ``i`` of the pedestrians present there.
     """
 
-    def __init__(self, model: Any, recording: Recording) -> None:
+    def __init__(self, model: Any, recording: Recording, label: str) -> None:
         self.model = model
+        self.label = label
         self.recording = recording
         self.num_slots = int(recording.present.shape[1])
         self.pred_len = int(getattr(model, "pred_len", PRED_LEN))
@@ -49,13 +51,17 @@ class _CarriedWalk:
             self.forecaster.observe(rec.positions[self.observed], rec.present[self.observed])
             self.observed += 1
         cols = np.flatnonzero(rec.present[i])
-        pred = np.asarray(self.forecaster.forecast())
+        pred = self.forecaster.forecast()
         self.calls += 1
-        if pred.shape != (self.num_slots, self.pred_len, 2):
-            raise ValueError(
-                f"online forecaster of {getattr(self.model, 'name', self.model)!r} returned shape {pred.shape}, "
-                f"expected {(self.num_slots, self.pred_len, 2)}"
-            )
+        pred = check_forecast(
+            pred,
+            name=f"{self.label} (online forecaster)",
+            expected_shape=(self.num_slots, self.pred_len, 2),
+            recording=rec.name,
+            frame=i,
+            time_s=rec.times_s()[i],
+            rows=cols,
+        )
         out = np.ascontiguousarray(pred[cols], dtype=np.float32)
         self.last = (i, cols, out)
         return cols, out
@@ -110,7 +116,8 @@ class CarriedPredictorForecast(PredictorForecast):
     def compute_frame(self, recording: Recording, i: int) -> tuple[np.ndarray, np.ndarray]:
         walk = self._walks.get(recording.name)
         if walk is None or walk.recording is not recording:
-            walk = _CarriedWalk(self.predictor_for(recording.name), recording)
+            model = self.predictor_for(recording.name)
+            walk = _CarriedWalk(model, recording, label_of(model))
             self._walks[recording.name] = walk
         before = walk.calls
         out = walk.at(i)
@@ -120,7 +127,8 @@ class CarriedPredictorForecast(PredictorForecast):
     def compute_chunks(self, recording: Recording, chunk: int) -> dict[int, FrameTable]:
         """Every chunk of the recording, in one pass of an online forecaster from its first frame (hidden states
         cannot start in the middle)."""
-        walk = _CarriedWalk(self.predictor_for(recording.name), recording)
+        model = self.predictor_for(recording.name)
+        walk = _CarriedWalk(model, recording, label_of(model))
         frames = range(len(recording.frames))
         forecasts = [walk.at(k) for k in self._progress(frames, recording, frames)]
         out = {

@@ -62,7 +62,7 @@ def load_learned(name: str, split: str, needed_for: str) -> Any:
         try:
             _LOADED[key] = predictors.load(name, split)
         except Exception as exc:  # any failure to load is reported the same way, with its cause
-            shipped = predictors.kind(name) == predictors.PRETRAINED
+            shipped = predictors.kind(name) in (predictors.PRETRAINED, predictors.FITTED_BASELINE)
             raise PredictorUnavailableError(
                 f"the {'pretrained ' if shipped else 'plug-in '}{name!r} predictor for split {split!r} (needed to "
                 f"forecast {needed_for}) could not be loaded: {type(exc).__name__}: {str(exc).rstrip('.')}. "
@@ -83,8 +83,9 @@ def make_forecast_source(
 
     The kind of ``config.predictor`` (:func:`crowdnav_mesrnn.predictors.kind`) chooses the source: none, the oracle,
     the noisy oracle (``noisy_oracle_ade_m``), a weightless baseline loaded once, or a predictor loaded per split
-    (the pretrained and the plug-ins), window or carried (``forecast_memory``; the baseline is always window) and
-    shared through the disk cache (:func:`forecast_store`). Forecasts are on the grid ``dt_s`` x
+    (the fitted baseline ``cv_gaussian``, the pretrained and the plug-ins), window or carried (``forecast_memory``;
+    the baselines are always window) and shared through the disk cache (:func:`forecast_store`; keyed on the
+    predictor's ``cache_fingerprint()`` where it has one). Forecasts are on the grid ``dt_s`` x
     ``horizon_steps`` and kept in memory with ``cache_forecasts``.
 
     Args:
@@ -123,6 +124,8 @@ def make_forecast_source(
         return NoisyOracleForecast(config.noisy_oracle_ade_m, horizon)
     if kind == predictors.BASELINE:
         return PredictorForecast(name, {}, predictors.load(name), dt_s, horizon, cache)
+    if kind == predictors.FITTED_BASELINE:  # constant velocity keeps no state to carry
+        learned_cls = PredictorForecast
     per_recording: dict[str, ForecastModel] = {}
     default: ForecastModel | None = None
     for rec in recordings:

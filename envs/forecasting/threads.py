@@ -1,9 +1,12 @@
 """Torch threads while forecasting: one thread per computation, and fork safety.
 
 Forecasting runs many small batched operations, where more torch threads contend for the cores rather than help:
-sources compute on :func:`torch_threads` (one thread by default) and give the caller's setting back after. A
-forked child (Gymnasium's async vector env) must not enter a torch OpenMP region its parent started
-(:func:`fork_safe_torch`).
+sources compute on :func:`torch_threads` (:data:`FORECAST_THREADS`, one thread) and give the caller's setting back
+after. The thread count is also part of what a forecast *is*: torch splits a reduction differently over more
+threads, and a learned predictor's forecasts move in the last float32 bits (up to about 1e-5 m for MESRNN on two
+threads). Every forecast that is cached or compared is therefore computed on :data:`FORECAST_THREADS`, whatever the
+caller set: the environment's sources and :func:`~envs.forecasting.build.build_forecast_cache` alike. A forked child
+(Gymnasium's async vector env) must not enter a torch OpenMP region its parent started (:func:`fork_safe_torch`).
 """
 
 from __future__ import annotations
@@ -14,6 +17,9 @@ import sys
 from collections.abc import Iterator
 from typing import Final
 
+#: Torch threads every forecast is computed on (the documented, bit-exact setting: cached files, online forecasts
+#: and ``forecasts build`` give the same bits).
+FORECAST_THREADS: Final[int] = 1
 #: The process that imported this module; a process with another id is a forked child (or a child's child).
 _IMPORT_PID: Final[int] = os.getpid()
 #: The forked process that has already been switched to one torch thread.

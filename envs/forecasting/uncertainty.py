@@ -123,8 +123,8 @@ class CalibratedUncertainty(UncertaintySource):
 def calibration_key(name: str, split: str, levels: tuple[float, ...], data_dir: str | None) -> str:
     """Digest of what a calibration depends on: the predictor's weights, the split's training and validation
     recordings, the levels and the calibration format."""
-    from crowdnav_mesrnn.uncertainty.calibration import CALIBRATION_FORMAT
     from crowdnav_mesrnn.data.recordings import load_split
+    from crowdnav_mesrnn.uncertainty.conformal import CALIBRATION_FORMAT
 
     h = hashlib.sha256()
     if predictors.kind(name) == predictors.BASELINE:  # no weights: the name is the predictor

@@ -19,6 +19,7 @@ import numpy as np
 
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN
 from crowdnav_mesrnn.data.recordings import Recording
+from crowdnav_mesrnn.predictors import check_forecast, label_of
 from envs.forecasting.cache import (
     _SHARED_TABLES,
     CHUNK_FRAMES,
@@ -34,7 +35,7 @@ from envs.forecasting.cache import (
 )
 from envs.forecasting.resampling import resample_matrix, time_key
 from envs.forecasting.sources import ForecastModel, ForecastSource, TrueFuture
-from envs.forecasting.threads import fork_safe_torch, torch_threads
+from envs.forecasting.threads import FORECAST_THREADS, fork_safe_torch, torch_threads
 from envs.replay import TIME_TOL_S, Replay
 
 
@@ -64,9 +65,9 @@ class PredictorForecast(ForecastSource):
             (:func:`~envs.forecasting.cache.predictor_fingerprint`) are kept in memory only; constant velocity's
             tables are shared by every source of the process (:func:`~envs.forecasting.cache.definition_key`).
 
-    Computing runs torch on :attr:`threads` threads, one by default (:func:`~envs.forecasting.threads.torch_threads`;
-    the caller's setting is restored after): a frame's batched operations are small, and more threads contend for
-    the cores. When computing a chunk takes over a second, a progress bar over its frames says so (in the main
+    Computing runs torch on :attr:`threads` threads, :data:`~envs.forecasting.threads.FORECAST_THREADS` (one) by
+    default (:func:`~envs.forecasting.threads.torch_threads`; the caller's setting is restored after): a frame's
+    batched operations are small, more threads contend for the cores, and they change the forecasts' last bits. When computing a chunk takes over a second, a progress bar over its frames says so (in the main
     process only, not in vector-env workers; ``progress = False`` turns it off).
 
     Attributes:
@@ -76,7 +77,8 @@ class PredictorForecast(ForecastSource):
         chunks_shared: chunks taken from another source of this process (constant velocity:
             :func:`definition_key`).
         progress: show a progress bar over a chunk's frames when computing it takes over a second.
-        threads: torch threads while computing (None: the caller's setting).
+        threads: torch threads while computing (None: the caller's setting, whose forecasts may differ in the last
+            bits from the cached ones).
     """
 
     def __init__(
@@ -110,7 +112,7 @@ class PredictorForecast(ForecastSource):
         self.chunks_computed = 0
         self.chunks_shared = 0
         self.progress = True
-        self.threads: int | None = 1
+        self.threads: int | None = FORECAST_THREADS
 
     def predictor_for(self, recording: str) -> ForecastModel:
         model = self.predictors.get(recording, self.default)
@@ -167,12 +169,21 @@ class PredictorForecast(ForecastSource):
             out.append((full.columns[seen], history, mask, mask[-1]))
         return out
 
-    def _checked(self, model: ForecastModel, pred: np.ndarray, n: int, pred_len: int) -> np.ndarray:
-        if pred.shape != (n, pred_len, 2):
-            raise ValueError(
-                f"predictor {getattr(model, 'name', model)!r} returned shape {pred.shape}, expected {(n, pred_len, 2)}"
-            )
-        return pred
+    def _checked(
+        self, model: ForecastModel, pred: Any, n: int, pred_len: int, recording: Recording, frame: Any, rows: Any
+    ) -> np.ndarray:
+        """``pred`` once :func:`~crowdnav_mesrnn.predictors.check_forecast` has accepted it: ``(n, pred_len, 2)``,
+        finite in ``rows`` (the pedestrians present at the frame); ``frame``: the annotation frame, or ``(n,)`` each
+        row's frame."""
+        return check_forecast(
+            pred,
+            name=label_of(model),
+            expected_shape=(n, pred_len, 2),
+            recording=recording.name,
+            frame=frame,
+            time_s=recording.times_s()[frame],
+            rows=rows,
+        )
 
     def compute_frame(self, recording: Recording, i: int) -> tuple[np.ndarray, np.ndarray]:
         """``(columns (n,), forecasts (n, P, 2) float32)`` at annotation frame ``i`` for the pedestrians present there,
@@ -182,7 +193,7 @@ class PredictorForecast(ForecastSource):
         if not now.any():
             return np.zeros(0, dtype=np.int64), np.zeros((0, pred_len, 2), np.float32)
         self.calls += 1
-        pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(cols), pred_len)
+        pred = self._checked(model, model.forecast(history, mask), len(cols), pred_len, recording, i, now)
         return cols[now], np.ascontiguousarray(pred[now], dtype=np.float32)
 
     def compute_chunks(self, recording: Recording, chunk: int) -> dict[int, FrameTable]:
@@ -202,12 +213,13 @@ class PredictorForecast(ForecastSource):
             }
         parts = []
         frames = chunk_frames(recording, chunk)
-        for cols, history, mask, now in self._progress(self._histories(recording, frames, obs_len), recording, frames):
+        histories = self._histories(recording, frames, obs_len)
+        for i, (cols, history, mask, now) in zip(frames, self._progress(histories, recording, frames), strict=True):
             if not now.any():
                 parts.append((np.zeros(0, dtype=np.int64), np.zeros((0, pred_len, 2), np.float32)))
                 continue
             self.calls += 1
-            pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(cols), pred_len)
+            pred = self._checked(model, model.forecast(history, mask), len(cols), pred_len, recording, i, now)
             parts.append((cols[now], np.ascontiguousarray(pred[now], dtype=np.float32)))
         return {chunk: FrameTable.from_frames(parts, pred_len)}
 
@@ -233,7 +245,8 @@ class PredictorForecast(ForecastSource):
         history = pos[frame_of, :, rows].astype(np.float32).transpose(1, 0, 2)  # (obs_len, M, 2)
         history[~mask] = 0.0
         self.calls += int(np.count_nonzero(counts))
-        pred = self._checked(model, np.asarray(model.forecast(history, mask)), len(rows), pred_len)
+        row_frames = frames.start + frame_of
+        pred = self._checked(model, model.forecast(history, mask), len(rows), pred_len, recording, row_frames, None)
         return FrameTable(offsets, columns, np.ascontiguousarray(pred, dtype=np.float32))
 
     def _progress(self, items: Any, recording: Recording, frames: range) -> Any:

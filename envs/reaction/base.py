@@ -9,6 +9,7 @@ forecasts or the robot's goal: pedestrians see the robot's position and velocity
 
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar, Final, Protocol
@@ -134,6 +135,15 @@ class ReactiveCrowd(ABC):
     def _reset_state(self) -> None:  # noqa: B027 - a hook: ``none`` has no state of its own
         """Model state at the start of an episode (after :attr:`_pos`, :attr:`_present` are set)."""
 
+    def clone(self) -> ReactiveCrowd:
+        """An independent copy of the crowd in its current state (sharing only the read-only recording and the
+        constants), to roll the model forward for a candidate robot path without touching this one."""
+        twin = copy.copy(self)
+        for key, value in vars(self).items():
+            if isinstance(value, np.ndarray):
+                setattr(twin, key, value.copy())
+        return twin
+
     @property
     def time_s(self) -> float:
         """The time of the current state, seconds."""
@@ -239,12 +249,28 @@ class ReactiveCrowd(ABC):
         Returns:
             the actual positions and presence at ``t_s + k dt_s``, ``k = 0..S`` (row 0: the current state), and the
             last step.
+
+        When the model would leave everyone on the recording over all ``S`` steps (:meth:`_quiet`, checked at once over
+        the steps: nobody reacting, nobody triggered), the recording is returned without stepping: the same result and
+        state as stepping, bit for bit (``tests/envs/reaction/test_quiet.py``).
         """
         steps = len(recorded) - 1
         if steps < 1:
             raise ValueError(
                 f"{type(self).__name__}.advance needs at least 2 rows of recorded positions, got {steps + 1}"
             )
+        if self.quiet_advance and self._tracks is not None and abs(t_s - self._t) <= _TIME_TOL_S:
+            rec = np.asarray(recorded, dtype=np.float64)
+            pres_in = np.asarray(present, dtype=bool)
+            robot = np.asarray(robot_path, dtype=np.float64)
+            if (
+                rec.shape == (steps + 1, self._num, 2)
+                and pres_in.shape == rec.shape[:2]
+                and robot.shape == (steps + 1, 2)
+            ):
+                last_quiet = self._quiet(dt_s, rec, pres_in, robot)
+                if last_quiet is not None:
+                    return self._replayed(t_s, dt_s, rec, pres_in, last_quiet)
         positions = np.empty((steps + 1, self._num, 2))
         pres = np.empty((steps + 1, self._num), dtype=bool)
         positions[0], pres[0] = self._pos, self._present
@@ -263,6 +289,36 @@ class ReactiveCrowd(ABC):
             positions[k + 1], pres[k + 1] = last.positions, last.present
         assert last is not None
         return CrowdPath(positions, pres, last)
+
+    #: :meth:`advance` skips the steps in which the model would leave everyone on the recording (False: always steps).
+    quiet_advance: ClassVar[bool] = True
+
+    def _quiet(self, dt_s: float, recorded: np.ndarray, present: np.ndarray, robot: np.ndarray) -> CrowdStep | None:
+        """The last :class:`CrowdStep` of ``S`` steps in which the model leaves everyone on the recording, with the
+        model's own state set as after them, or None (the steps must be taken). Arguments as :meth:`advance` (checked
+        arrays). Default: never quiet."""
+        return None
+
+    def _replayed(
+        self, t_s: float, dt_s: float, recorded: np.ndarray, present: np.ndarray, last: CrowdStep
+    ) -> CrowdPath:
+        """The :class:`CrowdPath` of ``S`` quiet steps (everyone at the recorded floats), and the state after them."""
+        steps = len(recorded) - 1
+        positions = recorded.copy()
+        pres = present.copy()
+        positions[0], pres[0] = self._pos, self._present
+        self._t = (t_s + (steps - 1) * dt_s) + dt_s  # as the last of the steps leaves it
+        self._pos = last.positions
+        self._present = last.present
+        return CrowdPath(positions, pres, last)
+
+    @staticmethod
+    def _starts(recorded: np.ndarray, now: np.ndarray) -> np.ndarray:
+        """``(S, N, 2)`` positions at the start of each of ``S`` quiet steps: ``now`` (the state), then the recorded
+        ones (a quiet step leaves its pedestrians at the recorded floats)."""
+        starts = recorded[:-1].copy()
+        starts[0] = now
+        return starts
 
     # ------------------------------------------------------------------ helpers for the models
 
@@ -283,6 +339,14 @@ class ReplayedCrowd(ReactiveCrowd):
     """``none``: every pedestrian moves exactly as recorded (the positions returned are the recorded ones)."""
 
     name = "none"
+
+    def _quiet(self, dt_s: float, recorded: np.ndarray, present: np.ndarray, robot: np.ndarray) -> CrowdStep | None:
+        zeros = self._zeros()
+        moving = present[-2] & present[-1]
+        vel = self._velocities(recorded[-2], recorded[-1], moving, dt_s)
+        return CrowdStep(
+            recorded[-1].copy(), vel, present[-1].copy(), np.zeros(self._num, dtype=bool), zeros, zeros, zeros
+        )
 
     def _step(self, inp: StepInputs) -> CrowdStep:
         zeros = self._zeros()

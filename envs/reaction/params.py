@@ -130,7 +130,9 @@ class ReactionParams:
         """The defaults with ``overrides`` applied; :class:`~crowdnav_mesrnn.config.ConfigError` for an unknown key
         (listing the valid ones) or a bad value (naming the key, the value and what is allowed)."""
         if overrides is not None and not isinstance(overrides, Mapping):
-            raise ConfigError(f"reaction parameters must be a mapping, got {type(overrides).__name__}: {overrides!r}")
+            raise ConfigError(
+                f"reaction_params (the reaction parameters) must be a mapping, got {type(overrides).__name__}: {overrides!r}"
+            )
         return replace_checked(cls(), overrides, where="reaction parameter")
 
 

@@ -29,6 +29,30 @@ class PausingCrowd(ReactiveCrowd):
         """``(N,)`` seconds each pedestrian has waited so far (its recording's delay), a copy."""
         return self._shift.copy()
 
+    def _quiet(self, dt_s: float, recorded: np.ndarray, present: np.ndarray, robot: np.ndarray) -> CrowdStep | None:
+        if (self._shift > 0.0).any():
+            return None
+        here = present[:-1].copy()
+        here[0] = self._present
+        moving = here & present[1:]  # (S, N)
+        starts = self._starts(recorded, self._pos)
+        at = robot[:-1, None, :]
+        d_next = self._distance(recorded[1:], at)
+        wait = moving & (d_next < self.contact_m + self.params.pause_margin_m) & (d_next < self._distance(starts, at))
+        if wait.any():
+            return None
+        nxt, there = recorded[-1].copy(), present[-1].copy()
+        deviation = np.where(there & present[-1], self._distance(nxt, recorded[-1]), 0.0)
+        return CrowdStep(
+            nxt,
+            self._velocities(starts[-1], nxt, moving[-1], dt_s),
+            there,
+            np.zeros(self._num, dtype=bool),
+            self._shift.copy(),
+            deviation,
+            self._zeros(),
+        )
+
     def _step(self, inp: StepInputs) -> CrowdStep:
         dt_s, rec_next, pres_next, robot = inp.dt_s, inp.rec_next, inp.pres_next, inp.robot
         pos, here = self._pos, self._present

@@ -84,6 +84,18 @@ class SteeredCrowd(ReactiveCrowd):
     def _model_velocities(self, hood: Neighbourhood) -> np.ndarray:
         """``(m, 2)`` the model's velocities of the reacting pedestrians for the step, m/s (bounded afterwards)."""
 
+    def _quiet(self, dt_s: float, recorded: np.ndarray, present: np.ndarray, robot: np.ndarray) -> CrowdStep | None:
+        if self._reacting.any():
+            return None
+        moving = present[:-1] & present[1:]  # (S, N)
+        d_robot = self._distance(self._starts(recorded, self._pos), robot[:-1, None, :])
+        if (moving & (d_robot < self.params.trigger_distance_m)).any():
+            return None
+        rec_vel = self._velocities(recorded[-2], recorded[-1], moving[-1], dt_s)
+        self._vel, self._vel_known = rec_vel, moving[-1]
+        zeros = self._zeros()
+        return CrowdStep(recorded[-1].copy(), rec_vel, present[-1].copy(), self._reacting.copy(), zeros, zeros, zeros)
+
     def _step(self, inp: StepInputs) -> CrowdStep:
         dt_s, rec_now, rec_next, pres_next, robot = inp.dt_s, inp.rec_now, inp.rec_next, inp.pres_next, inp.robot
         prm = self.params

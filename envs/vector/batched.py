@@ -369,7 +369,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         self._reset_ghost[w] = False
         self._reset_ghost[w, :nrow] = world.popin.ghost
         self._started[w] = True
-        return reset_info(ep, self.crowd_kind, self.predictor_name)
+        return reset_info(ep, self.crowd_kind, self.predictor_name, self.env.reaction, cfg.reaction_params)
 
     def _fit_width(self) -> None:
         """Widen the per-row state to the replays' padded width P."""
@@ -817,7 +817,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         ep = world.episode
         assert ep is not None
         cfg = self.config
-        m = EpisodeMetrics.of_episode(ep, cfg.dt_s, cfg.discomfort_dist_m)
+        m = EpisodeMetrics.of_episode(ep, cfg.dt_s, cfg.discomfort_dist_m, cfg.goal_tolerance_m)
         m.steps = int(self._m_steps[w])
         m.visible_sum = int(self._m_visible[w])
         m.episode_return = float(self._m_return[w])

@@ -66,7 +66,7 @@ def config_of() -> Any:
 @pytest.fixture(scope="session")
 def tiny_ppo_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A finished 128-step PPO run (``none`` arm, synthetic crowd)."""
-    from agents.train import load_train_config, train
+    from agents.training import load_train_config, train
 
     cfg = load_train_config(PPO_YAML, None, tiny_overrides("ppo", "none"))
     return train(cfg, tmp_path_factory.mktemp("runs") / "ppo_none", progress=False, command="pytest")

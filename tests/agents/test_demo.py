@@ -9,14 +9,15 @@ import pytest
 from PIL import Image
 
 import agents.cli
+import agents.runs
 from crowdnav_mesrnn.cli import main
 
 
 @pytest.fixture
 def exported(tiny_ppo_run: Path, tmp_path: Path) -> Path:
-    dest = tmp_path / "pretrained" / "ppo_none.zip"
+    dest = tmp_path / "pretrained" / "ppo_none.policy.yaml"
     assert main(["agent", "export", str(tiny_ppo_run), str(dest)]) == 0
-    assert dest.is_file() and dest.with_suffix(".yaml").is_file()
+    assert dest.is_file() and dest.with_name("ppo_none.pt").is_file()
     return dest
 
 
@@ -44,7 +45,7 @@ def test_demo_with_a_trained_policy_uses_its_forecast_arm(exported: Path, capsys
 def test_demo_defaults_to_the_shipped_policy_else_the_planner(
     exported: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setattr(agents.cli, "SHIPPED_POLICY", exported.parent / "missing.zip")
+    monkeypatch.setattr(agents.cli, "SHIPPED_POLICY", exported.parent / "missing.policy.yaml")
     assert main(["demo", "--synthetic", "--no-gif", "--predictor", "cv"]) == 0
     captured = capsys.readouterr()
     assert "no shipped PPO policy" in captured.err and "policy planner" in captured.out
@@ -61,18 +62,16 @@ def test_agent_evaluate_subcommand(exported: Path, capsys: pytest.CaptureFixture
     assert json.loads(capsys.readouterr().out)["episodes"] == 2
 
 
-def test_export_drops_the_optimizer_state_but_not_the_policy(tiny_ppo_run: Path, exported: Path) -> None:
-    import torch
-    from stable_baselines3 import PPO
-
-    from agents.evaluate import model_path
+def test_export_copies_the_policy_file_training_wrote(tiny_ppo_run: Path, exported: Path) -> None:
+    """A run folder of ``agent train`` holds the policy file: export copies its weights, naming them after DEST."""
+    from agents.runs import model_path
 
     source = model_path(tiny_ppo_run)
-    assert exported.stat().st_size < source.stat().st_size
-    a, b = PPO.load(source, device="cpu"), PPO.load(exported, device="cpu")
-    for (ka, va), (kb, vb) in zip(a.policy.state_dict().items(), b.policy.state_dict().items(), strict=True):
-        assert ka == kb and torch.equal(va, vb)
-    assert not b.policy.optimizer.state_dict()["state"]
+    assert source.name == "best_model.policy.yaml"
+    assert exported.with_name("ppo_none.pt").read_bytes() == source.with_name("best_model.pt").read_bytes()
+    assert "file: ppo_none.pt" in exported.read_text() and "best_model.pt" not in exported.read_text()
+    with pytest.raises(ValueError, match=r"NAME\.policy\.yaml"):
+        agents.runs.export_policy(tiny_ppo_run, exported.with_name("x.zip"))
 
 
 def test_the_shipped_policy_crosses_the_held_out_zara1_scene(
@@ -83,7 +82,7 @@ def test_the_shipped_policy_crosses_the_held_out_zara1_scene(
         pytest.fail(f"the shipped policy {agents.cli.SHIPPED_POLICY} is missing from the package")
     assert main(["demo", "--no-gif", "--json"]) == 0
     out = capsys.readouterr().out
-    assert "policy" in out.splitlines()[0] and "ppo_mesrnn_zara1.zip" in out.splitlines()[0]
+    assert "policy" in out.splitlines()[0] and "ppo_mesrnn_zara1.policy.yaml" in out.splitlines()[0]
     assert '"outcome"' in out
 
 

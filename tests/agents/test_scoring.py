@@ -221,7 +221,8 @@ def test_wrong_action_space_or_horizon_is_named() -> None:
 
 
 def test_training_config_fills_in_the_action_geometry(tiny: Any, config_of: Any, tmp_path: Path) -> None:
-    from agents.train import algorithm_kwargs, load_train_config, train
+    from agents.training.config import algorithm_kwargs, load_train_config
+    from agents.training.run import train
     from crowdnav_mesrnn.config import ConfigError
 
     over = tiny("ppo", "none", steps=64, **{"action.kind": "discrete", "policy": "agents.scoring.ActionScoringPolicy"})
@@ -263,7 +264,7 @@ def test_rollout_buffer_caches_the_geometry_once_per_rollout() -> None:
 @pytest.mark.parametrize("predictor", ["none", "mesrnn"])
 def test_the_recipe_candidate_builds_for_every_arm(predictor: str) -> None:
     from agents.scoring import GeometryCachingBuffer
-    from agents.train import algorithm_kwargs, load_train_config
+    from agents.training.config import algorithm_kwargs, load_train_config
 
     cfg = load_train_config(Path(__file__).parents[2] / "configs" / "agent" / "ppo_scoring.yaml", None,
                             {"predictor": predictor})  # fmt: skip
@@ -277,7 +278,7 @@ def test_warm_start_fits_with_the_geometry_computed_once(monkeypatch: pytest.Mon
     from stable_baselines3 import PPO
 
     from agents import scoring
-    from agents.pretrain import PretrainConfig, TeacherData, fit_policy
+    from agents.training.pretrain import PretrainConfig, TeacherData, fit_policy
 
     model = PPO(ActionScoringPolicy, _env(True), n_steps=32, batch_size=16, policy_kwargs=_policy_kwargs(), seed=0,
                 device="cpu")  # fmt: skip

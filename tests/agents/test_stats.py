@@ -10,11 +10,14 @@ import pytest
 from scipy import stats as sps
 
 from agents.stats import (
+    VERDICTS,
     bootstrap_mean_ci,
     holm,
+    mcnemar_difference_ci,
     mcnemar_exact,
     mcnemar_min_detectable_difference,
     paired_bootstrap_diff_ci,
+    paired_verdict,
     welch_seed_test,
     wilcoxon_paired,
     wilson_interval,
@@ -78,19 +81,62 @@ def test_mcnemar_exact_hand_value() -> None:
     # 9 pairs where only a succeeds, 1 where only b does, 5 + 5 concordant
     a = [1] * 9 + [0] + [1] * 5 + [0] * 5
     b = [0] * 9 + [1] + [1] * 5 + [0] * 5
-    res = mcnemar_exact(a, b)
+    res = mcnemar_exact(a, b, intervals=("exact", "bootstrap"))
     assert (res["b10"], res["b01"], res["n"]) == (9, 1, 20)
     assert res["p_value"] == pytest.approx(0.021484375, abs=1e-12)  # 2 * binom.cdf(1, 10, 0.5)
     assert res["difference"] == pytest.approx(8 / 20)
     assert res["rate_a"] == pytest.approx(14 / 20) and res["rate_b"] == pytest.approx(6 / 20)
     lo, hi = res["difference_ci"]
     assert 0 < lo < 0.4 < hi
+    # Clopper-Pearson for 9 of 10: lower bound solves P(X >= 9 | pi) = 0.025, upper P(X <= 9 | pi) = 0.025
+    pi_lo = sps.beta.ppf(0.025, 9, 2)
+    pi_hi = sps.beta.ppf(0.975, 10, 1)
+    assert res["difference_exact_ci"] == pytest.approx([0.5 * (2 * pi_lo - 1), 0.5 * (2 * pi_hi - 1)])
+    assert mcnemar_exact(a, b).keys() == res.keys() - {"difference_ci"}  # the exact interval only, by default
 
 
 def test_mcnemar_no_discordance() -> None:
-    res = mcnemar_exact([1, 0, 1], [1, 0, 1])
+    res = mcnemar_exact([1, 0, 1], [1, 0, 1], intervals=("bootstrap", "exact"))
     assert res["p_value"] == 1.0 and res["difference"] == 0.0 and res["difference_ci"] == [0.0, 0.0]
+    assert res["difference_exact_ci"] == [0.0, 0.0]
     assert mcnemar_exact([], [])["n"] == 0
+    assert all(math.isnan(v) for v in mcnemar_exact([], [])["difference_exact_ci"])
+    with pytest.raises(ValueError, match="unknown interval"):
+        mcnemar_exact([1], [0], intervals=("wald",))
+
+
+def test_the_issue_example_no_longer_contradicts_itself() -> None:
+    """Issue 31: "kalman - cv | -15.0 [-40.0, -5.0] | p 0.25" -- 3 discordant pairs of 20, all against a. The paired
+    bootstrap interval excludes 0 beside a test that does not reject; the exact conditional interval does not."""
+    a = [0] * 3 + [1] * 10 + [0] * 7
+    b = [1] * 3 + [1] * 10 + [0] * 7
+    res = mcnemar_exact(a, b, intervals=("exact", "bootstrap"))
+    assert res["difference"] == pytest.approx(-0.15) and res["p_value"] == pytest.approx(0.25)
+    assert res["difference_ci"][1] < 0  # the old interval: excludes 0
+    lo, hi = res["difference_exact_ci"]
+    assert lo == pytest.approx(-0.15) and 0 < hi  # 0 of 3: pi in [0, 1 - 0.025 ** (1 / 3)]
+    assert hi == pytest.approx(3 / 20 * (2 * (1 - 0.025 ** (1 / 3)) - 1))
+
+
+@pytest.mark.parametrize("n", [12, 40])
+def test_the_exact_interval_excludes_zero_exactly_when_the_test_rejects(n: int) -> None:
+    for b10 in range(n + 1):
+        for b01 in range(n + 1 - b10):
+            p = mcnemar_exact(
+                [1] * b10 + [0] * b01 + [1] * (n - b10 - b01), [0] * b10 + [1] * b01 + [1] * (n - b10 - b01)
+            )
+            lo, hi = mcnemar_difference_ci(b10, b01, n)
+            assert (lo > 0 or hi < 0) == (p["p_value"] < 0.05), (b10, b01, lo, hi, p["p_value"])
+            assert -1 <= lo <= p["difference"] <= hi <= 1
+
+
+def test_paired_verdict_reads_the_adjusted_p_value() -> None:
+    assert paired_verdict(0.1, 0.01) == "better"
+    assert paired_verdict(-0.1, 0.049) == "worse"
+    assert paired_verdict(-0.1, 0.051) == "no difference shown"
+    assert paired_verdict(0.0, 0.0) == "no difference shown"
+    assert paired_verdict(0.1, None) == "not tested"
+    assert set(VERDICTS) == {"better", "worse", "no difference shown"}
 
 
 def test_wilcoxon_hand_worked() -> None:

@@ -8,7 +8,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from agents.train import load_train_config, make_vec_env
+from agents.training.config import load_train_config
+from agents.training.run import make_vec_env
 
 PPO_YAML = Path(__file__).resolve().parents[2] / "configs" / "agent" / "ppo.yaml"
 
@@ -52,7 +53,7 @@ def test_batched_steps_like_dummy_over_the_wrappers(predictor: str, kind: str) -
 
 
 def test_ppo_learns_on_the_batched_env(tiny: Any, config_of: Any, tmp_path: Path) -> None:
-    from agents.train import train
+    from agents.training.run import train
 
     cfg = load_train_config(config_of("ppo"), None, tiny("ppo", "cv", vec_env="batched", n_envs=2))
     run = train(cfg, tmp_path / "batched", progress=False)

@@ -26,7 +26,7 @@ def test_resolution_order(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> No
     monkeypatch.setenv(ENV_VAR, str(b))
     assert find_data_dir(a) == a
     assert find_data_dir() == b
-    monkeypatch.delenv(ENV_VAR)
+    monkeypatch.delenv(ENV_VAR, raising=False)
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     with pytest.raises(DataNotFoundError) as info:

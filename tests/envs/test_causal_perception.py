@@ -1,4 +1,5 @@
-"""What the robot perceives at t depends only on annotations at or before t, on every scene and forecast arm."""
+"""What the robot perceives at t depends only on annotations at or before t, on every scene and forecast arm, with
+pedestrians replayed or reacting to the robot."""
 
 from __future__ import annotations
 
@@ -22,6 +23,10 @@ ARMS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("mesrnn", {}),  # the default path: chunks of frames, disk cache
     ("mesrnn", {"cache_forecasts": False}),
     ("mesrnn", {"forecast_memory": "carried"}),
+    # pedestrians who react: observed positions and forecasts from the reacted annotations
+    ("cv", {"reaction": "orca"}),
+    ("mesrnn", {"reaction": "orca"}),
+    ("none", {"reaction": "pause"}),
 )
 
 
@@ -74,8 +79,12 @@ def test_observations_up_to_t_ignore_annotations_after_t(data_dir: Path, name: s
         if kwargs.get("forecast_memory") == "carried" and name != "biwi_eth":
             continue
         common = {"predictor": predictor, "terminate_on_collision": False, **kwargs}
-        a = observations(CrowdNavEnv(crowd=rec, **common), options, actions)
+        env = CrowdNavEnv(crowd=rec, **common)
+        a = observations(env, options, actions)
         b = observations(CrowdNavEnv(crowd=changed, **common), options, actions)
+        if kwargs.get("reaction") == "orca":  # people reacted before the cut: the record being tested is not the file
+            observed = env._reactive.observed
+            assert observed.deviated[observed.times <= cut + 1e-9].any(), (name, predictor)
         compared = seen = 0
         differs = False
         for (ta, oa), (tb, ob) in zip(a, b, strict=True):

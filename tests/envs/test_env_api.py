@@ -201,7 +201,7 @@ def test_step_before_reset_and_after_the_end_raise() -> None:
         ({"part": "val"}, r"unknown part 'val'; valid: train, test"),
         (
             {"predictor": "oracel"},
-            r"unknown predictor 'oracel'; valid: none, cv, mesrnn, srnn, vlstm, oracle, noisy_oracle",
+            r"unknown predictor 'oracel'; valid: none, cv, cv_gaussian, mesrnn, srnn, vlstm, oracle, noisy_oracle",
         ),
         ({"crowd": "real"}, r"unknown crowd 'real'; valid: auto, replay, synthetic, empty"),
         ({"kinematics": "diff"}, r"unknown kinematics 'diff'; valid: holonomic, unicycle"),

@@ -79,8 +79,8 @@ def test_synthetic_training_crowd_gets_denser() -> None:
 def test_training_episodes_with_overlays_never_read_the_held_out_recordings(
     data_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from agents.evaluate import evaluation_env_kwargs
-    from agents.train import load_train_config
+    from agents.evaluation.run import evaluation_env_kwargs
+    from agents.training.config import load_train_config
     from crowdnav_mesrnn.data import recordings as data_recordings
     from envs import crowd_nav
 
@@ -116,7 +116,7 @@ def test_training_episodes_with_overlays_never_read_the_held_out_recordings(
 
 
 def test_validation_may_be_denser_but_evaluation_never_is(tmp_path: Path) -> None:
-    from agents.train import load_train_config, train
+    from agents.training import load_train_config, train
 
     over = {
         "predictor": "none", "n_envs": 1, "n_timesteps": 64, "n_steps": 64, "batch_size": 32, "n_epochs": 1,
@@ -128,7 +128,7 @@ def test_validation_may_be_denser_but_evaluation_never_is(tmp_path: Path) -> Non
     assert cfg.env_kwargs("val")["crowd_overlays"] == 2 and cfg.env_kwargs("train")["crowd_overlays"] == 1
     assert CrowdNavEnv(**cfg.env_kwargs("val")).crowd_kind == "synthetic+2 overlays"
     run = train(cfg, tmp_path / "dense", progress=False)
-    from agents.evaluate import evaluation_env_kwargs
+    from agents.evaluation.run import evaluation_env_kwargs
 
     assert "crowd_overlays" not in evaluation_env_kwargs(run, "none", "zara1")
     with pytest.raises(ConfigError, match="val_env must be a mapping"):

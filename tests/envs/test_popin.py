@@ -103,7 +103,8 @@ def test_a_univ_evaluation_episode_no_longer_starts_a_collision_on_the_robot() -
     # Episode 0 of the univ evaluation list, robot standing still: before the rule this episode ended in a
     # collision with a pedestrian whose track began 0.43 m from the robot's centre (measured with the
     # previous environment); now that pedestrian is a ghost until clear.
-    from agents.evaluate import evaluation_env_kwargs, evaluation_seeds
+    from agents.evaluation.run import evaluation_env_kwargs
+    from agents.rollout import evaluation_seeds
 
     env = CrowdNavEnv(**evaluation_env_kwargs("straight", "none", "univ"))
     env.reset(seed=evaluation_seeds("univ", 1)[0])

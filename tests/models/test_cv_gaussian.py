@@ -14,7 +14,7 @@ from scipy import stats
 
 from crowdnav_mesrnn.data.constants import OBS_LEN, PRED_LEN, SPLITS
 from crowdnav_mesrnn.data.windows import Window, split_windows
-from crowdnav_mesrnn.evaluation import collect_forecasts
+from crowdnav_mesrnn.evaluation.metrics import collect_forecasts
 from crowdnav_mesrnn.models import gaussian
 from crowdnav_mesrnn.models.base import ConstantVelocity
 from crowdnav_mesrnn.models.cv_gaussian import (

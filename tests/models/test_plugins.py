@@ -65,6 +65,7 @@ def fake_entry_points(monkeypatch: pytest.MonkeyPatch, *entries: tuple[str, str,
         for n, v, d, ver in entries
     )
     monkeypatch.setattr(predictors, "_entry_points", lambda: eps)
+    monkeypatch.setattr(predictors, "_WARNED", set())  # their warnings are given afresh
 
 
 def test_shipped_models_register_in_pyproject_exactly_as_the_fallback_table() -> None:
@@ -108,15 +109,39 @@ def test_import_path_works_without_registration(plugin_module: str) -> None:
 @pytest.mark.parametrize(
     ("entries", "match"),
     [
-        ((("none", "x:Y", "d", "1"),), "reserved"),
-        ((("mesrnn", "x:Y", "d", "1"),), "would replace the shipped predictor 'mesrnn'"),
-        ((("dup", "a:B", "d1", "1"), ("dup", "c:D", "d2", "1")), "registered twice.*d1.*d2"),
+        ((("none", "x:Y", "d", "1"),), r"plug-in 'none' = 'x:Y' of the distribution 'd': its name is reserved"),
+        ((("a:b", "x:Y", "d", "1"),), r"plug-in 'a:b' = 'x:Y' of the distribution 'd': its name contains ':'"),
+        (
+            (("mesrnn", "x:Y", "d", "1"),),
+            "'x:Y' of the distribution 'd': it would replace the shipped predictor 'mesrnn'",
+        ),
     ],
 )
-def test_bad_registrations_are_refused(monkeypatch: pytest.MonkeyPatch, entries: tuple, match: str) -> None:
-    fake_entry_points(monkeypatch, *entries)
-    with pytest.raises(PluginError, match=match):
-        registered()
+def test_bad_registrations_are_skipped_with_a_warning_and_the_others_kept(
+    monkeypatch: pytest.MonkeyPatch, entries: tuple, match: str, plugin_module: str
+) -> None:
+    fake_entry_points(monkeypatch, *entries, ("still", f"{plugin_module}:StandStill", "still-dist", "1.0"))
+    with pytest.warns(predictors.PluginWarning, match=match):
+        specs = registered()
+    assert predictors.plugin_names() == ("still",) and load("still", "eth").name == "standstill"
+    assert specs["mesrnn"].shipped and "none" not in specs and "a:b" not in specs
+
+
+def test_a_name_registered_twice_is_skipped_and_an_error_naming_both_when_asked_for(
+    monkeypatch: pytest.MonkeyPatch, plugin_module: str
+) -> None:
+    fake_entry_points(
+        monkeypatch,
+        ("dup", "a:B", "d1", "1"),
+        ("dup", "c:D", "d2", "1"),
+        ("still", f"{plugin_module}:StandStill", "still-dist", "1.0"),
+    )
+    with pytest.warns(predictors.PluginWarning, match=r"'dup': it is registered by several plug-ins, 'a:B' \(d1\) and"):
+        assert predictors.plugin_names() == ("still",)
+    with pytest.raises(
+        PluginError, match=r"'dup' is ambiguous: .*'a:B' \(d1\) and 'c:D' \(d2\); uninstall all but one"
+    ):
+        load("dup")
 
 
 def test_unknown_names_and_broken_plugins_are_clear_errors(plugin_module: str) -> None:
@@ -153,7 +178,7 @@ def test_gymnasium_make_and_config_accept_a_plugin(
 def test_agents_evaluate_accepts_a_plugin(
     monkeypatch: pytest.MonkeyPatch, plugin_module: str, data_dir: Path, tmp_path: Path
 ) -> None:
-    from agents.evaluate import main as evaluate_main
+    from agents.evaluation.cli import main as evaluate_main
 
     fake_entry_points(monkeypatch, ("still", f"{plugin_module}:StandStill", "still-dist", "1.0"))
     argv = ["planner", "--predictor", "still", "--split", "zara1", "--episodes", "2", "--n-envs", "1"]

@@ -130,7 +130,7 @@ def test_config_errors() -> None:
         ModelConfig(model="sgan")
     with pytest.raises(ConfigError, match="valid keys"):
         ModelConfig.from_dict({"model": "srnn", "hiden": 3})
-    with pytest.raises(ValueError, match="valid: cv, mesrnn, srnn, vlstm"):
+    with pytest.raises(ValueError, match="valid: cv, cv_gaussian, mesrnn, srnn, vlstm"):
         get_predictor("lstm")
     with pytest.raises(ValueError, match="valid splits"):
         get_predictor("mesrnn", "zara3")

@@ -32,7 +32,11 @@ SHIPPED = REPO_ROOT / "configs" / "predictor" / "candidates.yaml"
 
 def test_every_candidate_is_applied_to_every_model() -> None:
     plan = load_plan(SHIPPED)
-    assert set(plan.models) == set(predictors.names(predictors.PRETRAINED, plugins=False)) and len(plan.splits) == 5 and len(plan.seeds) >= 3
+    assert (
+        set(plan.models) == set(predictors.names(predictors.PRETRAINED, plugins=False))
+        and len(plan.splits) == 5
+        and len(plan.seeds) >= 3
+    )
     runs = candidate_runs(plan)
     assert len(runs) == len(plan.models) * len(plan.splits) * len(plan.candidates)
     combos = {(r.model, r.split, r.candidate.name) for r in runs}

@@ -171,7 +171,7 @@ def test_eval_with_samples_adds_best_of_k_with_intervals(data_dir: Path, tmp_pat
 def test_eval_samples_need_a_distribution(data_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(ValueError, match="point head"):
         evaluate_model("vlstm", "eth", data_dir=data_dir, samples=2, head="point")
-    with pytest.raises(ValueError, match="constant velocity forecasts one point"):
+    with pytest.raises(ValueError, match="'cv' forecasts one point"):
         evaluate_model("cv", "eth", data_dir=data_dir, samples=2)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -87,14 +88,19 @@ def test_a_predictor_object_is_used_for_every_recording(fake_predictor: Callable
     source = make_forecast_source(config, ["biwi_eth"], obj)
     assert isinstance(source, PredictorForecast) and source.default is obj and source.name == "mine"
     assert source.predictors == {} and source.store is not None
-    with pytest.raises(ConfigError, match="predictor must be one of none, cv, mesrnn, srnn, vlstm, oracle"):
+    with pytest.raises(
+        ConfigError, match="predictor must be one of none, cv, cv_gaussian, mesrnn, srnn, vlstm, oracle"
+    ):
         make_forecast_source(config, [], object())  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize(
     ("changes", "match"),
     [
-        ({"predictor": "lstm"}, "unknown predictor 'lstm'; valid: none, cv, mesrnn, srnn, vlstm, oracle, noisy_oracle"),
+        (
+            {"predictor": "lstm"},
+            "unknown predictor 'lstm'; valid: none, cv, cv_gaussian, mesrnn, srnn, vlstm, oracle, noisy_oracle",
+        ),
         ({"forecast_memory": "forever"}, "unknown forecast_memory 'forever'; valid: window, carried"),
     ],
 )
@@ -114,3 +120,28 @@ def test_missing_weights_name_the_sources_that_need_none(monkeypatch: pytest.Mon
     message = str(info.value)
     assert "the pretrained 'mesrnn' predictor for split 'hotel' (needed to forecast biwi_hotel)" in message
     assert "choose predictor='cv', 'oracle', 'noisy_oracle' or 'none'" in message
+
+
+def test_cv_gaussian_is_a_window_arm_per_split_keyed_on_its_parameters(tmp_path: Path) -> None:
+    """The fitted baseline loads per split like the pretrained (never the held-out scene's fit), always forecasts by
+    window (constant velocity has nothing to carry), forecasts constant velocity's points, and its disk cache is keyed
+    on ``cache_fingerprint()``, so two splits' parameters never share forecasts."""
+    import numpy as np
+
+    from crowdnav_mesrnn.models.cv_gaussian import CvGaussian
+    from envs.forecasting.cache import predictor_fingerprint
+
+    config = CrowdNavConfig(predictor="cv_gaussian", split="hotel", forecast_cache_dir=str(tmp_path))
+    for memory in ("window", "carried"):
+        source = make_forecast_source(
+            replace(config, forecast_memory=memory), ["biwi_eth", "crowds_zara01", "synthetic"]
+        )
+        assert type(source) is PredictorForecast and source.store is not None and source.name == "cv_gaussian"
+    models = {rec: m for rec, m in source.predictors.items()}
+    assert {rec: m.split for rec, m in models.items()} == {"biwi_eth": "eth", "crowds_zara01": "zara1"}
+    assert isinstance(source.default, CvGaussian) and source.default.split == "hotel"
+    digests = {predictor_fingerprint(m) for m in (*models.values(), source.default)}
+    assert digests == {m.cache_fingerprint() for m in (*models.values(), source.default)} and len(digests) == 3
+    rng = np.random.default_rng(0)
+    history, mask = rng.normal(size=(8, 4, 2)).astype(np.float32), np.ones((8, 4), bool)
+    assert np.array_equal(models["biwi_eth"].forecast(history, mask), ConstantVelocity().forecast(history, mask))

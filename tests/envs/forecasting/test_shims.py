@@ -121,7 +121,7 @@ def test_the_former_signatures_build_the_same_sources(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("name", "expected"),
     [
-        ("FORECAST_SOURCES", ("none", "cv", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")),
+        ("FORECAST_SOURCES", ("none", "cv", "cv_gaussian", "mesrnn", "srnn", "vlstm", "oracle", "noisy_oracle")),
         ("LEARNED_SOURCES", ("mesrnn", "srnn", "vlstm")),
     ],
 )

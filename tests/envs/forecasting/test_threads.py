@@ -4,6 +4,8 @@ labelled progress bar when a chunk takes over a second (the first demo without d
 from __future__ import annotations
 
 import time
+from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -11,6 +13,7 @@ import pytest
 import torch
 
 from envs.crowd_nav import CrowdNavEnv
+from envs.forecasting.threads import FORECAST_THREADS
 from envs.recordings import scripted_recording
 
 
@@ -65,7 +68,9 @@ def test_a_slow_chunk_shows_a_labelled_progress_bar(capsys: pytest.CaptureFixtur
     assert "forecasts of" not in capsys.readouterr().err, "no bar for what takes under a second"
 
 
-def test_building_the_cache_keeps_the_callers_threads(monkeypatch: pytest.MonkeyPatch, tmp_path: Any) -> None:
+def test_building_the_cache_computes_on_one_thread_and_restores_the_callers(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Any
+) -> None:
     from envs.forecasting import build, factory
 
     seen = ThreadsSeen()
@@ -75,9 +80,36 @@ def test_building_the_cache_keeps_the_callers_threads(monkeypatch: pytest.Monkey
         "crowdnav_mesrnn.data.recordings.load_recording", lambda name, part="all_data", data_dir=None: _crowd(70, name)
     )
     before = torch.get_num_threads()
-    torch.set_num_threads(2)  # as `forecasts build --threads 2` sets
+    torch.set_num_threads(2)  # a caller's own setting (`forecasts build --threads 2` used to set it)
     try:
         build.build_forecast_cache("mesrnn", "zara1", "test", cache_dir=str(tmp_path), progress=False)
+        assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
-    assert seen.threads and set(seen.threads) == {2}
+    assert seen.threads and set(seen.threads) == {FORECAST_THREADS} == {1}
+
+
+def test_the_cache_build_writes_the_same_bytes_whatever_the_callers_threads(
+    data_dir: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """MESRNN on two threads moves forecasts by up to ~1e-5 m: a build on the caller's two threads wrote other bits
+    than the environment computes online (and than a build on one thread)."""
+    from crowdnav_mesrnn.data.recordings import load_recording
+    from envs.forecasting import build
+
+    full = load_recording("crowds_zara01", data_dir=data_dir)
+    head = replace(full, frames=full.frames[:64], positions=full.positions[:64], present=full.present[:64])
+    monkeypatch.setattr("crowdnav_mesrnn.data.recordings.load_recording", lambda name, part, data_dir: head)
+    before = torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            build.build_forecast_cache(
+                "mesrnn", "zara1", "test", cache_dir=str(tmp_path / str(threads)), progress=False
+            )
+    finally:
+        torch.set_num_threads(before)
+    one, two = sorted((tmp_path / "1").rglob("*.npz")), sorted((tmp_path / "2").rglob("*.npz"))
+    assert len(one) == 1 and [p.name for p in one] == [p.name for p in two]
+    for a, b in zip(one, two, strict=True):
+        assert a.read_bytes() == b.read_bytes(), f"{b.name} differs from the one-thread build"

@@ -1,0 +1,258 @@
+"""What runs inside ``learn()``: validation keeping the best model, checkpoints at round boundaries, progress.
+
+Checkpoints are ``checkpoints/step_<n>/`` folders of the run (:func:`save_checkpoint`); ``checkpoints/latest.json``
+points at the last one (:func:`latest_checkpoint`), from which ``--resume`` continues.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import pickle
+import shutil
+import time
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+from agents.actions import DiscretePolicy
+from agents.rollout import SB3Policy, evaluation_seeds, run_episodes
+from agents.stats import wilson_interval
+from agents.training.config import TrainConfig
+from agents.training.logger import csv_text
+from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text
+
+
+def save_model(model: Any, path: Path) -> None:
+    """An SB3 model saved atomically to ``path`` (``.zip``)."""
+    atomic_write(path, lambda fh: model.save(fh))
+
+
+def save_policy_file(model: Any, model_file: Path, run_dir: Path) -> Path | None:
+    """The model as a policy file of the project's format beside ``model_file``: ``<stem>.policy.yaml`` and
+    ``<stem>.pt`` (:mod:`agents.policy_file`; data only, so the run's policy loads without ``--trust-pickle``), with
+    the run's ``config.yaml`` inside. A policy outside the format's allow-lists (a custom class) gets a warning and
+    only the SB3 zip; returns None then."""
+    from agents.policy_file import PolicyFileError, policy_file_path, write_policy_file
+    from crowdnav_mesrnn.config import load_yaml
+
+    config = load_yaml(run_dir / "config.yaml")
+    dest = policy_file_path(model_file)
+    source = {"run_dir": str(run_dir), "model": model_file.name, "steps": int(model.num_timesteps)}
+    try:
+        algo = config["crowdnav_mesrnn"]["algo"]
+        return write_policy_file(dest, model.policy, algo, config, model.get_vec_normalize_env(), source)
+    except PolicyFileError as exc:
+        warnings.warn(
+            f"{exc}: the run folder holds the SB3 zip {model_file.name} only, which loads with --trust-pickle",
+            UserWarning,
+            stacklevel=2,
+        )
+        return None
+
+
+def _save_pickle(obj: Any, path: Path) -> None:
+    atomic_write(path, lambda fh: pickle.dump(obj, fh))
+
+
+def save_vecnormalize(model: Any, model_file: Path) -> None:
+    """The model's ``VecNormalize`` statistics, if it has any, as ``<model stem>_vecnormalize.pkl`` beside
+    ``model_file``."""
+    vn = model.get_vec_normalize_env()
+    if vn is not None:
+        venv, vn.venv = vn.venv, None  # the statistics only: worker processes cannot be pickled
+        try:
+            _save_pickle(vn, model_file.with_name(f"{model_file.stem}_vecnormalize.pkl"))
+        finally:
+            vn.venv = venv
+
+
+class Validation(BaseCallback):
+    """Validate every ``freq_steps`` (and at the end); keep ``best_model.zip`` by success rate, then return."""
+
+    def __init__(self, cfg: TrainConfig, run_dir: Path) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.run_dir = run_dir
+        self.envs: list[Any] = []
+        self.seeds = evaluation_seeds(cfg.split, cfg.eval.episodes, cfg.eval.seed)
+        self.actions = cfg.action_set()
+        self.state: dict[str, Any] = {"best": None, "last_eval_step": 0, "history": []}
+
+    @property
+    def enabled(self) -> bool:
+        return self.cfg.eval.episodes > 0
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_start(self) -> None:
+        # at a rollout's start the policy holds every update so far (SB3 trains between rollouts)
+        freq = self.cfg.eval.freq_steps
+        steps = int(self.model.num_timesteps)
+        if self.enabled and freq > 0 and steps - self.state["last_eval_step"] >= freq:
+            self.num_timesteps = steps
+            self.validate()
+
+    def finish(self) -> None:
+        """Validate the final policy unless it was just validated."""
+        self.num_timesteps = int(self.model.num_timesteps)
+        if self.enabled and (not self.state["history"] or self.state["last_eval_step"] != self.num_timesteps):
+            self.validate()
+            self.logger.dump(self.num_timesteps)
+
+    def validate(self) -> dict[str, Any]:
+        from envs.crowd_nav import CrowdNavEnv
+
+        started = time.perf_counter()
+        if not self.envs:
+            kwargs = {**self.cfg.env_kwargs("val"), "require_pedestrians": self.cfg.eval.require_pedestrians}
+            self.envs = [CrowdNavEnv(**kwargs) for _ in range(max(1, min(self.cfg.eval.n_envs, len(self.seeds))))]
+        policy: Any = SB3Policy(self.model, self.model.get_vec_normalize_env())
+        if self.actions is not None:
+            policy = DiscretePolicy(policy, self.actions)
+        rows = run_episodes(policy, self.envs, self.seeds)
+        n = len(rows)
+        successes = sum(r["outcome"] == "success" for r in rows)
+        lo, hi = wilson_interval(successes, n)
+        result = {
+            "step": int(self.num_timesteps),
+            "episodes": n,
+            "success_rate": successes / n,
+            "success_lo": lo,
+            "success_hi": hi,
+            "collision_rate": sum(r["outcome"] == "collision" for r in rows) / n,
+            "timeout_rate": sum(r["outcome"] == "timeout" for r in rows) / n,
+            "mean_return": float(np.mean([r["return"] for r in rows])),
+            "seconds": round(time.perf_counter() - started, 3),
+        }
+        best = self.state["best"]
+        result["new_best"] = best is None or (result["success_rate"], result["mean_return"]) > (
+            best["success_rate"],
+            best["mean_return"],
+        )
+        if result["new_best"]:
+            self.state["best"] = result
+            save_model(self.model, self.run_dir / "best_model.zip")
+            save_vecnormalize(self.model, self.run_dir / "best_model.zip")
+            save_policy_file(self.model, self.run_dir / "best_model.zip", self.run_dir)
+        self.state["history"].append(result)
+        self.state["last_eval_step"] = int(self.num_timesteps)
+        atomic_write_text(self.run_dir / "evaluations.csv", csv_text(list(result), self.state["history"]))
+        for key in ("success_rate", "collision_rate", "timeout_rate", "mean_return"):
+            self.logger.record(f"eval/{key}", result[key])
+        self.logger.record("eval/best_success_rate", self.state["best"]["success_rate"])
+        self.logger.record("time/total_timesteps", int(self.num_timesteps))
+        return result
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+        self.envs = []
+
+
+class Checkpoint(BaseCallback):
+    """Save a checkpoint every ``freq_steps``, always at a round boundary (before a rollout is collected)."""
+
+    def __init__(self, run_dir: Path, freq_steps: int, keep: int, validation: Any, last_step: int) -> None:
+        super().__init__()
+        self.run_dir, self.freq, self.keep, self.validation = run_dir, freq_steps, keep, validation
+        self.last_step = last_step
+        self.round_start: int | None = None
+        """Steps when the rollout being collected began; None outside a rollout (during the update)."""
+        self._normalization: Any = None
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_start(self) -> None:
+        # between rollouts the model is consistent (no half-collected rollout is lost on resume)
+        if self.freq > 0 and self.model.num_timesteps - self.last_step >= self.freq:
+            self.save()
+        self.round_start = int(self.model.num_timesteps)
+        vec_normalize = self.model.get_vec_normalize_env()
+        if vec_normalize is not None:  # its statistics move with every step of the rollout
+            self._normalization = copy.deepcopy((vec_normalize.obs_rms, vec_normalize.ret_rms))
+
+    def _on_rollout_end(self) -> None:
+        self.round_start = None
+
+    def save(self) -> Path:
+        self.last_step = int(self.model.num_timesteps)
+        return save_checkpoint(self.model, self.run_dir, self.validation.state, self.keep)
+
+    def save_interrupted(self) -> int | None:
+        """On an interrupt: a checkpoint of the last round boundary, so a resumed run ends at exactly its
+        budget (rollouts are whole rounds). Interrupted while collecting a rollout, the weights are still
+        those of the round's start: the step count and normalisation statistics go back there and the partial
+        rollout is dropped. Interrupted during the update (weights half changed) or before the first rollout,
+        nothing is saved (the last periodic checkpoint stands). Returns the steps saved, or None."""
+        if self.round_start is None or self.round_start <= self.last_step:
+            return None
+        self.model.num_timesteps = self.round_start
+        vec_normalize = self.model.get_vec_normalize_env()
+        if vec_normalize is not None and self._normalization is not None:
+            vec_normalize.obs_rms, vec_normalize.ret_rms = self._normalization
+        self.save()
+        return self.round_start
+
+
+class Progress(BaseCallback):
+    """A progress bar over the run's total steps (resumed runs start where they stopped)."""
+
+    def __init__(self, total: int, validation: Any) -> None:
+        super().__init__()
+        self.total, self.validation, self.bar = total, validation, None
+
+    def _on_training_start(self) -> None:
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(
+            total=self.total,
+            initial=self.model.num_timesteps,
+            desc=f"{type(self.model).__name__} training",
+            unit="step",
+            dynamic_ncols=True,
+        )
+
+    def _on_step(self) -> bool:
+        assert self.bar is not None
+        self.bar.update(self.model.num_timesteps - self.bar.n)
+        best = self.validation.state["best"]
+        if best is not None and self.n_calls % 100 == 0:
+            self.bar.set_postfix(best_val_success=f"{best['success_rate']:.2f}", refresh=False)
+        return True
+
+    def _on_training_end(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def save_checkpoint(model: Any, run_dir: Path, validation_state: Mapping[str, Any], keep: int = 1) -> Path:
+    """``checkpoints/step_<n>/`` with ``model.zip``, ``model_vecnormalize.pkl``, ``replay_buffer.pkl`` (off-policy)
+    and ``state.json``; then ``checkpoints/latest.json`` points at it; older ones beyond ``keep`` are removed."""
+    steps = int(model.num_timesteps)
+    root = run_dir / "checkpoints"
+    folder = root / f"step_{steps:010d}"
+    save_model(model, folder / "model.zip")
+    save_vecnormalize(model, folder / "model.zip")
+    if getattr(model, "replay_buffer", None) is not None:
+        atomic_write(folder / "replay_buffer.pkl", lambda fh: model.save_replay_buffer(fh))
+    atomic_write_json(folder / "state.json", {"steps": steps, "validation": validation_state})
+    atomic_write_json(root / "latest.json", {"steps": steps, "folder": folder.name})
+    for old in sorted(p for p in root.glob("step_*") if p.is_dir())[:-keep]:
+        shutil.rmtree(old, ignore_errors=True)
+    return folder
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    """The folder ``checkpoints/latest.json`` points at, or None."""
+    pointer = run_dir / "checkpoints" / "latest.json"
+    if not pointer.is_file():
+        return None
+    folder = run_dir / "checkpoints" / json.loads(pointer.read_text())["folder"]
+    return folder if (folder / "model.zip").is_file() else None

@@ -1,0 +1,978 @@
+"""agents.ablation: grid expansion, config errors, skip/resume/stale cells, and the summary on hand-made episodes.
+
+Cells run in this process (``workers=1``) with the training and evaluation functions replaced by fakes, so
+these tests need neither SB3 training nor the ETH/UCY data; ``test_ablation_e2e.py`` runs the real ones.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import gzip
+import json
+import math
+import os
+import signal
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+import agents.ablation as ab
+from agents.stats import holm, wilson_interval
+from crowdnav_mesrnn.config import ConfigError
+
+EPISODE_COLUMNS = ("episode", "seed", "recording", "outcome", "navigation_time_s", "path_ratio", "crowd_density")
+#: A valid agent config for every arm of the tiny grids (the grid checks it, with its overrides, when loaded).
+TINY_AGENT = """\
+CrowdNav-MESRNN-v0: &ppo {policy: MultiInputPolicy, n_timesteps: 64, n_steps: 64}
+CrowdNav-NoPred-v0: *ppo
+CrowdNav-CV-v0: *ppo
+CrowdNav-Oracle-v0: *ppo
+crowdnav_mesrnn: {algo: ppo, pretrain: {episodes: 2}}
+"""
+
+
+def _raw(tmp_path: Path, **changes: Any) -> dict[str, Any]:
+    agent_yaml = tmp_path / "ppo.yaml"
+    agent_yaml.write_text(TINY_AGENT, encoding="utf-8")
+    raw: dict[str, Any] = {
+        "name": "tiny",
+        "runs_dir": str(tmp_path / "runs"),
+        "out_dir": str(tmp_path / "results"),
+        "splits": ["zara1"],
+        "arms": ["none", "mesrnn"],
+        "seeds": [0, 1],
+        "policies": {
+            "ppo": {"kind": "ppo", "config": str(agent_yaml), "timesteps": 256, "n_envs": 1},
+            "planner": {"kind": "planner"},
+        },
+        "evaluation": {"episodes": 4, "seed": 0},
+        "comparisons": [["mesrnn", "none"]],
+        "policy_comparisons": [["ppo", "planner"]],
+    }
+    raw.update(changes)
+    return raw
+
+
+# ----------------------------------------------------------------------------- config and expansion
+
+
+def test_planning_aid_config_expands_to_the_issue_grid() -> None:
+    cfg = ab.load_config(Path(__file__).resolve().parents[3] / "configs/ablation/planning_aid.yaml")
+    cells = ab.expand(cfg)
+    train = [c for c in cells if c.kind == "train"]
+    evals = [c for c in cells if c.kind == "eval"]
+    # PPO: 2 splits x 4 main arms x 3 seeds; planner: 2 splits x (6 arms + 4 noisy oracles)
+    assert len(train) == 24
+    assert len([c for c in evals if c.policy.name == "ppo"]) == 24
+    assert len([c for c in evals if c.policy.name == "planner"]) == 20
+    assert {c.arm.label for c in train} == {"none", "cv", "mesrnn", "oracle"}
+    noisy = sorted(c.arm.noisy_oracle_ade_m for c in evals if c.arm.predictor == "noisy_oracle" and c.split == "univ")
+    assert noisy == [0.1, 0.25, 0.5, 1.0]
+    names = [c.name for c in cells]
+    assert len(set(names)) == len(names)
+    assert "train/zara1/ppo/mesrnn/seed2" in names and "eval/univ/planner/noisy_oracle-0.25" in names
+    assert ab.Cell("eval", "zara1", cfg.policy("ppo"), cfg.arm("cv"), 1).needs == "train/zara1/ppo/cv/seed1"
+
+
+def test_expansion_counts_and_noisy_sweep(tmp_path: Path) -> None:
+    raw = _raw(tmp_path, splits=["univ", "zara1"], arms=["none", "cv", "noisy_oracle"], seeds=[0, 1, 2], comparisons=[])
+    raw["noisy_oracle_ade_m"] = [0.1, 0.3, 0.6, 1.2]
+    cfg = ab.config_from_mapping(raw)
+    assert cfg.arm_labels == (
+        "none",
+        "cv",
+        "noisy_oracle-0.1",
+        "noisy_oracle-0.3",
+        "noisy_oracle-0.6",
+        "noisy_oracle-1.2",
+    )
+    assert cfg.arm("noisy_oracle-0.6").env_overrides() == {"noisy_oracle_ade_m": 0.6}
+    cells = ab.expand(cfg)
+    assert sum(c.kind == "train" for c in cells) == 2 * 6 * 3
+    assert sum(c.kind == "eval" and c.policy.name == "ppo" for c in cells) == 2 * 6 * 3
+    assert sum(c.kind == "eval" and c.policy.name == "planner" for c in cells) == 2 * 6
+    assert all(c.seed is None for c in cells if c.policy.name == "planner")
+    # a policy restricted to some arms; "noisy_oracle" names the whole sweep
+    raw["policies"]["ppo"]["arms"] = ["none", "noisy_oracle"]
+    cfg = ab.config_from_mapping(raw)
+    assert cfg.policy("ppo").arms == (
+        "none",
+        "noisy_oracle-0.1",
+        "noisy_oracle-0.3",
+        "noisy_oracle-0.6",
+        "noisy_oracle-1.2",
+    )
+    assert sum(c.kind == "train" for c in ab.expand(cfg)) == 2 * 5 * 3
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        ({"arms": ["none", "sgan"]}, ["'arms'", "'sgan'", "mesrnn"]),
+        ({"splits": ["zara3"]}, ["'splits'", "'zara3'", "univ"]),
+        ({"seeds": [0, 0]}, ["'seeds'", "distinct"]),
+        ({"arms": ["noisy_oracle"]}, ["'noisy_oracle_ade_m'", "None"]),
+        ({"comparisons": [["oracle", "none"]]}, ["'comparisons'", "'oracle'", "none, mesrnn"]),
+        ({"evaluation": {"episodes": 0}}, ["'evaluation.episodes'", "0", ">= 1"]),
+        ({"evaluation": {"episodes": 5, "sed": 1}}, ["'sed'", "episodes, seed"]),
+        ({"density_bins": [3, 1]}, ["'density_bins'", "increasing"]),
+        ({"alpha": 5}, ["'alpha'", "(0, 1)"]),
+        ({"env": {"predictor": "cv"}}, ["'env'", "predictor"]),
+        ({"colour": "red"}, ["'colour'", "valid keys", "splits"]),
+    ],
+)
+def test_bad_config_names_key_value_and_allowed(tmp_path: Path, change: dict[str, Any], words: list[str]) -> None:
+    with pytest.raises(ConfigError) as err:
+        ab.config_from_mapping(_raw(tmp_path, **change))
+    for word in words:
+        assert word in str(err.value)
+
+
+def test_bad_policy_entries(tmp_path: Path) -> None:
+    raw = _raw(tmp_path)
+    raw["policies"]["ppo"]["kind"] = "dqn"
+    with pytest.raises(ConfigError, match=r"'policies.ppo.kind'.*'dqn'.*ppo, sac, planner, search, privileged"):
+        ab.config_from_mapping(raw)
+    raw = _raw(tmp_path)
+    raw["policies"]["planner"]["timesteps"] = 10
+    with pytest.raises(ConfigError, match=r"'policies.planner.timesteps'.*not trained"):
+        ab.config_from_mapping(raw)
+    raw = _raw(tmp_path)
+    del raw["policies"]["ppo"]["timesteps"]
+    with pytest.raises(ConfigError, match=r"'policies.ppo.timesteps'.*None"):
+        ab.config_from_mapping(raw)
+    raw = _raw(tmp_path)
+    raw["policies"]["ppo"]["arms"] = ["oracle"]
+    with pytest.raises(ConfigError, match=r"'policies.ppo.arms'.*'oracle'.*none, mesrnn"):
+        ab.config_from_mapping(raw)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "words"),
+    [
+        ({"pretrain.episode": 3}, ["'policies.ppo.overrides'", "'episode'", "did you mean 'pretrain.episodes'?"]),
+        ({"learning_rat": 1e-3}, ["'policies.ppo.overrides'", "'learning_rat'", "did you mean 'learning_rate'?"]),
+        ({"eval.episode": 3}, ["eval key 'episode'", "did you mean 'eval.episodes'?"]),
+        ({"pretrain.episodes": -1}, ["'policies.ppo.overrides'", "episodes"]),
+        ({"n_timesteps": 5}, ["'policies.ppo.overrides.n_timesteps'", "policies.ppo.timesteps"]),
+        ({"seed": 5}, ["'policies.ppo.overrides.seed'", "seeds"]),
+    ],
+)
+def test_policy_overrides_are_checked_when_the_grid_is_loaded(
+    tmp_path: Path, overrides: dict[str, Any], words: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    raw = _raw(tmp_path)
+    raw["policies"]["ppo"]["overrides"] = overrides
+    with pytest.raises(ConfigError) as err:
+        ab.config_from_mapping(raw)
+    for word in words:
+        assert word in str(err.value)
+    # ... and so before a dry run lists the cells
+    (tmp_path / "g.yaml").write_text(json.dumps(raw), encoding="utf-8")
+    assert ab.main([str(tmp_path / "g.yaml"), "--dry-run"]) == 2
+    assert "policies.ppo.overrides" in capsys.readouterr().err
+    raw["policies"]["ppo"]["overrides"] = {"pretrain.episodes": 3, "learning_rate": 1e-3}
+    assert ab.config_from_mapping(raw).policy("ppo").overrides["pretrain.episodes"] == 3
+    raw["policies"]["ppo"]["config"] = str(tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match=r"'policies.ppo.config'.*missing.yaml.*working directory"):
+        ab.config_from_mapping(raw)
+
+
+def test_only_selects_cells_and_their_training(tmp_path: Path) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    chosen = ab.select(ab.expand(cfg), "eval/zara1/ppo/mesrnn/seed1")
+    assert [c.name for c in chosen] == ["train/zara1/ppo/mesrnn/seed1", "eval/zara1/ppo/mesrnn/seed1"]
+    assert len(ab.select(ab.expand(cfg), "eval/*/planner/*, train/*/ppo/none/*")) == 2 + 2
+    with pytest.raises(ValueError, match="matches no cell"):
+        ab.select(ab.expand(cfg), "nothing*")
+
+
+# ----------------------------------------------------------------------------- running cells with fakes
+
+
+class Fakes:
+    """Stand-ins for training and evaluation (agents.training, agents.evaluation) that record their calls."""
+
+    def __init__(self) -> None:
+        self.train_calls: list[tuple[str, bool]] = []
+        self.eval_calls: list[str] = []
+        self.fail: set[str] = set()
+
+    def train(self, task: ab.CellTask, folder: Path) -> dict[str, Any]:
+        run = folder / ab.TRAIN_RUN
+        self.train_calls.append((task.cell.name, run.exists()))
+        if task.cell.name in self.fail:
+            run.mkdir(parents=True, exist_ok=True)
+            raise RuntimeError("boom")
+        assert (folder / "agent_config.yaml").read_text(encoding="utf-8").startswith("CrowdNav-MESRNN-v0")
+        run.mkdir(parents=True, exist_ok=True)
+        for which in ("best", "final"):
+            (run / f"{which}_model.zip").write_bytes(f"{task.cell.name} {len(self.train_calls)}".encode())
+        return {"run_dir": ab.TRAIN_RUN, "steps": task.cell.policy.timesteps}
+
+    def evaluate(self, task: ab.CellTask, folder: Path) -> dict[str, Any]:
+        self.eval_calls.append(task.cell.name)
+        if task.cell.policy.learned:
+            assert task.model is not None and Path(task.model).is_file()
+        rows = [
+            {
+                "episode": i,
+                "seed": 100 + i,
+                "outcome": "success" if i % 2 else "collision",
+                "navigation_time_s": 10.0,
+                "crowd_density": 2.0,
+                "return": 1.5,
+            }
+            for i in range(task.episodes)
+        ]
+        _write_csv(folder / "episodes.csv", rows)
+        return {"episodes": task.episodes}
+
+
+@pytest.fixture
+def fakes(monkeypatch: pytest.MonkeyPatch) -> Fakes:
+    f = Fakes()
+    monkeypatch.setattr(ab.execute, "_run_train", f.train)
+    monkeypatch.setattr(ab.execute, "_run_eval", f.evaluate)
+    # the package, and where cell states, the grid's tasks and the cell runner look it up
+    for module in (ab, ab.cells, ab.backends, ab.execute):
+        monkeypatch.setattr(module, "weights_fingerprint", lambda p: {"mesrnn_zara1.pt": "v1"} if p == "mesrnn" else {})
+    monkeypatch.setattr(ab.backends, "build_forecast_caches", lambda *a, **k: [])
+    return f
+
+
+def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def _states(cfg: ab.AblationConfig) -> dict[str, str]:
+    return {st.cell.name: st.state for st in ab.plan(cfg)}
+
+
+def test_run_skips_done_cells_and_redoes_interrupted_ones(tmp_path: Path, fakes: Fakes) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    cells = ab.expand(cfg)
+    assert set(_states(cfg).values()) == {"todo"}
+    result = ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert not result["failed"] and len(result["ran"]) == len(cells) == 4 + 4 + 2
+    assert set(_states(cfg).values()) == {"done"}
+    assert all(not resumed for _, resumed in fakes.train_calls)
+    meta = json.loads((ab.cell_dir(cfg, "eval/zara1/ppo/mesrnn/seed0") / ab.CELL_JSON).read_text())
+    assert meta["weights"] == {"mesrnn_zara1.pt": "v1"} and meta["model_sha256"] and meta["episodes_per_s"] > 0
+
+    # nothing to do on a second run
+    fakes.train_calls.clear()
+    fakes.eval_calls.clear()
+    assert ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)["ran"] == []
+    assert fakes.train_calls == [] and fakes.eval_calls == []
+
+    # an interrupted training run (no DONE) resumes; an interrupted evaluation is redone from scratch
+    (ab.cell_dir(cfg, "train/zara1/ppo/none/seed1") / ab.DONE).unlink()
+    ev = ab.cell_dir(cfg, "eval/zara1/planner/none")
+    (ev / ab.DONE).unlink()
+    (ev / "leftover.tmp").write_text("x")
+    states = _states(cfg)
+    assert states["train/zara1/ppo/none/seed1"] == "partial" and states["eval/zara1/planner/none"] == "partial"
+    assert states["eval/zara1/ppo/none/seed1"] == "stale"  # its training is being redone
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert fakes.train_calls == [("train/zara1/ppo/none/seed1", True)]
+    assert sorted(fakes.eval_calls) == ["eval/zara1/planner/none", "eval/zara1/ppo/none/seed1"]
+    assert not (ev / "leftover.tmp").exists() and (ev / ab.DONE).is_file()
+    meta = json.loads((ab.cell_dir(cfg, "train/zara1/ppo/none/seed1") / ab.CELL_JSON).read_text())
+    assert len(meta["attempts"]) == 2
+
+
+def test_changed_weights_or_spec_make_cells_stale(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    for module in (ab, ab.cells, ab.backends, ab.execute):
+        monkeypatch.setattr(module, "weights_fingerprint", lambda p: {"mesrnn_zara1.pt": "v2"} if p == "mesrnn" else {})
+    states = ab.plan(cfg)
+    stale = sorted(st.cell.name for st in states if st.state == "stale")
+    assert stale == [
+        "eval/zara1/planner/mesrnn",
+        "eval/zara1/ppo/mesrnn/seed0",
+        "eval/zara1/ppo/mesrnn/seed1",
+        "train/zara1/ppo/mesrnn/seed0",
+        "train/zara1/ppo/mesrnn/seed1",
+    ]
+    assert {st.reason for st in states if st.state == "stale"} == {"predictor weights changed"}
+    fakes.train_calls.clear()
+    fakes.eval_calls.clear()
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert sorted(fakes.train_calls) == [
+        ("train/zara1/ppo/mesrnn/seed0", False),
+        ("train/zara1/ppo/mesrnn/seed1", False),
+    ]
+    assert len(fakes.eval_calls) == 3
+    assert set(_states(cfg).values()) == {"done"}
+
+    # a different episode count makes every evaluation stale, not the training runs
+    cfg2 = ab.config_from_mapping(_raw(tmp_path, evaluation={"episodes": 6, "seed": 0}))
+    states = {st.cell.name: st for st in ab.plan(cfg2)}
+    assert states["eval/zara1/planner/none"].state == "stale"
+    assert "episodes" in states["eval/zara1/planner/none"].reason
+    assert states["train/zara1/ppo/none/seed0"].state == "done"
+
+
+def test_planner_options_and_the_environment_revision_are_part_of_a_cells_spec(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import agents.evaluation.run as evaluation_run
+    import envs.crowd_nav
+
+    calls: dict[str, Any] = {}
+
+    def evaluate(spec: str, predictor: str, split: str, episodes: int, **kw: Any) -> dict[str, Any]:
+        calls[f"{Path(kw['out_dir']).parent.name}/{predictor}"] = kw.get("planner_kwargs")
+        _write_csv(Path(kw["out_dir"]) / "episodes.csv", _episode_rows("SC", [1.0, 1.0], [1.0, 2.0]))
+        return {"episodes": 2}
+
+    monkeypatch.setattr(evaluation_run, "evaluate", evaluate)
+    raw = _raw(tmp_path, seeds=[0], arms=["none", "cv"], comparisons=[["cv", "none"]])
+    raw["policies"] = {"planner": {"kind": "planner"}, "dense": {"kind": "planner", "options": {"candidates": "dense"}}}
+    del raw["policy_comparisons"]
+    cfg = ab.config_from_mapping(raw)
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert calls == {
+        "planner/none": None,
+        "planner/cv": None,
+        "dense/none": {"candidates": "dense"},
+        "dense/cv": {"candidates": "dense"},
+    }
+    raw["policies"]["dense"]["options"] = {"candidates": "default"}
+    states = {st.cell.name: st.state for st in ab.plan(ab.config_from_mapping(raw))}
+    assert states["eval/zara1/dense/none"] == "stale" and states["eval/zara1/planner/none"] == "done"
+    monkeypatch.setattr(envs.crowd_nav, "ENV_REVISION", envs.crowd_nav.ENV_REVISION + 1)
+    assert {st.state for st in ab.plan(cfg)} == {"stale"}, "cells of another environment revision are stale"
+    raw["policies"]["dense"]["options"] = ["dense"]
+    with pytest.raises(ConfigError, match=r"'policies.dense.options'"):
+        ab.config_from_mapping(raw)
+
+
+def test_failed_cell_is_reported_and_its_evaluation_skipped(tmp_path: Path, fakes: Fakes) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    fakes.fail.add("train/zara1/ppo/mesrnn/seed0")
+    result = ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert list(result["failed"]) == ["train/zara1/ppo/mesrnn/seed0"]
+    assert "RuntimeError: boom" in result["failed"]["train/zara1/ppo/mesrnn/seed0"]
+    assert result["skipped"] == ["eval/zara1/ppo/mesrnn/seed0"]
+    meta = json.loads((ab.cell_dir(cfg, "train/zara1/ppo/mesrnn/seed0") / ab.CELL_JSON).read_text())
+    assert meta["status"] == "failed"
+    fakes.fail.clear()
+    fakes.train_calls.clear()
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    assert fakes.train_calls == [("train/zara1/ppo/mesrnn/seed0", True)]  # the partial run resumes
+
+
+def test_a_first_ctrl_c_waits_for_the_running_cells_and_a_second_stops_them(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import os
+    import signal
+
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    original = fakes.train
+    presses = {"train/zara1/ppo/none/seed0": 1, "train/zara1/ppo/none/seed1": 2}
+
+    def train(task: ab.CellTask, folder: Path) -> dict[str, Any]:  # Ctrl-C pressed while the cell runs
+        (folder / ab.TRAIN_RUN).mkdir(parents=True, exist_ok=True)  # it has begun its run folder
+        for _ in range(presses.get(task.cell.name, 0)):
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(task, folder)
+
+    monkeypatch.setattr(ab.execute, "_run_train", train)
+    lines: list[str] = []
+    only = "train/zara1/ppo/none/seed0,eval/zara1/planner/*"
+    result = ab.run_grid(cfg, workers=1, only=only, out=lines.append)
+    text = "\n".join(lines)
+    assert "waiting for the 1 running cell(s) to finish: train/zara1/ppo/none/seed0" in text
+    assert "Interrupt again (Ctrl-C) to stop them now" in text
+    assert result["ran"] == ["train/zara1/ppo/none/seed0"]  # it finished; nothing else started
+    assert result["interrupted"] == ["eval/zara1/planner/mesrnn", "eval/zara1/planner/none"]
+    assert result["summary"] is None and "summary not updated (interrupted)" in text
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    (tmp_path / "g.yaml").write_text(json.dumps(_raw(tmp_path)), encoding="utf-8")
+    presses["train/zara1/ppo/mesrnn/seed0"] = 1
+    only = "train/zara1/ppo/mesrnn/seed0,eval/zara1/planner/none"
+    assert ab.main([str(tmp_path / "g.yaml"), "--workers", "1", "--only", only]) == 130  # a cell was not started
+
+    lines.clear()
+    with pytest.raises(KeyboardInterrupt):
+        ab.run_grid(cfg, workers=1, only="train/zara1/ppo/none/seed1", out=lines.append)
+    assert "stopping 1 running cell(s) now: train/zara1/ppo/none/seed1" in "\n".join(lines)
+    meta = json.loads((ab.cell_dir(cfg, "train/zara1/ppo/none/seed1") / ab.CELL_JSON).read_text())
+    assert meta["status"] == "interrupted" and meta["attempts"][-1]["ok"] is False
+    assert _states(cfg)["train/zara1/ppo/none/seed1"] == "partial"  # resumed by the next run
+    fakes.train_calls.clear()
+    presses.clear()
+    ab.run_grid(cfg, workers=1, only="train/zara1/ppo/none/seed1", summarize_after=False, out=lambda s: None)
+    assert fakes.train_calls == [("train/zara1/ppo/none/seed1", True)]
+
+
+class _QueueBackend(ab.execute._Backend):
+    """A backend that runs a cell only when the grid waits for it (as a process pool does), of ``capacity`` 2."""
+
+    capacity = 2
+
+    def __init__(self) -> None:
+        self.tasks: dict[int, ab.CellTask] = {}
+        self.submitted = 0
+        self.most_outstanding = 0
+
+    def submit(self, task: ab.CellTask) -> Any:
+        self.submitted += 1
+        self.tasks[self.submitted] = task
+        self.most_outstanding = max(self.most_outstanding, len(self.tasks))
+        return self.submitted
+
+    def wait_one(self, handles: Any) -> tuple[Any, dict[str, Any]]:
+        handle = next(iter(handles))
+        return handle, ab.execute.execute_cell(self.tasks.pop(handle))
+
+
+def test_a_pool_is_handed_no_more_cells_than_it_runs_so_a_first_ctrl_c_starts_no_other(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    backend = _QueueBackend()
+    monkeypatch.setattr(ab.backends, "_runner", lambda *a, **k: backend)
+    original = fakes.train
+
+    def train(task: ab.CellTask, folder: Path) -> dict[str, Any]:
+        if task.cell.name == "train/zara1/ppo/none/seed0":
+            os.kill(os.getpid(), signal.SIGINT)  # the first Ctrl-C, while two cells are with the backend
+        return original(task, folder)
+
+    monkeypatch.setattr(ab.execute, "_run_train", train)
+    lines: list[str] = []
+    result = ab.run_grid(cfg, workers=2, out=lines.append)
+    assert backend.most_outstanding == 2  # before the fix every ready cell (here 6) was queued at once
+    text = "\n".join(lines)
+    assert "waiting for the 2 running cell(s) to finish" in text
+    assert sorted(result["ran"]) == ["train/zara1/ppo/none/seed0", "train/zara1/ppo/none/seed1"]
+    assert len(result["interrupted"]) == len(ab.expand(cfg)) - 2
+
+
+def test_pool_workers_are_fresh_processes_for_every_cell() -> None:
+    pool = ab.backends._Pool(1)
+    try:
+        assert pool.capacity == 1
+        pids = [pool._pool.submit(os.getpid).result(timeout=120) for _ in range(2)]
+    finally:
+        pool.close()
+    assert pids[0] != pids[1]  # a reused worker kept what every earlier cell left in memory
+
+
+def test_dry_run_lists_states_and_uses_measured_rates(tmp_path: Path, fakes: Fakes) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    lines: list[str] = []
+    ab.dry_run(cfg, ab.expand(cfg), workers=1, out=lines.append)
+    assert any(line.startswith("todo") and "train/zara1/ppo/none/seed0" in line for line in lines)
+    assert "10 cells (4 train, 6 eval): done 0, partial 0, stale 0, todo 10" in lines
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    (ab.cell_dir(cfg, "eval/zara1/ppo/none/seed1") / ab.DONE).unlink()
+    lines.clear()
+    ab.dry_run(cfg, ab.expand(cfg), workers=1, out=lines.append)
+    row = next(line for line in lines if "eval/zara1/ppo/none/seed1" in line)
+    assert row.startswith("partial") and "runs" in row
+    assert ab.measured_rates(cfg)[("train", "ppo", "mesrnn")] > 0
+
+
+def _set_wall(cfg: ab.AblationConfig, name: str, wall_s: float) -> None:
+    """Make a finished training cell look as if it took ``wall_s`` seconds."""
+    path = ab.cell_dir(cfg, name) / ab.CELL_JSON
+    meta = json.loads(path.read_text())
+    meta.update(wall_s=wall_s, steps_per_s=meta["steps"] / wall_s)
+    path.write_text(json.dumps(meta))
+
+
+def test_dry_run_calibrates_from_finished_cells_then_the_results_then_the_config(tmp_path: Path, fakes: Fakes) -> None:
+    import shutil
+
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    for name, wall in (("none/seed0", 400.0), ("none/seed1", 200.0), ("mesrnn/seed0", 500.0), ("mesrnn/seed1", 500.0)):
+        _set_wall(cfg, f"train/zara1/ppo/{name}", wall)  # none: 256 steps in 400 s and in 200 s, 300 s per run
+    ab.summarize(cfg, out=lambda s: None, plots=False)  # the committed record of the finished cells
+    shutil.rmtree(cfg.runs_path())  # a fresh clone
+
+    def rows() -> dict[str, str]:
+        lines: list[str] = []
+        ab.dry_run(cfg, ab.expand(cfg), workers=1, out=lines.append)
+        table = {line.split()[-1]: line for line in lines if line.startswith("todo")}
+        table["totals"] = "\n".join(lines[-2:])
+        return table
+
+    table = rows()
+    # the results' record: steps over seconds of that (kind, policy kind, forecast source), pooled over cells
+    assert "5 min" in table["train/zara1/ppo/none/seed1"] and "results" in table["train/zara1/ppo/none/seed1"]
+    assert "8 min" in table["train/zara1/ppo/mesrnn/seed1"] and "results" in table["train/zara1/ppo/mesrnn/seed1"]
+    assert "results" in table["eval/zara1/planner/none"]
+    assert "10 cells (4 train, 6 eval) from the finished cells recorded in" in table["totals"]
+    assert "cells.json" in table["totals"]
+    # a finished cell of this grid counts before the results' record
+    ab.run_grid(cfg, workers=1, only="train/zara1/ppo/none/seed0", summarize_after=False, out=lambda s: None)
+    _set_wall(cfg, "train/zara1/ppo/none/seed0", 60.0)
+    table = rows()
+    assert "60 s" in table["train/zara1/ppo/none/seed1"] and "runs" in table["train/zara1/ppo/none/seed1"]
+    assert "results" in table["train/zara1/ppo/mesrnn/seed1"]
+    # without either: the config's estimates, and the dry run says so
+    shutil.rmtree(cfg.runs_path())
+    (cfg.out_path() / "cells.json").unlink()
+    table = rows()
+    assert "config" in table["train/zara1/ppo/none/seed1"]
+    assert "10 cells (4 train, 6 eval) from the config's estimates" in table["totals"]
+
+
+# ----------------------------------------------------------------------------- the summary
+
+
+def _episode_rows(outcomes: str, times: list[float], density: list[float]) -> list[dict[str, Any]]:
+    code = {"S": "success", "C": "collision", "T": "timeout"}
+    return [
+        {
+            "episode": i,
+            "seed": 1000 + i,
+            "recording": "crowds_zara01",
+            "outcome": code[o],
+            "navigation_time_s": t,
+            "path_ratio": 1.1,
+            "crowd_density": d,
+        }
+        for i, (o, t, d) in enumerate(zip(outcomes, times, density, strict=True))
+    ]
+
+
+def _fake_done_cell(cfg: ab.AblationConfig, name: str, rows: list[dict[str, Any]]) -> None:
+    cell = next(c for c in ab.expand(cfg) if c.name == name)
+    folder = ab.cell_dir(cfg, cell)
+    _write_csv(folder / "episodes.csv", rows)
+    meta = {"spec": ab.cell_spec(cfg, cell), "weights": ab.weights_fingerprint(cell.arm.predictor), "wall_s": 2.0}
+    (folder / ab.CELL_JSON).write_text(json.dumps(meta))
+    (folder / ab.DONE).write_text("now\n")
+
+
+def test_summary_statistics_on_hand_made_episodes(tmp_path: Path, fakes: Fakes) -> None:
+    raw = _raw(tmp_path, arms=["none", "cv", "oracle"], comparisons=[["cv", "none"], ["oracle", "none"]])
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    raw["evaluation"] = {"episodes": 12, "seed": 0}
+    raw["density_bins"] = 3
+    del raw["policy_comparisons"]
+    cfg = ab.config_from_mapping(raw)
+    density = [
+        float(v) for v in range(12)
+    ]  # terciles 3.67, 7.33, rounded to whole pedestrians: [0, 4), [4, 7), [7, 11]
+    #            episode: 0123456789ab
+    none_outcomes = "SCCSCCTSCSCS"  # 5 successes
+    cv_outcomes = "SSSSCSSSCSSS"  # 10 successes
+    oracle_outcomes = "SCCSCCTSCSCS"  # identical to none: no discordant pair
+    times_none = [10.0 + i for i in range(12)]
+    times_cv = [t - (0.5 if i % 2 else 1.0) for i, t in enumerate(times_none)]
+    _fake_done_cell(cfg, "eval/zara1/planner/none", _episode_rows(none_outcomes, times_none, density))
+    _fake_done_cell(cfg, "eval/zara1/planner/cv", _episode_rows(cv_outcomes, times_cv, density))
+    _fake_done_cell(cfg, "eval/zara1/planner/oracle", _episode_rows(oracle_outcomes, times_none, density))
+    summary = ab.summarize(cfg, out=lambda s: None)
+    on_disk = json.loads((cfg.out_path() / "summary.json").read_text())
+    assert on_disk["policies"]["planner"]["arms"]["cv"]["success_rate"] == pytest.approx(10 / 12)
+    assert summary["complete"] is True
+
+    none = summary["policies"]["planner"]["arms"]["none"]
+    assert none["episodes"] == 12 and none["seeds"] == []
+    assert none["success_rate"] == pytest.approx(5 / 12)
+    assert none["success_ci"] == pytest.approx(list(wilson_interval(5, 12)))
+    assert none["collision_rate"] == pytest.approx(6 / 12) and none["timeout_rate"] == pytest.approx(1 / 12)
+    # navigation time averages the successful episodes only
+    succ = [t for t, o in zip(times_none, none_outcomes, strict=True) if o == "S"]
+    assert none["navigation_time_s_mean"] == pytest.approx(np.mean(succ))
+    assert none["forecast_ade_m_mean"] is None  # no such column: undefined, not zero
+
+    # density terciles over the 12 episodes in whole pedestrians, computed once for every arm
+    assert summary["density_bins"] == [0.0, 4.0, 7.0, 11.0]
+    bins = none["by_density"]
+    assert [b["episodes"] for b in bins] == [4, 3, 5]
+    assert bins[0]["success_rate"] == pytest.approx(2 / 4)  # episodes 0-3: S C C S
+
+    tests = summary["tests"]
+    assert summary["multiple_comparisons"]["family_sizes"] == {
+        "success": 2,
+        "navigation_time_s": 2,
+        "success_seed_level": 0,  # a planner has no training seeds: no seed-level test
+    }
+    assert all("seed_level" not in t for t in summary["tests"])
+    cv_vs_none = next(t for t in tests if t["a"]["arm"] == "cv" and t["endpoint"] == "success")
+    # cv-only successes: episodes 1, 2, 5, 6, 10 (b10 = 5); none-only: none (b01 = 0)
+    assert (cv_vs_none["b10"], cv_vs_none["b01"], cv_vs_none["n"]) == (5, 0, 12)
+    p = 2 * sps.binom.cdf(0, 5, 0.5)
+    assert cv_vs_none["p_value"] == pytest.approx(p)
+    oracle_vs_none = next(t for t in tests if t["a"]["arm"] == "oracle" and t["endpoint"] == "success")
+    assert oracle_vs_none["p_value"] == 1.0 and oracle_vs_none["mdd"] is None
+    assert cv_vs_none["p_holm"] == pytest.approx(holm([p, 1.0])[0])
+    assert cv_vs_none["family_size"] == 2
+    assert cv_vs_none["mdd"] is None  # 12 pairs reach 80 % power for no difference this discordance allows
+    # Wilcoxon on the 5 episodes both finished (0, 3, 7, 9, 11), cv faster by 1.0, 0.5, 0.5, 0.5, 0.5
+    wx = next(t for t in tests if t["a"]["arm"] == "cv" and t["endpoint"] == "navigation_time_s")
+    assert wx["n"] == 5 and wx["median_difference"] == pytest.approx(-0.5)
+    assert wx["mean_difference"] == pytest.approx(-3.0 / 5)
+    assert wx["p_value"] == pytest.approx(sps.wilcoxon([-1.0, -0.5, -0.5, -0.5, -0.5]).pvalue)
+
+    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:
+        archived = list(csv.DictReader(fh))
+    assert len(archived) == 36 and archived[0]["policy"] == "planner" and archived[0]["seed"] == ""
+    cv_rows = [r for r in archived if r["arm"] == "cv"]
+    assert [r["outcome"][0].upper() for r in cv_rows] == list(cv_outcomes)
+    cells = json.loads((cfg.out_path() / "cells.json").read_text())
+    assert {c["cell"]: c["state"] for c in cells} == {
+        "eval/zara1/planner/none": "done",
+        "eval/zara1/planner/cv": "done",
+        "eval/zara1/planner/oracle": "done",
+    }
+
+    md = (cfg.out_path() / "summary.md").read_text()
+    assert "2 success tests and 2 navigation-time tests" in md
+    assert "| zara1 | planner/cv | planner/none | 12 | 5 | 0 |" in md
+    for png in ("rates_by_arm.png", "rates_vs_ade.png", "rates_by_density.png"):
+        assert (cfg.out_path() / png).stat().st_size > 1000
+
+
+def test_summary_pairs_ppo_seeds_with_the_planner_and_counts_missing(tmp_path: Path, fakes: Fakes) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path, evaluation={"episodes": 3, "seed": 0}))
+    d = [1.0, 2.0, 3.0]
+    _fake_done_cell(cfg, "eval/zara1/planner/none", _episode_rows("SSS", [1, 1, 1], d))
+    _fake_done_cell(cfg, "eval/zara1/planner/mesrnn", _episode_rows("SSS", [1, 1, 1], d))
+    for seed, outcomes in ((0, "SCS"), (1, "CCS")):
+        cells = [f"train/zara1/ppo/none/seed{seed}", f"eval/zara1/ppo/none/seed{seed}"]
+        folder = ab.cell_dir(cfg, cells[0])
+        (folder / ab.TRAIN_RUN).mkdir(parents=True)
+        (folder / ab.TRAIN_RUN / "best_model.zip").write_bytes(b"m")
+        _fake_done_cell(cfg, cells[0], [{"episode": 0}])
+        _fake_done_cell(cfg, cells[1], _episode_rows(outcomes, [2, 2, 2], d))
+        meta = json.loads((ab.cell_dir(cfg, cells[1]) / ab.CELL_JSON).read_text())
+        meta["model_sha256"] = ab.cells._file_sha256(folder / ab.TRAIN_RUN / "best_model.zip")
+        (ab.cell_dir(cfg, cells[1]) / ab.CELL_JSON).write_text(json.dumps(meta))
+    summary = ab.summarize(cfg, out=lambda s: None, plots=False)
+    ppo = summary["policies"]["ppo"]["arms"]["none"]
+    assert ppo["seeds"] == [0, 1] and ppo["episodes"] == 6 and ppo["success_rate"] == pytest.approx(3 / 6)
+    assert "mesrnn" not in summary["policies"]["ppo"]["arms"]
+    assert not summary["complete"] and "train/zara1/ppo/mesrnn/seed0" in summary["missing_cells"]
+    vs = next(t for t in summary["tests"] if t["comparison"] == "policies" and t["a"]["arm"] == "none")
+    # 6 (seed, episode) pairs against the planner's 3 episodes; PPO fails where the planner succeeds 3 times
+    assert (vs["n"], vs["b10"], vs["b01"]) == (6, 0, 3)
+    # seed level: per-seed rates 2/3 and 1/3 against the planner's fixed 1.0; difference -1/2, standard
+    # error sqrt(var / 2) = sqrt((1/18) / 2) = 1/6, t = -3 on 1 degree of freedom (a Cauchy distribution:
+    # two-sided p = 1 - 2 atan(3) / pi)
+    sl = vs["seed_level"]
+    assert sl["rates_a"] == pytest.approx([2 / 3, 1 / 3]) and sl["rates_b"] == pytest.approx([1.0])
+    assert sl["difference"] == pytest.approx(-0.5) and sl["df"] == pytest.approx(1.0)
+    assert sl["statistic"] == pytest.approx(-3.0)
+    assert sl["p_value"] == pytest.approx(1 - 2 * math.atan(3) / math.pi)
+    half = math.tan(math.pi * (0.975 - 0.5)) / 6  # t quantile on 1 df = Cauchy quantile
+    assert sl["difference_ci"] == pytest.approx([-0.5 - half, -0.5 + half])
+    assert sl["family_size"] == 1 and sl["p_holm"] == pytest.approx(sl["p_value"])
+    missing = [t for t in summary["tests"] if t.get("missing")]
+    assert {(t["a"]["policy"], t["a"]["arm"], t["b"]["policy"], t["b"]["arm"]) for t in missing} == {
+        ("ppo", "mesrnn", "ppo", "none"),
+        ("ppo", "mesrnn", "planner", "mesrnn"),
+    }
+    assert summary["multiple_comparisons"]["family_sizes"]["success"] == 2
+    # the seed-level note counts this grid's seeds (it said "three" whatever the grid: learned.yaml has five)
+    md = (cfg.out_path() / "summary.md").read_text()
+    assert "With two seeds per arm these intervals are wide" in md and "three seeds" not in md
+
+
+def test_success_is_reported_as_a_fraction_of_the_privileged_ceiling(tmp_path: Path, fakes: Fakes) -> None:
+    raw = _raw(tmp_path, arms=["none", "oracle"], comparisons=[["oracle", "none"]], seeds=[0])
+    raw["policies"] = {"planner": {"kind": "planner"}, "ceiling": {"kind": "privileged", "arms": ["oracle"]}}
+    raw["evaluation"] = {"episodes": 4, "seed": 0}
+    del raw["policy_comparisons"]
+    cfg = ab.config_from_mapping(raw)
+    density = [1.0, 2.0, 3.0, 4.0]
+    _fake_done_cell(cfg, "eval/zara1/planner/none", _episode_rows("SCCS", [1.0] * 4, density))
+    _fake_done_cell(cfg, "eval/zara1/planner/oracle", _episode_rows("SSCS", [1.0] * 4, density))
+    _fake_done_cell(cfg, "eval/zara1/ceiling/oracle", _episode_rows("SSSS", [1.0] * 4, density))
+    summary = ab.summarize(cfg, out=lambda s: None, plots=False)
+    ceiling = summary["ceiling"]
+    assert ceiling["policy"] == "ceiling" and ceiling["by_split"] == {"zara1": 1.0}
+    assert ceiling["fractions"] == {"planner": {"none": {"zara1": 0.5}, "oracle": {"zara1": 0.75}}}
+    text = (cfg.out_path() / "summary.md").read_text()
+    assert "## Fraction of the privileged ceiling" in text and "PRIVILEGED" in text
+    assert "| planner | oracle | 0.750 |" in text
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    assert ab.summarize(ab.config_from_mapping(raw), out=lambda s: None, plots=False, force=True)["ceiling"] is None
+
+
+def test_popin_events_are_archived_and_counted_per_cell(tmp_path: Path, fakes: Fakes) -> None:
+    raw = _raw(tmp_path, arms=["none", "oracle"], comparisons=[["oracle", "none"]], seeds=[0])
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    del raw["policy_comparisons"]
+    cfg = ab.config_from_mapping(raw)
+    for arm, events in (("none", [0, 2, 0, 1]), ("oracle", [0, 0, 0, 0])):
+        rows = _episode_rows("SCCS", [1.0] * 4, [1.0, 2.0, 3.0, 4.0])
+        for row, n in zip(rows, events, strict=True):
+            row["popin_events"] = n
+        _fake_done_cell(cfg, f"eval/zara1/planner/{arm}", rows)
+    summary = ab.summarize(cfg, out=lambda s: None, plots=False)
+    none = summary["policies"]["planner"]["arms"]["none"]
+    assert (none["popin_episodes"], none["popin_events"]) == (2, 3)
+    assert none["by_split"]["zara1"]["popin_episodes"] == 2
+    assert summary["policies"]["planner"]["arms"]["oracle"]["popin_episodes"] == 0
+    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:
+        assert next(csv.reader(fh))[-1] == "popin_events"
+
+
+def test_json_has_no_nan(tmp_path: Path, fakes: Fakes) -> None:
+    raw = _raw(tmp_path, arms=["none"], comparisons=[])
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    del raw["policy_comparisons"]
+    cfg = ab.config_from_mapping(raw)
+    _fake_done_cell(cfg, "eval/zara1/planner/none", _episode_rows("CCCC", [1, 1, 1, 1], [1.0, 1.0, 1.0, 1.0]))
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    text = (cfg.out_path() / "summary.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    entry = json.loads(text)["policies"]["planner"]["arms"]["none"]
+    assert entry["navigation_time_s_mean"] is None and entry["success_ci"][0] == pytest.approx(0.0, abs=1e-12)
+    assert math.isclose(entry["collision_rate"], 1.0)
+
+
+def test_forecast_cache_built_once_per_learned_source_and_split(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import envs.forecasting.build
+
+    calls: list[tuple[str, str | None, str]] = []
+    monkeypatch.setattr(
+        envs.forecasting.build,
+        "build_forecast_cache",
+        lambda predictor, split=None, part="all": calls.append((predictor, split, part)),
+        raising=False,
+    )
+    cfg = ab.config_from_mapping(
+        _raw(tmp_path, splits=["univ", "zara1"], arms=["none", "cv", "mesrnn"], comparisons=[])
+    )
+    built = ab.build_forecast_caches(cfg, ab.expand(cfg), out=lambda s: None)
+    assert built == [("mesrnn", "univ"), ("mesrnn", "zara1")]
+    assert calls == [("mesrnn", "univ", "all"), ("mesrnn", "zara1", "all")]
+
+
+def test_replicate_reruns_cells_in_a_scratch_folder_and_compares_episodes(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    grid_files = {p: p.read_bytes() for p in cfg.runs_path().rglob("*") if p.is_file()}
+    fakes.train_calls.clear()
+    lines: list[str] = []
+    scratch = tmp_path / "replica"
+    assert ab.replicate(cfg, "eval/zara1/ppo/mesrnn/seed1", scratch, workers=1, out=lines.append) == 0
+    assert [name for name, _ in fakes.train_calls] == ["train/zara1/ppo/mesrnn/seed1"]  # retrained, not reused
+    assert (scratch / "runs" / "eval" / "zara1" / "ppo" / "mesrnn" / "seed1" / "episodes.csv").is_file()
+    assert "eval/zara1/ppo/mesrnn/seed1: 4/4 episodes identical in all 6 columns, 4/4 outcomes" in "\n".join(lines)
+    assert {p: p.read_bytes() for p in cfg.runs_path().rglob("*") if p.is_file()} == grid_files  # grid untouched
+    with pytest.raises(ConfigError, match="not empty"):  # a replicate starts afresh
+        ab.replicate(cfg, "eval/zara1/ppo/mesrnn/seed1", scratch, workers=1)
+
+    # A replicate that behaves differently, in any column, is reported and counted.
+    original = fakes.evaluate
+
+    def changed(column: str, value: str) -> Any:
+        def evaluate(task: ab.CellTask, folder: Path) -> dict[str, Any]:
+            info = original(task, folder)
+            rows = ab.read_episodes(folder / "episodes.csv")
+            rows[0][column] = value
+            _write_csv(folder / "episodes.csv", rows)
+            return info
+
+        return evaluate
+
+    monkeypatch.setattr(ab.execute, "_run_eval", changed("outcome", "timeout"))
+    lines.clear()
+    assert ab.replicate(cfg, "eval/zara1/planner/none", tmp_path / "replica2", workers=1, out=lines.append) == 1
+    assert "eval/zara1/planner/none: 3/4 episodes identical in all 6 columns, 3/4 outcomes" in "\n".join(lines)
+    monkeypatch.setattr(ab.execute, "_run_eval", changed("return", "99.0"))
+    lines.clear()
+    assert ab.replicate(cfg, "eval/zara1/planner/none", tmp_path / "replica3", workers=1, out=lines.append) == 1
+    assert "3/4 episodes identical in all 6 columns, 4/4 outcomes" in "\n".join(lines)
+
+    # A grid cell that is not done (here: its model changed since it was evaluated) is not compared.
+    monkeypatch.setattr(ab.execute, "_run_eval", original)
+    (ab.cell_dir(cfg, "train/zara1/ppo/none/seed0") / ab.TRAIN_RUN / "best_model.zip").write_bytes(b"retrained")
+    lines.clear()
+    assert ab.replicate(cfg, "eval/zara1/ppo/none/seed0", tmp_path / "replica4", workers=1, out=lines.append) == 1
+    assert "eval/zara1/ppo/none/seed0: not compared: the grid's cell is stale" in "\n".join(lines)
+
+    for folder in (cfg.runs_path(), tmp_path, cfg.runs_path() / "sub"):  # the grid's folder, a parent, a child
+        with pytest.raises(ConfigError, match="overlaps the grid's folder"):
+            ab.replicate(cfg, "eval/zara1/planner/none", folder, workers=1)
+    with pytest.raises(ConfigError, match="selects no evaluation cell"):
+        ab.replicate(cfg, "train/zara1/ppo/none/seed0", tmp_path / "replica5", workers=1)
+    (tmp_path / "g.yaml").write_text(json.dumps(_raw(tmp_path)), encoding="utf-8")  # JSON is YAML
+    args = {
+        "workers": None,
+        "address": None,
+        "backend": "local",
+        "dry_run": False,
+        "summarize_only": False,
+        "force": False,
+    }
+    base = {"config": str(tmp_path / "g.yaml"), "replicate": str(tmp_path / "replica6"), "only": "eval/*"}
+    for change, message in (
+        ({"only": None}, "--replicate needs --only"),
+        ({"backend": "ray"}, "local backend"),
+        ({"dry_run": True}, "cannot be combined"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            ab.run_from_args(argparse.Namespace(**{**args, **base, **change}))
+
+
+# ----------------------------------------------------------------------------- the committed results
+
+
+def _planner_grid(tmp_path: Path, arms: tuple[str, ...] = ("none", "cv")) -> tuple[ab.AblationConfig, Path]:
+    """A planner-only grid written to a YAML file, its cells done with full-precision metrics and start times."""
+    raw = _raw(tmp_path, arms=list(arms), comparisons=[["cv", "none"]])
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    del raw["policy_comparisons"]
+    path = tmp_path / "grid.yaml"
+    path.write_text(json.dumps(raw), encoding="utf-8")  # JSON is YAML
+    cfg = ab.load_config(path)
+    for k, arm in enumerate(arms):
+        rows = _episode_rows("SCSS", [10.123456789012345 + k, 11.5, 9.25, 12.0], [1.0 / 3, 2.0, 3.0, 4.0])
+        name = f"eval/zara1/planner/{arm}"
+        _fake_done_cell(cfg, name, rows)
+        meta = json.loads((ab.cell_dir(cfg, name) / ab.CELL_JSON).read_text())
+        meta["attempts"] = [
+            {"started": f"2026-01-0{k + 1}T10:00:00+0000", "finished": f"2026-01-0{k + 1}T10:00:02+0000"}
+        ]
+        (ab.cell_dir(cfg, name) / ab.CELL_JSON).write_text(json.dumps(meta))
+    return cfg, path
+
+
+def _results(cfg: ab.AblationConfig) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(cfg.out_path().iterdir()) if p.is_file()}
+
+
+@pytest.fixture
+def pinned(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The summary's stamps (code version, time) fixed, so that two renders of the same data compare byte by byte."""
+    monkeypatch.setattr(ab.summary, "code_version", lambda: "0.0.0+gtest")
+    monkeypatch.setattr(ab.summary, "_now", lambda: "2026-01-09T00:00:00+0000")
+
+
+def test_summarize_only_in_a_fresh_clone_keeps_the_shipped_results(
+    tmp_path: Path, fakes: Fakes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg, path = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None)
+    shipped = _results(cfg)
+    assert {"summary.json", "summary.md", "cells.json", "episodes.csv.gz", "rates_by_arm.png"} <= set(shipped)
+    # summarising the same finished cells again changes no file (not even the time stamp)
+    stamps = {p.name: p.stat().st_mtime_ns for p in cfg.out_path().iterdir()}
+    ab.summarize(cfg, out=lambda s: None)
+    assert {p.name: p.stat().st_mtime_ns for p in cfg.out_path().iterdir()} == stamps
+    # a fresh clone: the results are committed, the run folders are not
+    import shutil
+
+    shutil.rmtree(cfg.runs_path())
+    assert ab.main([str(path), "--summarize-only"]) == 0
+    assert _results(cfg) == shipped
+    assert "up to date" in capsys.readouterr().out
+
+
+def test_the_archive_alone_rerenders_the_summary_identically(tmp_path: Path, fakes: Fakes, pinned: None) -> None:
+    import shutil
+
+    cfg, _ = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None)
+    shipped = _results(cfg)
+    assert {"rates_by_arm.png", "rates_by_density.png"} <= set(shipped)
+    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:  # every value as the evaluation wrote it
+        assert [r["navigation_time_s"] for r in csv.DictReader(fh)][:1] == [repr(10.123456789012345 + 1)]
+    cells = json.loads((cfg.out_path() / "cells.json").read_text())
+    assert cells[0]["attempts"] == [{"started": "2026-01-01T10:00:00+0000", "finished": "2026-01-01T10:00:02+0000"}]
+    shutil.rmtree(cfg.runs_path())
+    for name in ("summary.json", "summary.md", "rates_by_arm.png"):
+        (cfg.out_path() / name).unlink()
+    lines: list[str] = []
+    summary = ab.summarize(cfg, out=lines.append)
+    assert _results(cfg) == shipped
+    assert summary["complete"] and summary["wall_time"]["first_start"] == "2026-01-01T10:00:00+00:00"
+    assert "2 cell(s) from the archive" in "\n".join(lines)
+
+
+def test_an_incomplete_grid_never_replaces_a_complete_summary(
+    tmp_path: Path, fakes: Fakes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg, path = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    shipped = _results(cfg)
+    # an interrupted re-run of one cell: its folder has no DONE any more
+    (ab.cell_dir(cfg, "eval/zara1/planner/cv") / ab.DONE).unlink()
+    assert ab.main([str(path), "--summarize-only"]) == 1
+    err = capsys.readouterr().err
+    assert "eval/zara1/planner/cv" in err and "--force" in err
+    assert _results(cfg) == shipped
+    lines: list[str] = []  # a grid run ends with the same check (and says so, without failing the run)
+    ab.run_grid(cfg, workers=1, only="eval/zara1/planner/none", out=lines.append)
+    assert "missing 1 cell(s): eval/zara1/planner/cv" in "\n".join(lines)
+    assert _results(cfg) == shipped
+    # a grid that grew (a new arm) is incomplete too; the message names the cells it lacks
+    grown = ab.config_from_mapping({**json.loads(path.read_text()), "arms": ["none", "cv", "oracle"]})
+    (ab.cell_dir(cfg, "eval/zara1/planner/cv") / ab.DONE).write_text("now\n")
+    with pytest.raises(ab.ResultsKept, match="eval/zara1/planner/oracle"):
+        ab.summarize(grown, out=lambda s: None, plots=False)
+    assert _results(cfg) == shipped
+    # --force replaces them, and the new summary says it is incomplete
+    assert ab.main([str(path), "--summarize-only"]) == 0  # the cell is done again: nothing lost
+    summary = ab.summarize(grown, out=lambda s: None, plots=False, force=True)
+    assert summary["missing_cells"] == ["eval/zara1/planner/oracle"]
+    assert json.loads((cfg.out_path() / "summary.json").read_text())["complete"] is False
+
+
+def test_a_legacy_archive_is_kept_and_the_reason_given(
+    tmp_path: Path, fakes: Fakes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import shutil
+
+    cfg, path = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    # the records of an older version: no attempts (start times), no spec
+    cells = json.loads((cfg.out_path() / "cells.json").read_text())
+    for c in cells:
+        del c["attempts"], c["spec"]
+    (cfg.out_path() / "cells.json").write_text(json.dumps(cells, indent=2) + "\n")
+    shutil.rmtree(cfg.runs_path())
+    shipped = _results(cfg)
+    assert ab.main([str(path), "--summarize-only"]) == 1
+    err = capsys.readouterr().err
+    assert "start times" in err and "wall_time.first_start" in err and "--force" in err
+    assert _results(cfg) == shipped
+    assert ab.main([str(path), "--summarize-only", "--force"]) == 0
+    assert json.loads((cfg.out_path() / "summary.json").read_text())["wall_time"]["first_start"] is None
+
+
+def test_result_files_are_all_rendered_before_any_is_replaced(
+    tmp_path: Path, fakes: Fakes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg, _ = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    shipped = _results(cfg)
+    _fake_done_cell(cfg, "eval/zara1/planner/cv", _episode_rows("CCCC", [1, 1, 1, 1], [1.0, 2.0, 3.0, 4.0]))
+
+    def broken(*args: Any, **kwargs: Any) -> str:
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(ab.summary, "summary_markdown", broken)
+    with pytest.raises(RuntimeError, match="disk full"):
+        ab.summarize(cfg, out=lambda s: None, plots=False)
+    assert _results(cfg) == shipped  # all or nothing: the summary, cells and archive still agree
+    assert not [p for p in cfg.out_path().iterdir() if p.name.startswith(".")]  # no temporary file left
