@@ -20,14 +20,14 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from crowdnav_mesrnn.data.constants import OBS_LEN
-from envs.crowd_nav import _CONFIGURED, TIMING_KEYS, CrowdNavEnv, reset_info, reset_options
+from envs.crowd_nav import _CONFIGURED, TIMING_KEYS, UNDISTURBED, CrowdNavEnv, reset_info, reset_options
 from envs.episodes import Episode
 from envs.forecasting.sources import TrueFuture, fill_forward
 from envs.forecasting.window import PredictorForecast
 from envs.observation import nearest_visible
 from envs.popin import POPIN_MARGIN_M, PopInRule
 from envs.replay import TIME_TOL_S, Replay
-from envs.rewards import REWARD_COMPONENTS, EpisodeMetrics
+from envs.rewards import REWARD_COMPONENTS, EpisodeMetrics, time_to_collision
 from envs.timing import PhaseTimer, timed
 from envs.vector.physics import MAX_WORLDS, BatchedWorld
 from envs.vector.replay import BatchedReplay
@@ -48,6 +48,7 @@ class _World:
         self._replay: Replay | None = None
         self._forecast_log: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._metrics: EpisodeMetrics | None = None
+        self._reactive = None  # reaction "none": the replay is the world
         self.episode: Episode | None = None
         self.popin = PopInRule(env._r_sum + POPIN_MARGIN_M)
         self.touch_fault: dict[int, str] = {}
@@ -84,8 +85,13 @@ class BatchedCrowdNavEnv(VectorEnv):
         render_mode: only None (render a single environment to watch an episode).
         config, predictor, crowd, **kwargs: as :class:`envs.crowd_nav.CrowdNavEnv`.
 
+    Under ``reaction="none"`` (the only setting batched) the reset ``info`` names the reaction and its parameters and
+    the episode metrics hold the undisturbed disturbance metrics (:data:`envs.crowd_nav.UNDISTURBED`), as the single
+    environment's.
+
     Raises:
-        NotImplementedError: a ``reaction`` other than ``none`` (pedestrians reacting to the robot; not batched yet).
+        NotImplementedError: a ``reaction`` other than ``none`` (pedestrians reacting to the robot are not batched;
+            the message names the key and value and says to step single environments).
     """
 
     metadata: dict[str, Any] = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}  # noqa: RUF012
@@ -109,11 +115,11 @@ class BatchedCrowdNavEnv(VectorEnv):
         kwargs.pop("max_episode_steps", None)  # the environment has its own time limit
         #: the reference environment: its configuration, recordings, forecast source, sampler and constants
         self.env = CrowdNavEnv(config=config, predictor=predictor, crowd=crowd, **kwargs)
-        reaction = getattr(self.env.config, "reaction", "none")
-        if reaction != "none":
+        if self.env.reaction != "none":
             raise NotImplementedError(
-                f"config key 'reaction' = {reaction!r}: the batched environment replays the recordings only "
-                "(reaction='none'); step single environments (vectorization_mode='sync') for reacting pedestrians"
+                f"config key 'reaction' = {self.env.reaction!r}: the batched environment replays the recordings only "
+                "(reaction='none'); for reacting pedestrians step single environments: CrowdNavEnv, or "
+                "gymnasium.make_vec(id, num_envs=N, vectorization_mode='sync') (a SyncVectorEnv)"
             )
         env = self.env
         cfg = self.config = env.config
@@ -171,6 +177,11 @@ class BatchedCrowdNavEnv(VectorEnv):
         self._m_jerk_sum = np.zeros(n)
         self._m_jerk_count = np.zeros(n, dtype=np.int64)
         self._m_vel = np.zeros((n, 3, 2))  # the last three step velocities (zeros before the first)
+        self._m_accel_sum = np.zeros(n)
+        self._m_min_ttc = np.full(n, math.inf)
+        # the world at the last observation (CrowdNavEnv._last): pedestrians' velocities for the time to collision
+        self._last_pos = np.zeros((n, 1, 2))
+        self._last_present = np.zeros((n, 1), dtype=bool)
         self._obs: dict[str, np.ndarray] = {
             key: np.zeros((n, *space.shape), dtype=space.dtype) for key, space in self.single_observation_space.items()
         }
@@ -310,12 +321,12 @@ class BatchedCrowdNavEnv(VectorEnv):
         obs_present[:, 0] = sub_present[:, s]
         if resetting.any():
             obs_present[resetting, 0] = present[resetting, s] & ~self._reset_ghost[resetting, : present.shape[2]]
-        gap_now, intruding, visible = self._observe(all_w, t_next, pos[:, s:], obs_present, after)
+        gap_now, intruding, visible, ttc = self._observe(all_w, t_next, pos[:, s:], obs_present, after)
         rewards = np.zeros(n)
         terminated = np.zeros(n, dtype=bool)
         truncated = np.zeros(n, dtype=bool)
         if len(stepping):
-            r, te, tr = self._reward(stepping, robot0, after, gap_step, gap_now, intruding, visible, collided,
+            r, te, tr = self._reward(stepping, robot0, after, gap_step, gap_now, intruding, visible, ttc, collided,
                                      faults, new_contacts, infos)  # fmt: skip
             rewards[stepping], terminated[stepping], truncated[stepping] = r, te, tr
         self._autoreset = terminated | truncated
@@ -360,7 +371,8 @@ class BatchedCrowdNavEnv(VectorEnv):
         world.collision_fault = None
         self._m_steps[w] = self._m_visible[w] = self._m_discomfort[w] = self._m_intrusion[w] = 0
         self._m_collisions[w] = self._m_jerk_count[w] = 0
-        self._m_return[w] = self._m_path[w] = self._m_jerk_sum[w] = 0.0
+        self._m_return[w] = self._m_path[w] = self._m_jerk_sum[w] = self._m_accel_sum[w] = 0.0
+        self._m_min_ttc[w] = math.inf
         self._m_min_gap[w] = math.inf
         self._m_vel[w] = 0.0
         world.popin.reset(replay, float(self._times(np.array([w]), np.zeros(1, dtype=np.int64))[0]), ep.start)
@@ -374,10 +386,10 @@ class BatchedCrowdNavEnv(VectorEnv):
     def _fit_width(self) -> None:
         """Widen the per-row state to the replays' padded width P."""
         p = self._replay.width
-        for name in ("_pp_present", "_pp_ann_ghost", "_reset_ghost"):
+        for name in ("_pp_present", "_pp_ann_ghost", "_reset_ghost", "_last_present", "_last_pos"):
             old = getattr(self, name)
             if old.shape[1] < p:
-                grown = np.zeros((self.num_envs, p), dtype=bool)
+                grown = np.zeros((self.num_envs, p, *old.shape[2:]), dtype=old.dtype)
                 grown[:, : old.shape[1]] = old
                 setattr(self, name, grown)
 
@@ -540,7 +552,8 @@ class BatchedCrowdNavEnv(VectorEnv):
         self, worlds: np.ndarray, t_s: np.ndarray, positions: np.ndarray, present: np.ndarray, robot: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Perception at ``t_s`` of ``worlds`` (``CrowdNavEnv._observe`` of each): writes their observations; returns
-        ``(gap at t_s (n,), intruding (n,), pedestrians perceived (n,))``.
+        ``(gap at t_s (n,), intruding (n,), pedestrians perceived (n,), time to collision at t_s (n,), inf for a world
+        just reset)``.
 
         Args:
             positions: ``(n, 1 + H, P, 2)`` replay metres at ``t_s + h * dt_s``; present: ``(n, 1 + H, P)``.
@@ -554,6 +567,16 @@ class BatchedCrowdNavEnv(VectorEnv):
         p_now, pres_now = positions[:, 0], present[:, 0]
         d_now = np.hypot(p_now[..., 0] - robot[:, None, 0], p_now[..., 1] - robot[:, None, 1])
         gap = np.where(pres_now, d_now, math.inf).min(axis=1) - self._r_sum
+        ttc = np.full(len(worlds), math.inf)
+        after_step = self._n[worlds] > 0
+        if after_step.any():
+            ttc[after_step] = self._time_to_collision(
+                worlds[after_step], robot[after_step], p_now[after_step], pres_now[after_step]
+            )
+        width = p_now.shape[1]
+        self._last_pos[worlds, :width] = p_now
+        self._last_present[worlds] = False
+        self._last_present[worlds, :width] = pres_now
         fx = positions[:, 1:, :, 0] - robot[:, None, None, 0]
         fy = positions[:, 1:, :, 1] - robot[:, None, None, 1]
         r = self._r_sum
@@ -603,7 +626,29 @@ class BatchedCrowdNavEnv(VectorEnv):
             world.last_forecasts = None
         if self.with_forecasts:
             self._forecasts(worlds, t_s, rows_of, seen_pos, positions, present, index, age, robot)
-        return gap, intruding, counts
+        return gap, intruding, counts, ttc
+
+    def _time_to_collision(
+        self, worlds: np.ndarray, robot: np.ndarray, p_now: np.ndarray, pres_now: np.ndarray
+    ) -> np.ndarray:
+        """``(n,)`` each world's smallest constant-velocity time to collision at the end of its step
+        (``CrowdNavEnv._time_to_collision``): the pedestrians' velocities over the step from the last observation's
+        world (0 for one that was not there), every present row's :func:`envs.rewards.time_to_collision` at once.
+
+        Args:
+            robot: ``(n, 2)`` robot positions; p_now: ``(n, P, 2)`` pedestrians, metres; pres_now: ``(n, P)``.
+        """
+        width = p_now.shape[1]
+        before, was = self._last_pos[worlds, :width], self._last_present[worlds, :width]
+        both = (pres_now & was)[..., None]
+        velocities = np.where(both, (p_now - np.where(both, before, p_now)) / self.config.dt_s, 0.0)
+        out = np.full(len(worlds), math.inf)
+        j, col = np.nonzero(pres_now)
+        if len(j):
+            rel_p = p_now[j, col] - robot[j]
+            rel_v = velocities[j, col] - self._velocity[worlds[j]]
+            np.minimum.at(out, j, time_to_collision(rel_p, rel_v, self._r_sum))
+        return out
 
     @timed("forecasts")
     def _forecasts(
@@ -708,6 +753,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         gap_now: np.ndarray,
         intruding_all: np.ndarray,
         visible: np.ndarray,
+        ttc: np.ndarray,
         collided_all: np.ndarray,
         faults: list[str | None],
         new_contacts: np.ndarray,
@@ -747,6 +793,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         truncated = ~terminated & (steps >= self._max_steps[ws])
         # episode metrics (EpisodeMetrics.update)
         self._m_steps[ws] += 1
+        self._m_min_ttc[ws] = np.minimum(self._m_min_ttc[ws], ttc[ws])
         self._m_visible[ws] += visible[ws]
         self._m_return[ws] += reward
         self._m_path[ws] += step_m
@@ -760,6 +807,8 @@ class BatchedCrowdNavEnv(VectorEnv):
         vel = self._m_vel[ws]
         vel = np.concatenate([vel[:, 1:], self._velocity[ws][:, None, :]], axis=1)
         self._m_vel[ws] = vel
+        accel = (vel[:, 2] - vel[:, 1]) / cfg.dt_s
+        self._m_accel_sum[ws] += np.hypot(accel[:, 0], accel[:, 1])
         jerk_on = self._m_steps[ws] >= 2
         if jerk_on.any():
             jv = vel[jerk_on]
@@ -812,7 +861,8 @@ class BatchedCrowdNavEnv(VectorEnv):
         return reward, terminated, truncated
 
     def _episode_metrics(self, w: int, outcome: str) -> dict[str, Any]:
-        """World ``w``'s ``info["episode_metrics"]`` (:meth:`envs.rewards.EpisodeMetrics.summary`)."""
+        """World ``w``'s ``info["episode_metrics"]``: :meth:`envs.rewards.EpisodeMetrics.summary`, then the disturbance
+        metrics of an episode in which nobody reacts (:data:`envs.crowd_nav.UNDISTURBED`), as the single environment."""
         world = self._worlds[w]
         ep = world.episode
         assert ep is not None
@@ -829,10 +879,12 @@ class BatchedCrowdNavEnv(VectorEnv):
         m.collision_fault = world.collision_fault
         m.jerk_sum = float(self._m_jerk_sum[w])
         m.jerk_count = int(self._m_jerk_count[w])
+        m.accel_sum = float(self._m_accel_sum[w])
+        m.min_ttc_s = float(self._m_min_ttc[w])
         world._metrics = m
         CrowdNavEnv._forecast_errors(world)  # type: ignore[arg-type]
         m.popin_events = world.popin.events
-        return m.summary(outcome, int(self._n[w]) * cfg.dt_s, self.with_forecasts)
+        return {**m.summary(outcome, int(self._n[w]) * cfg.dt_s, self.with_forecasts), **UNDISTURBED}
 
     def _copy_obs(self) -> dict[str, np.ndarray]:
         return {key: value.copy() for key, value in self._obs.items()}

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from gymnasium.vector import SyncVectorEnv
 
-from envs.crowd_nav import CrowdNavEnv
+from envs.crowd_nav import UNDISTURBED, CrowdNavEnv
 from envs.vector import BatchedCrowdNavEnv
 
 
@@ -43,11 +43,15 @@ def run_side_by_side(
 ) -> dict[str, int]:
     """Step a :class:`BatchedCrowdNavEnv` and a ``SyncVectorEnv`` of ``CrowdNavEnv`` with the same seeds and actions,
     asserting identical outputs at every step (random actions unless ``policy``); ``reset_every`` > 0 also calls a
-    seeded ``reset`` every that many steps. Returns counts: episodes ended, collisions, pop-in events, steps."""
+    seeded ``reset`` every that many steps. Returns counts: episodes ended, collisions, pop-in events, steps, rows of
+    forecasts, and episodes whose compared metrics were not trivial: a finite minimum time to collision
+    (``ttc_finite``), a non-zero mean acceleration (``accel``), a success (``spl``). Every ended episode's metrics
+    also hold the undisturbed disturbance metrics, and every reset info the reaction's name and parameters."""
     sync = SyncVectorEnv([lambda: CrowdNavEnv(**kwargs) for _ in range(num_envs)])
     batched = BatchedCrowdNavEnv(num_envs=num_envs, **kwargs)
     rng = np.random.default_rng(seed)
     counts = {"ended": 0, "collisions": 0, "popin_events": 0, "steps": 0, "forecast_rows": 0}
+    counts.update(ttc_finite=0, accel=0, spl=0)
 
     def reset(k: int) -> dict[str, np.ndarray]:
         obs_s, info_s = sync.reset(seed=seed + 1000 * k, options=dict(options) if options else None)
@@ -56,6 +60,7 @@ def run_side_by_side(
             assert obs_b[key].dtype == obs_s[key].dtype
             np.testing.assert_array_equal(obs_b[key], obs_s[key], err_msg=f"reset obs {key}")
         assert_same_info(info_s, info_b, "reset info")
+        assert set(info_b["reaction"].tolist()) == {"none"} and info_b["_reaction_params"].all()
         return obs_s
 
     obs = reset(0)
@@ -85,6 +90,11 @@ def run_side_by_side(
                 counts["ended"] += 1
                 counts["collisions"] += int(m["outcome"][i] == "collision")
                 counts["popin_events"] += int(m["popin_events"][i])
+                ttc = m["min_ttc_s"][i]  # None, or NaN in a float column whose first world had a float
+                counts["ttc_finite"] += ttc is not None and bool(np.isfinite(ttc))
+                counts["accel"] += bool(m["mean_accel_mps2"][i] > 0)
+                counts["spl"] += bool(m["spl"][i])
+                assert {key: m[key][i] for key in UNDISTURBED} == UNDISTURBED
     sync.close()
     batched.close()
     return counts

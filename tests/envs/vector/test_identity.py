@@ -31,6 +31,8 @@ def test_every_arm_gives_the_episodes_of_single_envs(
     kwargs = {"predictor": predictor, "split": "zara1", "part": "test"}
     counts = side_by_side(num_envs, kwargs, steps=120 if num_envs < 8 else 90, seed=num_envs)
     assert counts["ended"] >= num_envs  # autoresets were compared
+    # the added metrics were compared where they are not trivial (a minimum time to collision, an acceleration)
+    assert counts["ttc_finite"] >= 1 and counts["accel"] == counts["ended"]
     if predictor != "none":
         assert counts["forecast_rows"] > 0
 
@@ -39,12 +41,19 @@ def test_pop_in_events_collisions_and_timeouts_across_autoresets(data_dir: Path,
     # seed 3, 3 worlds, 200 random steps on zara1: collisions, timeouts and a pop-in event (measured)
     counts = side_by_side(3, {"predictor": "cv", "split": "zara1", "part": "test"}, steps=200, seed=0)
     assert counts["popin_events"] >= 1 and counts["collisions"] >= 1 and counts["ended"] >= 6
+    assert counts["ttc_finite"] >= 1
 
 
-def test_learned_forecasts_on_a_short_recording(tiny_learned_predictor: Any, side_by_side: Any) -> None:
-    # a learned (structural RNN) predictor object on the synthetic crowd: its forecasts go through the window
-    # source's cache like MESRNN's
-    kwargs = {"predictor": tiny_learned_predictor(), "crowd": "synthetic", "synthetic_duration_s": 60.0}
+@pytest.mark.parametrize("memory", ["window", "carried"])
+def test_learned_forecasts_on_a_short_recording(memory: str, tiny_learned_predictor: Any, side_by_side: Any) -> None:
+    # a learned (structural RNN) predictor object on the synthetic crowd: its forecasts go through the window (or
+    # carried) source's cache like MESRNN's
+    kwargs = {
+        "predictor": tiny_learned_predictor(),
+        "crowd": "synthetic",
+        "synthetic_duration_s": 60.0,
+        "forecast_memory": memory,
+    }
     counts = side_by_side(3, kwargs, steps=60, seed=5)
     assert counts["forecast_rows"] > 0 and counts["ended"] >= 1
 
@@ -69,6 +78,19 @@ def test_settings(extra: dict[str, Any], data_dir: Path, side_by_side: Any) -> N
     kwargs = {"predictor": "oracle", "split": "zara1", "part": "test", **extra}
     counts = side_by_side(3, kwargs, steps=100, seed=4, policy=_goal_seeking(extra), reset_every=45)
     assert counts["steps"] == 100
+
+
+def test_reaction_none_with_parameters_and_a_goal_tolerance(data_dir: Path, side_by_side: Any) -> None:
+    # reaction "none" with parameters set: the reset info echoes them (resolved), as the single env's; a wider goal
+    # tolerance changes the distance required (path_ratio_required, spl) and goal-seeking worlds succeed
+    extra = {"reaction": "none", "reaction_params": {"trigger_distance_m": 2.0}, "goal_tolerance_m": 0.6}
+    kwargs = {"predictor": "cv", "split": "zara1", "part": "test", **extra}
+    counts = side_by_side(4, kwargs, steps=120, seed=6, policy=_goal_seeking(extra))
+    assert counts["spl"] >= 1
+    env = BatchedCrowdNavEnv(num_envs=2, **kwargs)
+    _, info = env.reset(seed=0)
+    assert info["reaction"].tolist() == ["none", "none"]
+    assert info["reaction_params"]["trigger_distance_m"].tolist() == [2.0, 2.0]
 
 
 def _walk(start: tuple[float, float], velocity: tuple[float, float], steps: int, step_s: float) -> np.ndarray:
@@ -132,15 +154,13 @@ def test_errors_name_what_is_wrong() -> None:
         env.step(np.array([[0.0, 0.0], [np.nan, 0.0]]))
 
 
-def test_reacting_pedestrians_are_not_batched_yet(monkeypatch: pytest.MonkeyPatch) -> None:
-    import envs.vector.batched as batched_module
-    from envs.crowd_nav import CrowdNavEnv
-
-    class Reacting(CrowdNavEnv):
-        def __init__(self, **kwargs: Any) -> None:
-            super().__init__(**kwargs)
-            object.__setattr__(self.config, "reaction", "orca")  # as a config with reaction="orca" would say
-
-    monkeypatch.setattr(batched_module, "CrowdNavEnv", Reacting)
-    with pytest.raises(NotImplementedError, match="'reaction' = 'orca'"):
-        BatchedCrowdNavEnv(num_envs=2, predictor="none", crowd="empty")
+@pytest.mark.parametrize("reaction", ["pause", "orca", "social_force"])
+def test_reacting_pedestrians_are_refused_naming_key_value_and_what_to_use(reaction: str) -> None:
+    with pytest.raises(NotImplementedError, match=f"'reaction' = '{reaction}'.*SyncVectorEnv"):
+        BatchedCrowdNavEnv(num_envs=2, predictor="none", crowd="empty", reaction=reaction)
+    with pytest.raises(NotImplementedError, match=f"'reaction' = '{reaction}'"):
+        gymnasium.make_vec(
+            "CrowdNav-NoPred-v0", num_envs=2, vectorization_mode="vector_entry_point", crowd="empty", reaction=reaction
+        )
+    with pytest.raises(NotImplementedError, match=f"'reaction' = '{reaction}'"):  # from a config mapping too
+        BatchedCrowdNavEnv(num_envs=2, config={"reaction": reaction}, predictor="none", crowd="empty")
