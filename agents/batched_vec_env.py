@@ -1,7 +1,7 @@
 """An SB3 ``VecEnv`` over the natively batched environment (:class:`envs.vector.BatchedCrowdNavEnv`).
 
 :class:`BatchedVecEnv` steps N episodes in one call of the batched environment and hands SB3 what its
-``DummyVecEnv`` over the training environments of :func:`agents.train.make_env` (``CrowdNavEnv`` with the optional
+``DummyVecEnv`` over the training environments of :func:`agents.training.run.make_env` (``CrowdNavEnv`` with the optional
 discrete action wrapper, the success flag and SB3's ``Monitor``) hands it: the same observations, rewards, dones and
 per-environment info dicts, with ``info["TimeLimit.truncated"]``, and at an episode's end
 ``info["terminal_observation"]``, ``info["is_success"]`` and ``info["episode"]`` (return, length, time, as
