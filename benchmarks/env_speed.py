@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -202,11 +203,14 @@ def batched(args: argparse.Namespace) -> None:
     from envs.vector import BatchedCrowdNavEnv
 
     sizes = (1, 16, 64)
-    peak = matmul_peak_gflops(torch.float32, 1, 5) if torch is not None else float("nan")
-    torch.set_num_threads(1)
+    peak = float("nan")
+    if torch is not None:
+        peak = matmul_peak_gflops(torch.float32, 1, 5)
+        torch.set_num_threads(1)
     print(
         f"0. Batched environment, {args.split} held-out scene, random policy, {args.batched_steps} world-steps per "
-        f"measurement x {args.repeats} repeats (median); machine: 1-thread fp32 matmul peak {peak:.0f} GFLOP/s"
+        f"measurement x {args.repeats} repeats (median); machine: {os.cpu_count()} CPUs, 1-thread fp32 matmul peak "
+        f"{peak:.0f} GFLOP/s, load average {_load()} (other processes)"
     )
     try:
         summary = build_forecast_cache("mesrnn", args.split, "test", progress=False)
@@ -251,14 +255,23 @@ def batched(args: argparse.Namespace) -> None:
         wall0 = time.perf_counter()
         done = sum(step() for _ in range(max(1, args.batched_steps // sizes[-1])))
         total = (time.perf_counter() - wall0) / done
-        split = {k: v / done for k, v in big.timings.items()}
+        split = {k: v / done for k, v in big.timings.items() if v > 0}  # (never "reaction": none is batched)
         split["other"] = total - sum(split.values())
         print(
             f"   batched N={sizes[-1]} ({arm}), wall microseconds per world-step by phase: "
             + ", ".join(f"{k} {1e6 * v:.1f}" for k, v in split.items())
             + f"; total {1e6 * total:.1f}"
         )
-    print("   'x single': steps/s relative to the single environment in the same repeat (median of the ratios)\n")
+    print("   'x single': steps/s relative to the single environment in the same repeat (median of the ratios)")
+    print(f"   load average at the end: {_load()}\n")
+
+
+def _load() -> str:
+    """The 1-minute load average (processes running or waiting for a CPU), or ``n/a``."""
+    try:
+        return f"{os.getloadavg()[0]:.1f}"
+    except OSError:
+        return "n/a"
 
 
 def in_process(args: argparse.Namespace) -> None:
