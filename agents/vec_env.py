@@ -9,7 +9,8 @@ vectorised call, the episode return, length and time (SB3's ``info["episode"]``,
 ``info["is_success"]`` are written at an episode's end, and infos are handed over without copying (the
 environment returns fresh dicts every step). Observations, rewards, dones, truncation flags, terminal
 observations and resets are those of ``DummyVecEnv`` over the wrapped environments, step for step
-(``tests/agents/test_vec_env.py``).
+(``tests/agents/test_vec_env.py``). ``vec_env: vector`` (``auto``'s choice where it applies) steps the natively
+batched environment instead: :mod:`agents.batched_vec_env`.
 """
 
 from __future__ import annotations

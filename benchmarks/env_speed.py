@@ -1,8 +1,17 @@
-"""Steps per second of the environment for each forecast arm: in one process, in a fresh process, and under PPO.
+"""Steps per second of the environment for each forecast arm: batched, in one process, in a fresh process, and under
+PPO.
 
-Run: ``python benchmarks/env_speed.py [--steps 3000] [--repeats 3] [--split zara1] [--fresh-steps 1500]
-[--ppo-steps 0] [--reaction]``. Up to four parts, each printing medians of repeats and ratios against the ``none`` arm
-(or ``reaction="none"``) measured the same way:
+Run: ``python benchmarks/env_speed.py [--batched-steps 4000] [--steps 3000] [--repeats 3] [--split zara1]
+[--fresh-steps 1500] [--ppo-steps 0] [--reaction]``. Up to five parts, each printing medians of repeats and ratios
+against a reference measured the same way (the single environment, the ``none`` arm, or ``reaction="none"``):
+
+0. **Batched** (``--batched-steps``, 0 skips it): the batched environment (:class:`envs.vector.BatchedCrowdNavEnv`)
+   at N = 1, 16 and 64 worlds against the single environment and ``SyncVectorEnv`` over N single environments, for
+   the ``none`` and ``mesrnn`` arms on the split's held-out scene, a random policy, autoresets included; steps/s
+   by CPU time of the process (robust to a shared machine) and by wall time, the ratio to the single environment
+   measured in the same repeat, the machine's matmul peak beside, and the batched environment's split per phase
+   at the largest N. MESRNN forecasts come from the disk cache, which is built first for the held-out scene's
+   recording when missing (what was loaded or computed is printed).
 
 1. **In one process**: a random policy crosses the split's held-out scene (ZARA1 by default; the synthetic crowd
    without ETH/UCY data), resets included, with the mean microseconds per step spent in the replay, physics,
@@ -37,11 +46,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -153,6 +164,114 @@ def run(
     parts = {k: v / steps for k, v in env.timings.items()}
     parts["other"] = elapsed / steps - sum(parts.values())
     return steps / elapsed, parts, getattr(env.forecaster, "calls", 0) - calls, (collided, ended)
+
+
+def _rate(step: Any, steps: int) -> tuple[float, float]:
+    """``(world-steps per CPU second, per wall second)`` of ``step()`` called ``steps`` times (it returns the number of
+    world-steps it took)."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    done = sum(step() for _ in range(steps))
+    return done / (time.process_time() - cpu), done / (time.perf_counter() - wall)
+
+
+def _single_stepper(env: CrowdNavEnv, rng: np.random.Generator) -> Any:
+    env.reset(seed=0)
+
+    def step() -> int:
+        _, _, terminated, truncated, _ = env.step(rng.uniform(-1.0, 1.0, 2).astype(np.float32))
+        if terminated or truncated:
+            env.reset()
+        return 1
+
+    return step
+
+
+def _vector_stepper(envs: Any, rng: np.random.Generator) -> Any:
+    envs.reset(seed=0)
+    n = envs.num_envs
+
+    def step() -> int:
+        envs.step(rng.uniform(-1.0, 1.0, (n, 2)).astype(np.float32))
+        return n
+
+    return step
+
+
+def batched(args: argparse.Namespace) -> None:
+    from gymnasium.vector import SyncVectorEnv
+
+    from envs.vector import BatchedCrowdNavEnv
+
+    sizes = (1, 16, 64)
+    peak = float("nan")
+    if torch is not None:
+        peak = matmul_peak_gflops(torch.float32, 1, 5)
+        torch.set_num_threads(1)
+    print(
+        f"0. Batched environment, {args.split} held-out scene, random policy, {args.batched_steps} world-steps per "
+        f"measurement x {args.repeats} repeats (median); machine: {os.cpu_count()} CPUs, 1-thread fp32 matmul peak "
+        f"{peak:.0f} GFLOP/s, load average {_load()} (other processes)"
+    )
+    try:
+        summary = build_forecast_cache("mesrnn", args.split, "test", progress=False)
+        print(
+            f"   MESRNN forecasts of {', '.join(summary['recordings'])}: {summary['chunks']} chunks on disk, "
+            f"{summary['loaded']} loaded, {summary['computed']} computed now ({summary['seconds']:.1f} s)"
+        )
+        arms = ("none", "mesrnn")
+    except PredictorUnavailableError as exc:
+        print(f"   mesrnn skipped: {str(exc).split('. ')[0]}")
+        arms = ("none",)
+    header = (
+        f"{'arm':<8}{'environment':<16}{'N':>4}{'steps/s cpu':>13}{'x single':>10}{'steps/s wall':>14}{'x single':>10}"
+    )
+    print(header)
+    print("-" * len(header))
+    for arm in arms:
+        kwargs = {"predictor": arm, "split": args.split, "part": "test"}
+        rng = np.random.default_rng(0)
+        single = CrowdNavEnv(**kwargs)
+        single.precompute_forecasts()
+        runs: dict[tuple[str, int], Any] = {("single", 1): _single_stepper(single, rng)}
+        for n in sizes[1:]:
+            runs[("SyncVectorEnv", n)] = _vector_stepper(SyncVectorEnv([partial(CrowdNavEnv, **kwargs)] * n), rng)
+        envs = {n: BatchedCrowdNavEnv(num_envs=n, **kwargs) for n in sizes}
+        for n, env in envs.items():
+            runs[("batched", n)] = _vector_stepper(env, rng)
+        rates: dict[tuple[str, int], list[tuple[float, float]]] = {key: [] for key in runs}
+        for _ in range(args.repeats):  # interleaved, so every repeat sees the same machine load
+            for key, step in runs.items():
+                rates[key].append(_rate(step, max(1, args.batched_steps // key[1])))
+        base = rates[("single", 1)]
+        for key in runs:
+            cpu = statistics.median(r[0] for r in rates[key])
+            wall = statistics.median(r[1] for r in rates[key])
+            x_cpu = statistics.median(r[0] / b[0] for r, b in zip(rates[key], base, strict=True))
+            x_wall = statistics.median(r[1] / b[1] for r, b in zip(rates[key], base, strict=True))
+            print(f"{arm:<8}{key[0]:<16}{key[1]:>4}{cpu:>13.0f}{x_cpu:>10.2f}{wall:>14.0f}{x_wall:>10.2f}")
+        big = envs[sizes[-1]]
+        step = _vector_stepper(big, rng)
+        big.reset_timings()
+        wall0 = time.perf_counter()
+        done = sum(step() for _ in range(max(1, args.batched_steps // sizes[-1])))
+        total = (time.perf_counter() - wall0) / done
+        split = {k: v / done for k, v in big.timings.items() if v > 0}  # (never "reaction": none is batched)
+        split["other"] = total - sum(split.values())
+        print(
+            f"   batched N={sizes[-1]} ({arm}), wall microseconds per world-step by phase: "
+            + ", ".join(f"{k} {1e6 * v:.1f}" for k, v in split.items())
+            + f"; total {1e6 * total:.1f}"
+        )
+    print("   'x single': steps/s relative to the single environment in the same repeat (median of the ratios)")
+    print(f"   load average at the end: {_load()}\n")
+
+
+def _load() -> str:
+    """The 1-minute load average (processes running or waiting for a CPU), or ``n/a``."""
+    try:
+        return f"{os.getloadavg()[0]:.1f}"
+    except OSError:
+        return "n/a"
 
 
 def in_process(args: argparse.Namespace) -> None:
@@ -328,6 +447,7 @@ def main() -> None:
     parser.add_argument("--fresh-steps", type=int, default=1500, help="steps per fresh process (0: skip part 2)")
     parser.add_argument("--ppo-steps", type=int, default=0, help="PPO steps per arm (default 0: skip part 3)")
     parser.add_argument("--skip-in-process", action="store_true", help="skip part 1")
+    parser.add_argument("--batched-steps", type=int, default=4000, help="world-steps per batched measurement (0: skip)")
     parser.add_argument("--reaction", action="store_true", help="part 4: env steps/s per reaction model")
     parser.add_argument("--reaction-only", action="store_true", help="only part 4")
     parser.add_argument("--reaction-split", default="univ", help="its held-out scene is replayed in part 4")
@@ -337,6 +457,8 @@ def main() -> None:
     if args.reaction_only:
         reactions(args)
         return
+    if args.batched_steps:
+        batched(args)
     if not args.skip_in_process:
         in_process(args)
     if args.fresh_steps:

@@ -11,9 +11,10 @@ updates — and splits the process's CPU time into the vectorised environment's 
 lookup, action mapping), the policy's forward pass in the rollouts, the updates (``PPO.train``) and the rest
 (rollout buffer, advantages, callbacks), per environment step.
 
-A cell is a number of environments and how they run: ``batched`` (in this process, the wrappers' work batched:
-``agents.vec_env``), ``dummy`` (SB3's ``DummyVecEnv`` over wrapped environments) or ``subproc`` (one forkserver
-worker each). Without ``--cells`` the config's own (``n_envs``, ``vec_env``) is the only cell.
+A cell is a number of environments and how they run (``vec_env``): ``vector`` (the batched environment,
+``agents.batched_vec_env``; ``auto`` is it where the settings allow), ``batched`` (in this process, the wrappers' work
+batched: ``agents.vec_env``), ``dummy`` (SB3's ``DummyVecEnv`` over wrapped environments) or ``subproc`` (one
+forkserver worker each). Without ``--cells`` the config's own (``n_envs``, ``vec_env``) is the only cell.
 
 ``--json`` prints one object: ``{"config", "split", "steps", "cell", "arms": {arm: steps/s}, "slowdown_vs_none":
 {arm: none's steps/s / arm's}, "arms_per_cpu_second": {arm: steps per CPU second}, "cpu_us_per_step": {arm:

@@ -8,6 +8,8 @@ from __future__ import annotations
 import gymnasium
 
 ENTRY_POINT = "envs.crowd_nav:CrowdNavEnv"
+#: ``gymnasium.make_vec(id, num_envs=N, vectorization_mode="vector_entry_point")``: N episodes batched in one process.
+VECTOR_ENTRY_POINT = "envs.vector:BatchedCrowdNavEnv"
 
 #: id -> the forecast source it uses; every other setting is the same.
 ENV_IDS: dict[str, str] = {
@@ -23,4 +25,9 @@ def register_envs() -> None:
     for env_id, predictor in ENV_IDS.items():
         if env_id in gymnasium.registry:
             continue
-        gymnasium.register(id=env_id, entry_point=ENTRY_POINT, kwargs={"predictor": predictor})
+        gymnasium.register(
+            id=env_id,
+            entry_point=ENTRY_POINT,
+            vector_entry_point=VECTOR_ENTRY_POINT,
+            kwargs={"predictor": predictor},
+        )

@@ -154,6 +154,26 @@ def reset_options(options: Any, goal_tolerance_m: float) -> dict[str, Any]:
     return opts
 
 
+def reset_info(
+    ep: Episode, crowd: str, predictor: str, reaction: str, reaction_params: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The reset ``info`` of an episode (see :class:`CrowdNavEnv`'s Starting State); ``reaction_params`` is copied."""
+    return {
+        "recording": ep.recording.name,
+        "crowd": crowd,
+        "predictor": predictor,
+        "t0_s": ep.t0_s,
+        "start": ep.start.tolist(),
+        "goal": ep.goal.tolist(),
+        "time_limit_s": ep.time_limit_s,
+        "crowd_density": ep.crowd_density,
+        "pedestrians_near_path": ep.pedestrians_near_path,
+        "env_revision": ENV_REVISION,
+        "reaction": reaction,
+        "reaction_params": dict(reaction_params),
+    }
+
+
 class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     """A robot disk crosses an ETH/UCY crowd replayed in a pymunk world, with forecasts of every
     observed pedestrian in its observation.
@@ -591,20 +611,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         pos, present = self._world_positions(self._time(0) + self._obs_offsets)
         present[0] &= ~self._popin.ghost
         obs, _ = self._observe(self._time(0), pos, present, ep.start)
-        info = {
-            "recording": ep.recording.name,
-            "crowd": self.crowd_kind,
-            "predictor": self.predictor_name,
-            "t0_s": ep.t0_s,
-            "start": ep.start.tolist(),
-            "goal": ep.goal.tolist(),
-            "time_limit_s": ep.time_limit_s,
-            "crowd_density": ep.crowd_density,
-            "pedestrians_near_path": ep.pedestrians_near_path,
-            "env_revision": ENV_REVISION,
-            "reaction": self.reaction,
-            "reaction_params": dict(self.config.reaction_params),
-        }
+        info = reset_info(ep, self.crowd_kind, self.predictor_name, self.reaction, self.config.reaction_params)
         if self.render_mode == "human":
             self.render()
         return obs, info
@@ -624,15 +631,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._heading = math.atan2(ep.goal[1] - ep.start[1], ep.goal[0] - ep.start[0])
         self._velocity = np.zeros(2)
         self._forecast_log: list[tuple[float, np.ndarray, np.ndarray]] = []
-        self._metrics = EpisodeMetrics(
-            ep.start.copy(),
-            ep.goal.copy(),
-            cfg.dt_s,
-            cfg.discomfort_dist_m,
-            crowd_density=ep.crowd_density,
-            pedestrians_near_path=ep.pedestrians_near_path,
-            goal_tolerance_m=cfg.goal_tolerance_m,
-        )
+        self._metrics = EpisodeMetrics.of_episode(ep, cfg.dt_s, cfg.discomfort_dist_m, cfg.goal_tolerance_m)
         self._done = False
         self._started = True
         self._collided_last = False

@@ -203,6 +203,19 @@ class EpisodeMetrics:
     min_ttc_s: float = math.inf
     _velocities: list[np.ndarray] = field(default_factory=list)
 
+    @classmethod
+    def of_episode(cls, episode: Any, dt_s: float, discomfort_dist_m: float, goal_tolerance_m: float) -> EpisodeMetrics:
+        """Fresh metrics of an :class:`envs.episodes.Episode` (its start, goal and crowd density)."""
+        return cls(
+            episode.start.copy(),
+            episode.goal.copy(),
+            dt_s,
+            discomfort_dist_m,
+            crowd_density=episode.crowd_density,
+            pedestrians_near_path=episode.pedestrians_near_path,
+            goal_tolerance_m=goal_tolerance_m,
+        )
+
     def update(
         self,
         reward: float,

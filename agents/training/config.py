@@ -125,7 +125,8 @@ UNSUPPORTED_ZOO_KEYS: Final[tuple[str, ...]] = (
 )
 #: Environment settings a run sets itself (per run and per phase).
 RUN_ENV_KEYS: Final[tuple[str, ...]] = ("predictor", "split", "part", "episode_time", "render_mode")
-VEC_ENVS: Final[tuple[str, ...]] = ("auto", "subproc", "dummy", "batched")
+#: ``vec_env`` values (:attr:`TrainConfig.vec_env`); ``auto`` is the default.
+VEC_ENVS: Final[tuple[str, ...]] = ("auto", "vector", "batched", "dummy", "subproc")
 DEFAULT_CONFIG: Final[Path] = Path(__file__).resolve().parents[2] / "configs" / "agent" / "ppo.yaml"
 
 
@@ -275,9 +276,14 @@ class TrainConfig:
     keep_checkpoints: int
     """How many checkpoints to keep (the latest ones)."""
     vec_env: str
-    """``auto`` (subprocesses for 2+ environments), ``subproc``, ``dummy`` (SB3's ``DummyVecEnv`` over wrapped
-    environments) or ``batched`` (:class:`agents.vec_env.CrowdVecEnv`: the same in this process, the wrappers' work
-    batched)."""
+    """How the training environments are stepped (all give the same transitions, step for step; only speed differs):
+    ``vector``: the batched environment (:class:`envs.vector.BatchedCrowdNavEnv`, the ids' ``vector_entry_point``:
+    every environment in one call) through :class:`agents.batched_vec_env.BatchedVecEnv`; refused with a
+    :class:`ConfigError` naming why where it cannot run the settings (:func:`batched_env_refusal`). ``auto`` (the
+    default): ``vector`` where it can, else, with a warning naming why, the former default (``subproc`` for 2+
+    environments, ``dummy`` for one). ``dummy``: SB3's ``DummyVecEnv`` over wrapped single environments;
+    ``subproc``: one forkserver worker per environment; ``batched``: :class:`agents.vec_env.CrowdVecEnv` (single
+    environments in this process, the wrappers' work batched)."""
     pretrain: PretrainConfig | None
     """Behaviour-cloning warm start, or None."""
     action: dict[str, Any] = dataclasses.field(default_factory=lambda: {"kind": "continuous"})
@@ -486,7 +492,44 @@ def _build(
     )
     config_from(cfg.env_kwargs("val"), {})  # a bad validation setting is named now, not at the first validation
     cfg.action_set()  # validates the environment settings and the action section now, naming the bad key
+    if vec_env == "vector":
+        why = batched_env_refusal(cfg)
+        if why is not None:
+            raise ConfigError(
+                f"{source}: {PROJECT_KEY}.vec_env 'vector' cannot train these settings: {why}; set vec_env 'dummy' or "
+                "'subproc' (single environments), or 'auto' (the batched environment where it can, else single "
+                "environments with a warning)"
+            )
     return cfg
+
+
+def batched_env_refusal(cfg: TrainConfig) -> str | None:
+    """Why the batched environment (``vec_env: vector``) cannot step a run's training environments, or None when it
+    can: pedestrians that react to the robot (``env.reaction`` / ``train_env.reaction`` other than ``none``; the
+    batched environment replays the recordings only) or more environments than it batches. Every other setting,
+    the discrete actions and ``VecNormalize`` included, it runs as the single environments do."""
+    reaction = config_from(cfg.env_kwargs("train"), {}).reaction
+    if reaction != "none":
+        return (
+            f"env key 'reaction' = {reaction!r} (pedestrians reacting to the robot): the batched environment "
+            "replays the recordings only (reaction 'none')"
+        )
+    from envs.vector.physics import MAX_WORLDS
+
+    if cfg.n_envs > MAX_WORLDS:
+        return f"n_envs = {cfg.n_envs}: the batched environment steps at most {MAX_WORLDS} environments"
+    return None
+
+
+def vec_env_kind(cfg: TrainConfig) -> tuple[str, str | None]:
+    """The ``vec_env`` a run steps its training environments with (``auto`` resolved: :attr:`TrainConfig.vec_env`),
+    and why ``auto`` fell back from ``vector`` (None when it did not)."""
+    if cfg.vec_env != "auto":
+        return cfg.vec_env, None
+    why = batched_env_refusal(cfg)
+    if why is None:
+        return "vector", None
+    return ("subproc" if cfg.n_envs >= 2 else "dummy"), why
 
 
 def _positive_int(value: Any, key: str, minimum: int = 1) -> int:

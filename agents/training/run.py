@@ -49,7 +49,7 @@ from agents.training.callbacks import (
     save_policy_file,
     save_vecnormalize,
 )
-from agents.training.config import TrainConfig, _algo_class, algorithm_kwargs, policy_class
+from agents.training.config import TrainConfig, _algo_class, algorithm_kwargs, policy_class, vec_env_kind
 from agents.training.logger import make_logger
 from agents.training.pretrain import pretrain
 from agents.vec_env import CrowdVecEnv
@@ -86,19 +86,31 @@ def make_env(env_kwargs: Mapping[str, Any], action: Mapping[str, Any] | None = N
 
 
 def make_vec_env(cfg: TrainConfig) -> Any:
-    """The training ``VecEnv`` (``SubprocVecEnv`` with the forkserver start method for 2+ environments under
-    ``vec_env: auto``), wrapped in ``VecNormalize`` when configured."""
+    """The training ``VecEnv`` of ``vec_env`` (:attr:`~agents.training.config.TrainConfig.vec_env`; under ``auto``
+    the batched environment, or with a warning naming why, ``SubprocVecEnv`` with the forkserver start method for
+    2+ environments and ``DummyVecEnv`` for one), wrapped in ``VecNormalize`` when configured. Every choice gives
+    the transitions of ``DummyVecEnv`` over :func:`make_env`'s environments."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    if cfg.vec_env == "batched":
+    kind, why = vec_env_kind(cfg)
+    if why is not None:
+        warnings.warn(
+            f"vec_env 'auto' steps the training environments with {kind!r}, not the batched environment: {why}",
+            UserWarning,
+            stacklevel=2,
+        )
+    if kind == "vector":
+        from agents.batched_vec_env import BatchedVecEnv
+
+        venv: Any = BatchedVecEnv(cfg.n_envs, cfg.env_kwargs("train"), cfg.action_set())
+    elif kind == "batched":
         from envs.crowd_nav import CrowdNavEnv
 
         bare = [partial(CrowdNavEnv, **cfg.env_kwargs("train")) for _ in range(cfg.n_envs)]
-        venv: Any = CrowdVecEnv(bare, cfg.action_set())
+        venv = CrowdVecEnv(bare, cfg.action_set())
     else:
         fns = [partial(make_env, cfg.env_kwargs("train"), cfg.action) for _ in range(cfg.n_envs)]
-        subproc = cfg.vec_env == "subproc" or (cfg.vec_env == "auto" and cfg.n_envs >= 2)
-        venv = SubprocVecEnv(fns, start_method="forkserver") if subproc else DummyVecEnv(fns)
+        venv = SubprocVecEnv(fns, start_method="forkserver") if kind == "subproc" else DummyVecEnv(fns)
     if cfg.normalize:
         from gymnasium import spaces
         from stable_baselines3.common.vec_env import VecNormalize

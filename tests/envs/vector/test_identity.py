@@ -1,0 +1,166 @@
+"""The batched environment is the single environment, batched: for the same seeds and actions, its observations,
+rewards, terminations, truncations and infos equal SyncVectorEnv's over single environments, bit for bit."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+import pytest
+
+import crowdnav_mesrnn  # noqa: F401 (registers the ids)
+from envs.crowds import scripted_recording
+from envs.vector import BatchedCrowdNavEnv
+from tests.envs.conftest import go_to_goal
+
+
+def _goal_seeking(kwargs: dict[str, Any]) -> Any:
+    from envs.config import CrowdNavConfig
+
+    cfg = CrowdNavConfig(**{k: v for k, v in kwargs.items() if k in ("kinematics",)})
+    return lambda i, obs, rng: go_to_goal(obs, cfg) if i % 2 else rng.uniform(-1, 1, 2).astype(np.float32)
+
+
+@pytest.mark.parametrize("num_envs", [1, 3, 8])
+@pytest.mark.parametrize("predictor", ["none", "cv", "oracle", "noisy_oracle"])
+def test_every_arm_gives_the_episodes_of_single_envs(
+    predictor: str, num_envs: int, data_dir: Path, side_by_side: Any
+) -> None:
+    kwargs = {"predictor": predictor, "split": "zara1", "part": "test"}
+    counts = side_by_side(num_envs, kwargs, steps=120 if num_envs < 8 else 90, seed=num_envs)
+    assert counts["ended"] >= num_envs  # autoresets were compared
+    # the added metrics were compared where they are not trivial (a minimum time to collision, an acceleration)
+    assert counts["ttc_finite"] >= 1 and counts["accel"] == counts["ended"]
+    if predictor != "none":
+        assert counts["forecast_rows"] > 0
+
+
+def test_pop_in_events_collisions_and_timeouts_across_autoresets(data_dir: Path, side_by_side: Any) -> None:
+    # seed 3, 3 worlds, 200 random steps on zara1: collisions, timeouts and a pop-in event (measured)
+    counts = side_by_side(3, {"predictor": "cv", "split": "zara1", "part": "test"}, steps=200, seed=0)
+    assert counts["popin_events"] >= 1 and counts["collisions"] >= 1 and counts["ended"] >= 6
+    assert counts["ttc_finite"] >= 1
+
+
+@pytest.mark.parametrize("memory", ["window", "carried"])
+def test_learned_forecasts_on_a_short_recording(memory: str, tiny_learned_predictor: Any, side_by_side: Any) -> None:
+    # a learned (structural RNN) predictor object on the synthetic crowd: its forecasts go through the window (or
+    # carried) source's cache like MESRNN's
+    kwargs = {
+        "predictor": tiny_learned_predictor(),
+        "crowd": "synthetic",
+        "synthetic_duration_s": 60.0,
+        "forecast_memory": memory,
+    }
+    counts = side_by_side(3, kwargs, steps=60, seed=5)
+    assert counts["forecast_rows"] > 0 and counts["ended"] >= 1
+
+
+@pytest.mark.slow
+def test_mesrnn_forecasts(data_dir: Path, side_by_side: Any) -> None:
+    kwargs = {"predictor": "mesrnn", "split": "zara1", "part": "test"}
+    counts = side_by_side(3, kwargs, steps=60, seed=2)
+    assert counts["forecast_rows"] > 0
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        {"kinematics": "unicycle", "observe_time_left": True},
+        {"terminate_on_collision": False, "observe_perception_age": True, "flatten_observation": False},
+        {"part": "train", "episode_time": "val", "intrusion_penalty": -0.5, "time_penalty": -0.01},
+    ],
+    ids=["unicycle", "no-termination", "train-recordings"],
+)
+def test_settings(extra: dict[str, Any], data_dir: Path, side_by_side: Any) -> None:
+    kwargs = {"predictor": "oracle", "split": "zara1", "part": "test", **extra}
+    counts = side_by_side(3, kwargs, steps=100, seed=4, policy=_goal_seeking(extra), reset_every=45)
+    assert counts["steps"] == 100
+
+
+def test_reaction_none_with_parameters_and_a_goal_tolerance(data_dir: Path, side_by_side: Any) -> None:
+    # reaction "none" with parameters set: the reset info echoes them (resolved), as the single env's; a wider goal
+    # tolerance changes the distance required (path_ratio_required, spl) and goal-seeking worlds succeed
+    extra = {"reaction": "none", "reaction_params": {"trigger_distance_m": 2.0}, "goal_tolerance_m": 0.6}
+    kwargs = {"predictor": "cv", "split": "zara1", "part": "test", **extra}
+    counts = side_by_side(4, kwargs, steps=120, seed=6, policy=_goal_seeking(extra))
+    assert counts["spl"] >= 1
+    env = BatchedCrowdNavEnv(num_envs=2, **kwargs)
+    _, info = env.reset(seed=0)
+    assert info["reaction"].tolist() == ["none", "none"]
+    assert info["reaction_params"]["trigger_distance_m"].tolist() == [2.0, 2.0]
+
+
+def _walk(start: tuple[float, float], velocity: tuple[float, float], steps: int, step_s: float) -> np.ndarray:
+    return np.asarray(start) + np.arange(steps)[:, None] * np.asarray(velocity) * step_s
+
+
+@pytest.mark.parametrize("step_s", [0.4, 2 / 3], ids=["0.4s", "biwi-eth-0.667s"])
+def test_scripted_pop_ins_and_contacts(step_s: float, side_by_side: Any) -> None:
+    # tracks beginning on the standing robot (ghosts), walking into it (contacts), annotations between control steps
+    tracks = [
+        _walk((0.0, 0.1), (0.0, 1.0), 20, step_s),
+        _walk((1.5, 0.0), (-1.2, 0.0), 20, step_s),
+        _walk((-0.3, 0.2), (0.3, 0.0), 20, step_s),
+        _walk((4.0, 4.0), (0.0, -1.0), 20, step_s),
+    ]
+    crowd = scripted_recording(tracks, start_steps=[10, 12, 9, 8], num_steps=40, step_s=step_s, name="popins")
+    options = {"t0_s": 3.2 if step_s == 0.4 else 6.0, "start": (0.0, 0.0), "goal": (10.0, 0.0), "time_limit_s": 4.0}
+    for terminate in (True, False):
+        kwargs = {"predictor": "oracle", "crowd": crowd, "terminate_on_collision": terminate}
+        counts = side_by_side(
+            3, kwargs, steps=30, options=options, policy=lambda i, obs, rng: np.array([0.1 * i, 0.0], np.float32)
+        )
+        assert counts["popin_events"] >= 3
+
+
+def test_reset_mask_resets_only_the_masked_worlds(data_dir: Path) -> None:
+    env = BatchedCrowdNavEnv(num_envs=3, predictor="none", split="zara1", part="test")
+    obs, _ = env.reset(seed=0)
+    obs2, info = env.reset(seed=[None, 7, None], options={"reset_mask": np.array([False, True, False])})
+    single = gymnasium.make("CrowdNav-NoPred-v0", split="zara1", part="test")
+    ref, ref_info = single.reset(seed=7)
+    for key in obs:
+        np.testing.assert_array_equal(obs2[key][[0, 2]], obs[key][[0, 2]])
+        np.testing.assert_array_equal(obs2[key][1], ref[key])
+    assert info["_recording"].tolist() == [False, True, False] and info["t0_s"][1] == ref_info["t0_s"]
+
+
+def test_make_vec_with_the_vector_entry_point(data_dir: Path) -> None:
+    envs = gymnasium.make_vec(
+        "CrowdNav-CV-v0", num_envs=2, vectorization_mode="vector_entry_point", split="zara1", part="test"
+    )
+    assert isinstance(envs.unwrapped, BatchedCrowdNavEnv)
+    assert envs.metadata["autoreset_mode"] == gymnasium.vector.AutoresetMode.NEXT_STEP
+    obs, _ = envs.reset(seed=0)
+    assert obs["forecasts"].shape[0] == 2 and envs.observation_space.contains(obs)
+    obs, reward, *_ = envs.step(envs.action_space.sample())
+    assert reward.shape == (2,) and envs.observation_space.contains(obs)
+    envs.close()
+
+
+def test_errors_name_what_is_wrong() -> None:
+    with pytest.raises(ValueError, match="num_envs"):
+        BatchedCrowdNavEnv(num_envs=0, predictor="none", crowd="empty")
+    env = BatchedCrowdNavEnv(num_envs=2, predictor="none", crowd="empty")
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros((2, 2)))
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="shape"):
+        env.step(np.zeros(2))
+    with pytest.raises(ValueError, match="world 1"):
+        env.step(np.array([[0.0, 0.0], [np.nan, 0.0]]))
+
+
+@pytest.mark.parametrize("reaction", ["pause", "orca", "social_force"])
+def test_reacting_pedestrians_are_refused_naming_key_value_and_what_to_use(reaction: str) -> None:
+    with pytest.raises(NotImplementedError, match=f"'reaction' = '{reaction}'.*SyncVectorEnv"):
+        BatchedCrowdNavEnv(num_envs=2, predictor="none", crowd="empty", reaction=reaction)
+    with pytest.raises(NotImplementedError, match=f"'reaction' = '{reaction}'"):
+        gymnasium.make_vec(
+            "CrowdNav-NoPred-v0", num_envs=2, vectorization_mode="vector_entry_point", crowd="empty", reaction=reaction
+        )
+    with pytest.raises(NotImplementedError, match=f"'reaction' = '{reaction}'"):  # from a config mapping too
+        BatchedCrowdNavEnv(num_envs=2, config={"reaction": reaction}, predictor="none", crowd="empty")
