@@ -161,7 +161,8 @@ def frame_layout(
     Args:
         size_px: ``(width, height)`` of the frame.
         px_per_m: the scale (for the scale bar's room).
-        title_font, legend_font: Pillow fonts, or None (then no title, no legend).
+        title_font: Pillow font of the title, or None (then no title strip).
+        legend_font: Pillow font of the legend, or None (then no legend).
         measure: ``textlength(text, font)`` (default: Pillow's).
     """
     width, height = int(size_px[0]), int(size_px[1])
