@@ -35,8 +35,8 @@ CANDIDATE_SEEDS: Final[int] = 40
 #: 15 % to the distance required, e.g. a midway side step of about a quarter of the start-goal distance.
 MIN_PATH_RATIO: Final[float] = 1.15
 #: The rule's result for the default configuration (shipped PPO policy, zara1, MESRNN forecasts, replayed crowd):
-#: printed by ``crowdnav-mesrnn demo --choose-seed`` (seed 20 of 4 kept: path ratio 1.305, crowd density 5.44). The
-#: default ``--seed`` of ``crowdnav-mesrnn demo``; re-derived by ``tests/agents/test_demo_episode.py``.
+#: printed by ``crowdnav-mesrnn demo --choose-seed`` (seed 20, the most crowded of 4 kept: path ratio 1.305, crowd
+#: density 5.44). The default ``--seed`` of ``crowdnav-mesrnn demo``; re-derived by ``tests/agents/test_demo_episode.py``.
 DEMO_SEED: Final[int] = 20
 
 
