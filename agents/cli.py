@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Any, Final
 
+from agents.demo_episode import CANDIDATE_SEEDS, DEMO_SEED
 from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.data.constants import SPLITS
 from crowdnav_mesrnn.data.paths import DATA_DIR_HELP
@@ -53,11 +54,13 @@ def _demo_policy(args: argparse.Namespace) -> tuple[str, str | None]:
     return str(SHIPPED_POLICY), None
 
 
-def _demo(args: argparse.Namespace) -> int:
+def _demo_setup(args: argparse.Namespace, render: bool) -> tuple[Any, Any, str, str]:
+    """The demo's environment and policy from its arguments: ``(env, policy, spec, label)``, ``label`` naming the
+    policy and the forecasts it was trained with. Notes and warnings (a substitute policy, crowd or predictor) go to
+    stderr."""
     from agents.planners import PLANNERS
     from agents.runs import check_trust, model_path
 
-    started = time.perf_counter()
     spec, note = _demo_policy(args)
     if spec not in PLANNERS:  # a missing policy is named before torch and pymunk are imported
         model_path(spec)
@@ -68,7 +71,6 @@ def _demo(args: argparse.Namespace) -> int:
     from crowdnav_mesrnn.data.paths import HOW_TO_GET_DATA, data_available
     from envs.crowd_nav import CrowdNavEnv
     from envs.forecasting.factory import PredictorUnavailableError
-    from envs.rendering import save_gif
 
     if note:
         print(f"note: {note}", file=sys.stderr)
@@ -79,7 +81,7 @@ def _demo(args: argparse.Namespace) -> int:
     trained_on = run_settings(spec).get("run", {}).get("predictor") if spec not in PLANNERS else None
     predictor = args.predictor or trained_on or "mesrnn"
     overrides = {"crowd": crowd, "data_dir": args.data_dir}
-    render_mode = None if args.no_gif else "rgb_array"
+    render_mode = "rgb_array" if render else None
     kwargs = evaluation_env_kwargs(spec, predictor, args.split, overrides, require_pedestrians=True)
     try:
         env = CrowdNavEnv(render_mode=render_mode, **kwargs)
@@ -93,7 +95,43 @@ def _demo(args: argparse.Namespace) -> int:
     if hasattr(policy, "bind_envs"):  # the privileged ceiling reads the environment itself
         policy.bind_envs([env])
     check_spaces(policy, env)
-    name = spec if spec in PLANNERS else f"{spec} (trained with {trained_on or 'unknown'} forecasts)"
+    label = spec if spec in PLANNERS else f"{spec} (trained with {trained_on or 'unknown'} forecasts)"
+    return env, policy, spec, label
+
+
+def _choose_seed(args: argparse.Namespace) -> int:
+    """``demo --choose-seed``: apply the rule of :mod:`agents.demo_episode` and print its candidates and result."""
+    from agents import demo_episode
+    from agents.rollout import run_episodes
+
+    started = time.perf_counter()
+    env, policy, _, label = _demo_setup(args, render=False)
+    seeds = list(range(demo_episode.CANDIDATE_SEEDS))
+    print(
+        f"demo --choose-seed: policy {label}, split {args.split}, forecasts {env.predictor_name}; "
+        f"reset seeds 0..{seeds[-1]} (rule: agents/demo_episode.py)"
+    )
+    rows = run_episodes(policy, [env], seeds, progress=sys.stderr.isatty(), desc="candidate episodes")
+    env.close()
+    candidates = demo_episode.judge(rows)
+    chosen = demo_episode.choose(candidates)
+    print(demo_episode.table(candidates, chosen))
+    kept = sum(c.verdict == "kept" for c in candidates)
+    if chosen is None:
+        print(f"chosen seed: none (no successful episode with path ratio >= {demo_episode.MIN_PATH_RATIO:g})")
+    else:
+        print(f"chosen seed: {chosen} (the most crowded of {kept} kept; default --seed is {demo_episode.DEMO_SEED})")
+    print(f"done in {time.perf_counter() - started:.1f} s")
+    return 0 if chosen is not None else 1
+
+
+def _demo(args: argparse.Namespace) -> int:
+    if args.choose_seed:
+        return _choose_seed(args)
+    from envs.rendering import save_gif
+
+    started = time.perf_counter()
+    env, policy, spec, name = _demo_setup(args, render=not args.no_gif)
 
     obs, info = env.reset(seed=args.seed)
     scene = f"{info['recording']} ({info['crowd']})"
@@ -155,7 +193,18 @@ def add_demo(sub: Any) -> None:
         choices=predictors.names(plugins=False),
         help="forecast source (default: the policy's own, else mesrnn; cv when the MESRNN weights are missing)",
     )
-    p.add_argument("--seed", type=int, default=0, help="episode seed (default: 0)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=DEMO_SEED,
+        help=f"episode seed (default: {DEMO_SEED}, the episode --choose-seed picks for the shipped policy on zara1)",
+    )
+    p.add_argument(
+        "--choose-seed",
+        action="store_true",
+        help=f"apply the rule that picks the default episode (agents/demo_episode.py) to reset seeds "
+        f"0..{CANDIDATE_SEEDS - 1} of this policy, split and forecasts: print each candidate and the chosen seed",
+    )
     p.add_argument("--out", default="demo.gif", help="GIF path (default: demo.gif)")
     p.add_argument("--no-gif", action="store_true", help="do not render or write a GIF")
     p.add_argument("--synthetic", action="store_true", help="use the synthetic crowd even when ETH/UCY data is found")

@@ -194,7 +194,8 @@ class CrowdNavConfig:
     render_px_per_m: float = 40.0
     """Fixed scale of the rendering, pixels per metre."""
     render_size_px: tuple[int, int] = (640, 640)
-    """Width and height of rendered frames, pixels."""
+    """Width and height of rendered frames, pixels: a title strip above the scene and a legend strip below it
+    (``envs.rendering.frame_layout``; small frames have neither), the scene in the rest."""
     render_trail_steps: int = 8
     """Length of the pedestrians' trails, control steps."""
 

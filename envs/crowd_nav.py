@@ -1013,13 +1013,15 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         return self._renderer.draw(scene)
 
     def _view_center(self) -> np.ndarray:
-        """Centre of the view: the start-goal midpoint, shifted just enough to keep the robot 1 m inside."""
+        """Centre of the view: the start-goal midpoint, shifted just enough to keep the robot 1 m inside the scene's
+        part of the frame (the frame less its title and legend strips)."""
         assert self.episode is not None
         cfg = self.config
         if getattr(self, "_view_episode", None) is not self.episode:
             self._view_episode = self.episode
             self._view = (self.episode.start + self.episode.goal) / 2
-        half = np.array(cfg.render_size_px, dtype=np.float64) / 2 / cfg.render_px_per_m - 1.0
+        size = self._renderer.layout.scene_size if self._renderer is not None else cfg.render_size_px
+        half = np.array(size, dtype=np.float64) / 2 / cfg.render_px_per_m - 1.0
         half = np.maximum(half, 0.0)
         robot = self.world.robot_position
         self._view = np.clip(self._view, robot - half, robot + half)

@@ -56,6 +56,16 @@ SCALE_BAR_STEPS_M = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
 SCALE_BAR_MIN_PX = 50
 #: Pixel coordinates and radii are clipped to this (Pillow overflows on huge ones, and slows down from ~1e5).
 FAR_PX = 1 << 16
+#: Height of the title strip above the scene (title; the outcome banner on the last frame), pixels.
+TITLE_PX = 28
+#: Height of a legend row and the padding around the legend's entries, pixels.
+LEGEND_ROW_PX = 16
+LEGEND_PAD_PX = 6
+#: Labels the legend's columns are made wide enough for (a longer label is cut to its column): the longest fixed
+#: label and a long forecast source's.
+LEGEND_WIDEST = ("unobserved pedestrian", "forecast (noisy_oracle)")
+#: Most entries the legend can have (robot, goal, observed and unobserved pedestrian, path, forecast, sensor range).
+LEGEND_MAX_ENTRIES = 7
 HUMAN_NEEDS_PYGAME = (
     'render_mode="human" needs pygame: pip install "crowdnav-mesrnn[render]" (render_mode="rgb_array" works without it)'
 )
@@ -104,6 +114,108 @@ class Scene:
     forecast_source: str | None = None
 
 
+Box = tuple[int, int, int, int]
+"""A pixel rectangle ``(left, top, right, bottom)``, right and bottom exclusive."""
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where the parts of a frame go. The scene (grid, sensor range, goal, pedestrians, trails, forecasts, robot) is
+    drawn in its own box and nothing else is drawn there: the title, legend and scale bar sit in strips above and
+    below it, so they never hide a pedestrian, the robot, a forecast or the goal.
+
+    Attributes:
+        scene: the scene's box; the whole frame when the frame is too small for strips.
+        title: the strip above the scene (title line; the outcome banner on the last frame), or None (no font, or a
+            frame under ``4 * TITLE_PX`` high).
+        legend: the strip below the scene (legend entries at its left, scale bar at its right), or None.
+        legend_columns: legend entries per row; 0 when the bottom strip holds the scale bar alone (a frame too narrow
+            for the legend) or there is no bottom strip.
+        legend_cell_px: width of a legend column, pixels.
+    """
+
+    scene: Box
+    title: Box | None
+    legend: Box | None
+    legend_columns: int
+    legend_cell_px: int
+
+    @property
+    def scene_size(self) -> tuple[int, int]:
+        """``(width, height)`` of the scene's box, pixels."""
+        return self.scene[2] - self.scene[0], self.scene[3] - self.scene[1]
+
+
+def frame_layout(
+    size_px: tuple[int, int], px_per_m: float, title_font: Any, legend_font: Any, measure: Any = None
+) -> Layout:
+    """The :class:`Layout` of ``size_px`` frames: a title strip of :data:`TITLE_PX` on top (with a font and a frame at
+    least four times as high), a bottom strip for the legend and the scale bar, the scene in between.
+
+    The legend's :data:`LEGEND_MAX_ENTRIES` entries fill rows of columns wide enough for :data:`LEGEND_WIDEST`; the
+    scale bar sits at the right of the last row (a row of its own when the entries leave no room there). The strip is
+    kept when the title and it leave the scene at least half the frame's height; else a strip of one row holds the
+    scale bar alone when that leaves half; else there is no bottom strip (no legend, no scale bar). The layout does
+    not depend on a frame's content, so the scene keeps its place in every frame of an episode.
+
+    Args:
+        size_px: ``(width, height)`` of the frame.
+        px_per_m: the scale (for the scale bar's room).
+        title_font: Pillow font of the title, or None (then no title strip).
+        legend_font: Pillow font of the legend, or None (then no legend).
+        measure: ``textlength(text, font)`` (default: Pillow's).
+    """
+    width, height = int(size_px[0]), int(size_px[1])
+    if measure is None:
+        from PIL import Image, ImageDraw
+
+        measure = ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength
+    pad, row = LEGEND_PAD_PX, LEGEND_ROW_PX
+    top = TITLE_PX if title_font is not None and height >= 4 * TITLE_PX else 0
+    bar = _scale_bar_px(px_per_m, width)
+    bar_room = 0
+    if bar:
+        label = round(measure(f"{scale_bar_m(px_per_m):g} m", font=legend_font)) if legend_font is not None else 0
+        bar_room = bar + label + 32  # gap to the entries, label, gap, bar, right margin
+    cell = columns = 0
+    if legend_font is not None:
+        cell = 24 + max(round(measure(label, font=legend_font)) for label in LEGEND_WIDEST) + 2 * pad
+        columns = min(LEGEND_MAX_ENTRIES, max(0, (width - 2 * pad) // cell))
+    bottom = 0
+    if columns:
+        rows = -(-LEGEND_MAX_ENTRIES // columns)
+        last = LEGEND_MAX_ENTRIES - columns * (rows - 1)
+        if bar_room and pad + last * cell + bar_room > width:
+            rows += 1
+        bottom = row * rows + 2 * pad
+        if top + bottom > height / 2:
+            bottom = columns = 0
+    if not bottom and bar and top + row + 2 * pad <= height / 2:
+        bottom = row + 2 * pad
+    return Layout(
+        scene=(0, top, width, height - bottom),
+        title=(0, 0, width, top) if top else None,
+        legend=(0, height - bottom, width, height) if bottom else None,
+        legend_columns=columns,
+        legend_cell_px=cell,
+    )
+
+
+def _scale_bar_px(px_per_m: float, width: int) -> int:
+    """Pixel length of the scale bar in a ``width`` px frame, or 0 when no round length fits (extreme scales)."""
+    px = scale_bar_m(px_per_m) * px_per_m
+    return round(px) if 2 <= px <= width / 2 else 0
+
+
+def _fit(pen: Any, text: str, font: Any, width: float) -> str:
+    """``text``, cut and ended with ``...`` when it is wider than ``width`` pixels."""
+    if font is None or pen.textlength(text, font=font) <= width:
+        return text
+    while text and pen.textlength(text + "...", font=font) > width:
+        text = text[:-1]
+    return text + "..." if text else ""
+
+
 def scale_bar_m(px_per_m: float) -> float:
     """Length of the scale bar, metres: the shortest of :data:`SCALE_BAR_STEPS_M` drawn at least
     :data:`SCALE_BAR_MIN_PX` pixels long (the longest when none is)."""
@@ -128,8 +240,11 @@ def _font(size: int) -> Any:
 class Renderer:
     """Draws scenes at a fixed scale (``px_per_m``) onto a ``size_px`` image with Pillow.
 
+    The frame is ``size_px``; the scene takes the part of it the title and legend strips leave (:attr:`layout`,
+    :func:`frame_layout`).
+
     Args:
-        size_px: ``(width, height)`` pixels.
+        size_px: ``(width, height)`` pixels of the frame.
         px_per_m: pixels per metre.
         mode: ``"rgb_array"`` (returns ``(height, width, 3)`` uint8 frames) or ``"human"`` (a pygame window).
         fps: frames per second of the human window.
@@ -161,21 +276,44 @@ class Renderer:
         self.font: Any = _font(14)
         self.small: Any = _font(12)
         self.big: Any = _font(20)
+        self.layout = frame_layout(self.size, self.scale, self.font, self.small)
 
     def to_px(self, p: np.ndarray, center: np.ndarray) -> tuple[int, int]:
-        """Pixel of a world point, clipped to :data:`FAR_PX` around the frame (Pillow overflows far beyond it)."""
-        x = self.size[0] / 2 + (p[0] - center[0]) * self.scale
-        y = self.size[1] / 2 - (p[1] - center[1]) * self.scale
+        """Pixel of a world point in the scene's box (``center`` at the box's centre; add the box's left and top for
+        frame coordinates), clipped to :data:`FAR_PX` around it (Pillow overflows far beyond it)."""
+        width, height = self.layout.scene_size
+        x = width / 2 + (p[0] - center[0]) * self.scale
+        y = height / 2 - (p[1] - center[1]) * self.scale
         return round(min(max(float(x), -FAR_PX), FAR_PX)), round(min(max(float(y), -FAR_PX), FAR_PX))
 
     def draw(self, scene: Scene) -> np.ndarray | None:
         """Draw a frame: ``(H, W, 3)`` uint8 in ``rgb_array`` mode, None in ``human`` mode."""
         from PIL import Image, ImageDraw
 
-        image = Image.new("RGB", self.size, BACKGROUND)
+        image = Image.new("RGB", self.size, PANEL)
+        image.paste(self._scene_image(scene), self.layout.scene[:2])
+        pen = ImageDraw.Draw(image)
+        self._title(pen, scene)
+        self._legend(pen, scene)
+        self._scale_bar(pen)
+        frame = np.asarray(image, dtype=np.uint8)
+        if self.mode == "human":
+            pg = self.pygame
+            pg.event.pump()
+            self.window.blit(pg.image.frombuffer(image.tobytes(), self.size, "RGB"), (0, 0))
+            pg.display.flip()
+            self.clock.tick(self.fps)
+            return None
+        return frame.copy()
+
+    def _scene_image(self, scene: Scene) -> Any:
+        """The scene alone, an image of the scene box's size (nothing drawn past its edges)."""
+        from PIL import Image, ImageDraw
+
+        width, height = self.layout.scene_size
+        image = Image.new("RGB", (width, height), BACKGROUND)
         pen = ImageDraw.Draw(image)
         c = scene.center
-        width, height = self.size
 
         def disk(p: np.ndarray, radius_m: float, colour: tuple[int, int, int], outline: int = 0) -> None:
             x, y = self.to_px(p, c)
@@ -220,28 +358,43 @@ class Renderer:
         disk(scene.robot, scene.robot_radius_m, (0, 0, 0) if scene.collided else ROBOT)
         tip = scene.robot + scene.robot_radius_m * np.array([np.cos(scene.heading), np.sin(scene.heading)])
         pen.line((*self.to_px(scene.robot, c), *self.to_px(tip, c)), fill=(255, 255, 255), width=2)
-        self._legend(pen, scene)
-        self._scale_bar(pen)
-        if self.font is not None and scene.text:
-            pen.rectangle((0, 0, width, 24), fill=PANEL)
-            pen.line((0, 24, width, 24), fill=PANEL_EDGE)
-            pen.text((8, 4), scene.text, fill=TEXT, font=self.font)
+        if scene.outcome is not None and self.layout.title is None:  # no title strip (a small frame): over the scene
+            self._banner(pen, scene.outcome, (0, 32, width, 64), "")
+        return image
+
+    def _title(self, pen: Any, scene: Scene) -> None:
+        """The title strip: the title line, or on the episode's last frame the outcome banner followed by it."""
+        box = self.layout.title
+        if box is None:
+            return
+        x0, y0, x1, y1 = box
         if scene.outcome is not None:
-            self._banner(pen, scene.outcome)
-        frame = np.asarray(image, dtype=np.uint8)
-        if self.mode == "human":
-            pg = self.pygame
-            pg.event.pump()
-            self.window.blit(pg.image.frombuffer(image.tobytes(), self.size, "RGB"), (0, 0))
-            pg.display.flip()
-            self.clock.tick(self.fps)
-            return None
-        return frame.copy()
+            self._banner(pen, scene.outcome, box, scene.text)
+            return
+        pen.line((x0, y1 - 1, x1, y1 - 1), fill=PANEL_EDGE)
+        if scene.text:
+            pen.text((x0 + 8, y0 + 6), _fit(pen, scene.text, self.font, x1 - x0 - 16), fill=TEXT, font=self.font)
+
+    def _banner(self, pen: Any, outcome: str, box: Box, title: str) -> None:
+        """The episode's outcome across ``box`` (the title strip), in the outcome's colour, then the title line."""
+        colour = OUTCOME_COLOURS.get(outcome, TEXT)
+        text = OUTCOME_TEXT.get(outcome, outcome.upper())
+        font = self.big or self.font
+        x0, y0, x1, y1 = box
+        pen.rectangle((x0, y0, x1 - 1, y1 - 1), fill=colour)
+        pen.text((x0 + 8, y0 + 3), text, fill=(255, 255, 255), font=font)
+        if title and self.font is not None:
+            left = x0 + 8 + (pen.textlength(text, font=font) if font is not None else 8 * len(text)) + 16
+            pen.text((left, y0 + 6), _fit(pen, title, self.font, x1 - 8 - left), fill=(255, 255, 255), font=self.font)
 
     def _legend(self, pen: Any, scene: Scene) -> None:
-        """Key of the symbols, bottom left: robot, goal, observed and unobserved pedestrians, trail, forecast
-        (when drawn), sensor range."""
-        if self.small is None:
+        """Key of the symbols in the bottom strip: robot, goal, observed and unobserved pedestrians, trail, forecast
+        (when drawn), sensor range; in :attr:`Layout.legend_columns` columns, row by row."""
+        box, columns, cell = self.layout.legend, self.layout.legend_columns, self.layout.legend_cell_px
+        if box is None:
+            return
+        pen.line((box[0], box[1], box[2], box[1]), fill=PANEL_EDGE)
+        if not columns:
             return
         items: list[tuple[str, str, tuple[int, int, int]]] = [
             ("disk", "robot", ROBOT),
@@ -255,15 +408,10 @@ class Renderer:
         elif scene.forecasts is not None:
             items.append(("dots", "forecast", FORECAST))
         items.append(("ring", f"sensor range ({scene.sensor_range_m:g} m)", SENSOR))
-        row, pad = 16, 6
-        w = 24 + max(round(pen.textlength(label, font=self.small)) for _, label, _ in items) + 2 * pad
-        h = row * len(items) + 2 * pad
-        if w > self.size[0] / 2 or h > self.size[1] / 2:  # a small frame: the legend would hide the scene
-            return
-        x0, y0 = pad, self.size[1] - h - pad
-        pen.rectangle((x0, y0, x0 + w, y0 + h), fill=PANEL, outline=PANEL_EDGE)
+        row, pad = LEGEND_ROW_PX, LEGEND_PAD_PX
         for k, (kind, label, colour) in enumerate(items):
-            cx, cy = x0 + pad + 8, y0 + pad + row * k + row // 2
+            cx = box[0] + pad + 8 + cell * (k % columns)
+            cy = box[1] + pad + row * (k // columns) + row // 2
             if kind == "disk":
                 pen.ellipse((cx - 5, cy - 5, cx + 5, cy + 5), fill=colour)
             elif kind == "goal":
@@ -277,34 +425,24 @@ class Renderer:
                     pen.ellipse((cx + dx - 2, cy - 2, cx + dx + 2, cy + 2), fill=colour)
             else:
                 pen.ellipse((cx - 6, cy - 6, cx + 6, cy + 6), outline=colour, width=1)
-            pen.text((cx + 14, cy - 7), label, fill=TEXT, font=self.small)
+            text = _fit(pen, label, self.small, cell - 24 - pad)
+            pen.text((cx + 14, cy - 7), text, fill=TEXT, font=self.small)
 
     def _scale_bar(self, pen: Any) -> None:
-        """A bar of :func:`scale_bar_m` metres with its length written above it, bottom right."""
-        length = scale_bar_m(self.scale)
-        px = length * self.scale
-        if not 2 <= px <= self.size[0] / 2:  # no round length fits the frame (extreme scales): no bar
+        """A bar of :func:`scale_bar_m` metres with its length written to its left, at the right of the bottom strip's
+        last row."""
+        px = _scale_bar_px(self.scale, self.size[0])
+        if not px or self.layout.legend is None:  # no round length fits, or no strip to hold it
             return
-        px = round(px)
-        x1, y = self.size[0] - 12, self.size[1] - 14
+        x1, y = self.size[0] - 12, self.size[1] - LEGEND_PAD_PX - LEGEND_ROW_PX // 2
         x0 = x1 - px
         pen.line((x0, y, x1, y), fill=SCALE_BAR, width=3)
         pen.line((x0, y - 5, x0, y + 4), fill=SCALE_BAR, width=2)
         pen.line((x1, y - 5, x1, y + 4), fill=SCALE_BAR, width=2)
         if self.small is not None:
-            label = f"{length:g} m"
+            label = f"{scale_bar_m(self.scale):g} m"
             tw = pen.textlength(label, font=self.small)
-            pen.text(((x0 + x1 - tw) / 2, y - 20), label, fill=SCALE_BAR, font=self.small)
-
-    def _banner(self, pen: Any, outcome: str) -> None:
-        """The episode's outcome across the top of the last frame."""
-        colour = OUTCOME_COLOURS.get(outcome, TEXT)
-        text = OUTCOME_TEXT.get(outcome, outcome.upper())
-        font = self.big or self.font
-        tw = pen.textlength(text, font=font) if font is not None else 8 * len(text)
-        x0 = (self.size[0] - tw) / 2 - 12
-        pen.rectangle((x0, 32, x0 + tw + 24, 64), fill=colour)
-        pen.text((x0 + 12, 37), text, fill=(255, 255, 255), font=font)
+            pen.text((x0 - 8 - tw, y - 7), label, fill=TEXT, font=self.small)
 
     def close(self) -> None:
         if self.window is not None:

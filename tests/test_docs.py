@@ -150,6 +150,37 @@ def test_shell_commands_parse(page: Path, block: Block) -> None:
                     pytest.fail(f"{_id(page)}:{block.line}: `crowdnav-mesrnn {shlex.join(argv)}`: {err.getvalue()}")
 
 
+#: Widest line of a code block on the pages readers follow, characters: what Material for MkDocs shows without
+#: scrolling when both sidebars are visible. Its content column is 61 - 2 x 12.1 (sidebars) - 2 x 1.2 (margins) =
+#: 34.4 rem; a code block pads it by 2 x 0.8 rem and sets 0.68 rem monospace characters 0.6 em wide: 80 characters.
+CODE_WIDTH = 80
+#: The pages held to :data:`CODE_WIDTH`: README.md and the guides in docs/. The pages under docs/results/ are
+#: generated reports and recorded outputs, whose printed tables keep their columns (a reader scrolls them).
+NARROW_PAGES = [p for p in PAGES if "results" not in p.relative_to(ROOT).parts]
+#: Pages whose blocks are wrapped on another branch (issue 31): strict, so the mark must go once they fit.
+BEING_WRAPPED = {"docs/reaction.md"}
+
+
+def _narrow_param(page: Path) -> object:
+    if _id(page) in BEING_WRAPPED:
+        reason = "its code blocks are being edited on another branch; drop it from BEING_WRAPPED once they fit"
+        return pytest.param(page, marks=pytest.mark.xfail(strict=True, reason=reason))
+    return page
+
+
+@pytest.mark.parametrize("page", [_narrow_param(p) for p in NARROW_PAGES], ids=[_id(p) for p in NARROW_PAGES])
+def test_code_blocks_fit_the_content_width(page: Path) -> None:
+    """No line of a fenced block is cut on the right: long trailing comments go on a line of their own, long
+    commands are continued with a backslash."""
+    wide = [
+        f"{_id(page)}:{block.line + 1 + k}: {len(line)} characters"
+        for block in blocks(page)
+        for k, line in enumerate(block.code.splitlines())
+        if len(line) > CODE_WIDTH
+    ]
+    assert not wide, f"code lines over {CODE_WIDTH} characters (the docs' content width):\n" + "\n".join(wide)
+
+
 def test_markers_are_recognised() -> None:
     page = ROOT / "docs" / "plugins.md"
     assert any(b.requires == "kalman_predictor" for b in blocks(page))
