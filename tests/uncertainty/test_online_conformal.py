@@ -406,6 +406,7 @@ def test_observed_rule_uses_nothing_before_it_is_observed() -> None:
         Stream(base.scored, base.scores, base.time).thresholds(start, 0.9, 1.0, "observed")
 
 
+@pytest.mark.slow
 def test_observed_rule_runs_with_experts_only_and_the_cli_records_it(
     data_dir: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -64,6 +64,7 @@ def test_disk_cache_equals_online_forecasts_and_is_reused(
     assert source(fresh).calls == 0 and source(fresh).chunks_loaded > 0 and source(fresh).chunks_computed == 0
 
 
+@pytest.mark.slow
 def test_weights_and_recording_are_part_of_the_key(
     data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable
 ) -> None:
@@ -86,6 +87,7 @@ def test_weights_and_recording_are_part_of_the_key(
     assert len(files(tmp_path)) == 9
 
 
+@pytest.mark.slow
 def test_corrupt_and_stale_files_are_rebuilt_with_a_warning(
     data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable
 ) -> None:
@@ -135,6 +137,7 @@ print(json.dumps({"calls": f.calls, "computed": f.chunks_computed, "loaded": f.c
 """
 
 
+@pytest.mark.slow
 def test_processes_share_the_cache(tmp_path: Path) -> None:
     env = {**os.environ, CACHE_ENV_VAR: str(tmp_path)}
 
