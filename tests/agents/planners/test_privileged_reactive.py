@@ -1,5 +1,5 @@
 """The privileged reactive ceiling (``make_planner("privileged", reactive=True)``): its plan is the episode, bit for
-bit; it keeps clear; it refuses what it cannot plan; it is deterministic; the command line builds it."""
+bit; it keeps clear; it refuses what it cannot plan; it is deterministic; the grid and the command line build it."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+import agents.ablation as ab
 from agents.evaluation.cli import main
 from agents.planners import (
     PrivilegedPlanner,
@@ -20,11 +21,13 @@ from agents.planners import (
     make_planner,
 )
 from agents.rollout import evaluation_seeds
+from crowdnav_mesrnn.config import ConfigError
 from envs.crowd_nav import CrowdNavEnv
 from envs.recordings import scripted_recording
 from envs.world import robot_path
 
 MODELS = ("pause", "orca", "social_force")
+REPO = Path(__file__).resolve().parents[3]
 OPTIONS = {"t0_s": 2.0, "start": (0.0, 0.0), "goal": (8.0, 0.0), "time_limit_s": 16.0}
 
 
@@ -143,6 +146,36 @@ def test_it_refuses_the_replay_unicycles_and_bad_options() -> None:
             make_planner("privileged", orca, **options)
         for word in words:
             assert word in str(err.value), (options, str(err.value))
+
+
+def test_the_grid_builds_it_from_an_entry_and_refuses_it_on_the_replay(tmp_path: Path) -> None:
+    cfg = ab.load_config(REPO / "configs/ablation/reactive.yaml")
+    for reaction in MODELS:
+        policy = cfg.policy(f"privileged@{reaction}")
+        assert policy.kind == "privileged" and dict(policy.options) == {"reactive": True}
+        assert cfg.reaction(policy) == reaction and policy.arms == ("oracle",) and policy.priority == 4
+    raw: dict[str, Any] = {
+        "name": "tiny",
+        "runs_dir": str(tmp_path / "runs"),
+        "out_dir": str(tmp_path / "results"),
+        "splits": ["zara1"],
+        "arms": ["none", "oracle"],
+        "seeds": [0],
+        "policies": {
+            "search@orca": {"kind": "search", "env": {"reaction": "orca"}},
+            "privileged@orca": {"kind": "privileged", "env": {"reaction": "orca"}, "options": {"reactive": True}},
+        },
+        "evaluation": {"episodes": 4, "seed": 0},
+    }
+    assert ab.config_from_mapping(raw).policy("privileged@orca").options == {"reactive": True}
+    raw["policies"]["privileged@none"] = {
+        "kind": "privileged",
+        "env": {"reaction": "none"},
+        "options": {"reactive": True},
+    }
+    with pytest.raises(ConfigError) as err:
+        ab.config_from_mapping(raw)
+    assert "'policies.privileged@none.options'" in str(err.value) and "reaction is 'none'" in str(err.value)
 
 
 def test_the_command_line_builds_it_and_labels_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
