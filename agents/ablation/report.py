@@ -92,8 +92,13 @@ def _ceiling_lines(summary: Mapping[str, Any]) -> list[str]:
     for ceiling in ceilings:
         splits = [sp for sp in summary["splits"] if sp in ceiling["by_split"]]
         rates = ", ".join(f"{sp} {100 * ceiling['by_split'][sp]:.1f} %" for sp in splits)
+        reads = (
+            "rolls the reaction model forward for every candidate plan (the pedestrians' replies to the robot)"
+            if ceiling.get("reactive")
+            else "reads the replay's true future of every pedestrian"
+        )
         lines += [
-            f"`{ceiling['policy']}` is PRIVILEGED: it reads the replay's true future of every pedestrian, which no "
+            f"`{ceiling['policy']}` is PRIVILEGED: it {reads}, which no "
             f"policy's observation carries -- a measuring stick, not a competitor. Its success: {rates}. Each cell "
             "below is a policy's success divided by the ceiling's on the same episodes (pooled over seeds).",
             "",
