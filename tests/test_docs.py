@@ -165,18 +165,9 @@ CODE_WIDTH = 80
 #: The pages held to :data:`CODE_WIDTH`: README.md and the guides in docs/. The pages under docs/results/ are
 #: generated reports and recorded outputs, whose printed tables keep their columns (a reader scrolls them).
 NARROW_PAGES = [p for p in PAGES if "results" not in p.relative_to(ROOT).parts]
-#: Pages whose blocks are wrapped on another branch (issue 31): strict, so the mark must go once they fit.
-BEING_WRAPPED = {"docs/reaction.md"}
 
 
-def _narrow_param(page: Path) -> object:
-    if _id(page) in BEING_WRAPPED:
-        reason = "its code blocks are being edited on another branch; drop it from BEING_WRAPPED once they fit"
-        return pytest.param(page, marks=pytest.mark.xfail(strict=True, reason=reason))
-    return page
-
-
-@pytest.mark.parametrize("page", [_narrow_param(p) for p in NARROW_PAGES], ids=[_id(p) for p in NARROW_PAGES])
+@pytest.mark.parametrize("page", NARROW_PAGES, ids=_id)
 def test_code_blocks_fit_the_content_width(page: Path) -> None:
     """No line of a fenced block is cut on the right: long trailing comments go on a line of their own, long
     commands are continued with a backslash."""
