@@ -46,6 +46,7 @@ def files(root: Path) -> list[Path]:
     return sorted(root.glob("*/*.npz"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("memory", ["window", "carried"])
 def test_disk_cache_equals_online_forecasts_and_is_reused(
     data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable, lockstep: Callable, memory: str
@@ -204,6 +205,7 @@ def test_carried_forecasts_are_computed_once_by_processes_started_together(tmp_p
     assert sum(r["computed"] for r in results) == 4 and sum(r["loaded"] for r in results) == 1, results
 
 
+@pytest.mark.slow
 def test_build_command_fills_the_cache_for_envs(
     data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
