@@ -536,3 +536,15 @@ def test_the_committed_planner_grid_rerenders_unchanged(
     assert ab.main(["configs/ablation/planners.yaml", "--summarize-only"]) == 0
     assert "is up to date" in capsys.readouterr().out
     assert {p.name: p.read_bytes() for p in results.iterdir()} == before
+
+
+def test_the_gains_by_reaction_plot_is_drawn_for_a_reacting_grid_only(tmp_path: Path, no_weights: None) -> None:
+    from agents.ablation.plots import write_plots
+
+    cfg = _known_grid(tmp_path)
+    summary = ab.summarize(cfg, out=lambda s: None, plots=False)
+    written = write_plots(summary, tmp_path)
+    assert str(tmp_path / "gains_by_reaction.png") in written
+    assert (tmp_path / "gains_by_reaction.png").stat().st_size > 1000
+    replay_only = {**summary, "reaction_tests": [{**t, "missing": True} for t in summary["reaction_tests"]]}
+    assert not any(p.endswith("gains_by_reaction.png") for p in write_plots(replay_only, tmp_path / "other"))
