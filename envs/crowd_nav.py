@@ -379,6 +379,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self.predictor_name = self.forecaster.name
         self.with_forecasts = self.forecaster.active
         self.uncertainty: UncertaintySource | None = None
+        self._episode_uncertainty: UncertaintySource | None = None
         if cfg.forecast_uncertainty and self.with_forecasts:  # the none arm has no forecasts to be uncertain about
             self.uncertainty = make_uncertainty_source(cfg, self.forecaster, predictor_obj)
         self.reaction: str = cfg.reaction
@@ -642,6 +643,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._k0: int | None = k0 if abs(ep.t0_s - k0 * cfg.dt_s) < 1e-9 else None
         if self._reactive is not None:
             self._reactive.reset(self._replay, self._time(0))
+        if self.uncertainty is not None:  # the radii of this episode (a tracker per episode under "online")
+            tracked = self._tracked()
+            self._episode_uncertainty = self.uncertainty.for_episode(tracked, tracked.perceived_at(self._time(0)).index)
         return ep
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
@@ -861,8 +865,8 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             intruding = bool(np.any((dfut < self._r_sum) & present[1:] & pres_now[None, :]))
         fc = self._forecast(t_s, rows, seen.positions, positions, present) if len(rows) else None
         unc = None
-        if self.uncertainty is not None and fc is not None:
-            unc = self.uncertainty.radius(tracked, t_s, rows, seen.age_s, seen.index)
+        if self._episode_uncertainty is not None and fc is not None:
+            unc = self._episode_uncertainty.radius(tracked, t_s, rows, seen.age_s, seen.index)
         time_left = 1.0 - self._n / self.episode.max_steps
         obs = self._builder.build(
             robot,

@@ -370,9 +370,10 @@ class ExpertTracker:
         return self._w.copy()
 
     def thresholds(self) -> np.ndarray:
-        """``(P,)`` the thresholds to use now: per step the experts' weighted mean (the start where it is infinite)."""
+        """``(P,)`` the thresholds to use now: per step the experts' weighted mean, or the start where it is infinite or
+        nothing has been revealed yet (where the mean of the equal experts could differ from it in the last bit)."""
         out = self.start.copy()
-        for j in np.flatnonzero(np.isfinite(self.start)):
+        for j in np.flatnonzero(np.isfinite(self.start) & (self._windows > 0)):
             out[j] = float(self._w[j] @ self._q[:, j])
         return out
 

@@ -23,6 +23,7 @@ from crowdnav_mesrnn.data.constants import OBS_LEN
 from envs.crowd_nav import _CONFIGURED, TIMING_KEYS, UNDISTURBED, CrowdNavEnv, reset_info, reset_options
 from envs.episodes import Episode
 from envs.forecasting.sources import TrueFuture, fill_forward
+from envs.forecasting.uncertainty import UncertaintySource
 from envs.forecasting.window import PredictorForecast
 from envs.observation import nearest_visible
 from envs.popin import POPIN_MARGIN_M, PopInRule
@@ -58,6 +59,7 @@ class _World:
         self.velocities: list[np.ndarray] = []
         self.last_rows = np.zeros(0, dtype=np.int64)
         self.last_forecasts: np.ndarray | None = None
+        self.uncertainty: UncertaintySource | None = None  # the episode's radii (for_episode of the env's source)
 
 
 class BatchedCrowdNavEnv(VectorEnv):
@@ -375,7 +377,10 @@ class BatchedCrowdNavEnv(VectorEnv):
         self._m_min_ttc[w] = math.inf
         self._m_min_gap[w] = math.inf
         self._m_vel[w] = 0.0
-        world.popin.reset(replay, float(self._times(np.array([w]), np.zeros(1, dtype=np.int64))[0]), ep.start)
+        t0 = float(self._times(np.array([w]), np.zeros(1, dtype=np.int64))[0])
+        world.popin.reset(replay, t0, ep.start)
+        if self.uncertainty is not None:
+            world.uncertainty = self.uncertainty.for_episode(replay, replay.perceived_at(t0).index)
         self._sync_popin(w)
         nrow = replay.num_pedestrians
         self._reset_ghost[w] = False
@@ -694,8 +699,8 @@ class BatchedCrowdNavEnv(VectorEnv):
             world._forecast_log.append((times[j], rows, fc))
             world.last_forecasts = fc
             fc_obs[j, :m] = _clip(fc - robot[j], b.fc_bound)
-            if unc_obs is not None and self.uncertainty is not None:
-                unc = self.uncertainty.radius(world._replay, times[j], rows, float(age[j]), int(index[j]))  # type: ignore[arg-type]
+            if unc_obs is not None and world.uncertainty is not None:
+                unc = world.uncertainty.radius(world._replay, times[j], rows, float(age[j]), int(index[j]))  # type: ignore[arg-type]
                 unc_obs[j, :m] = np.clip(unc, 0.0, b.fc_bound)
         obs = self._obs
         obs["forecasts"][worlds] = fc_obs.reshape(nw, -1) if b.flat else fc_obs
