@@ -149,6 +149,13 @@ class CrowdNavConfig:
     at the episode's first annotation and learns from how far the episode's earlier forecasts missed, as their truth
     is annotated; it restarts every episode). ``online`` needs a named forecast source's window forecasts and
     ``reaction: none``."""
+    forecast_samples: int = 0
+    """Add ``forecast_samples`` ``(K, S, H, 2)`` to the observation: ``S`` (this many) sampled futures of each observed
+    pedestrian at ``t + h * dt_s``, relative to the robot, drawn from the forecast source's distribution (the Gaussian
+    head of ``mesrnn``, ``srnn``, ``vlstm``: their shipped ``gaussian`` weights of the split, beside the point weights
+    of ``forecasts``; ``cv_gaussian``'s own), coherently, with a seed fixed by the recording and the time
+    (:mod:`envs.forecasting.samples`). 0: none. Only for those sources, ``forecast_memory: window`` and ``reaction:
+    none``."""
 
     # ----------------------------------------------------------------- forecasts
     cache_forecasts: bool = True
@@ -338,6 +345,7 @@ _INTEGERS: Final[dict[str, tuple[int, int | None]]] = {
     "render_trail_steps": (1, 10_000),
     "synthetic_seed": (0, None),
     "crowd_overlays": (0, 100),
+    "forecast_samples": (0, 1000),
 }
 #: Real keys -> (low, high, low open, high open); None = unbounded. Every one must also be finite.
 _NUMBERS: Final[dict[str, tuple[float | None, float | None, bool, bool]]] = {

@@ -136,6 +136,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         self.predictor_name = env.predictor_name
         self.with_forecasts = env.with_forecasts
         self.uncertainty = env.uncertainty
+        self.samples = env.samples
         self.crowd_kind = env.crowd_kind
         self._worlds = [_World(env) for _ in range(n)]
         self._timer = PhaseTimer(TIMING_KEYS)
@@ -674,9 +675,10 @@ class BatchedCrowdNavEnv(VectorEnv):
         nw = len(worlds)
         fc_obs = np.zeros((nw, k, hor, 2), dtype=np.float32)
         unc_obs = np.zeros((nw, k, hor), dtype=np.float32) if b.with_uncertainty else None
+        smp_obs = np.zeros((nw, k, b.samples, hor, 2), dtype=np.float32) if b.samples else None
         source = self.forecaster
         times = t_s.tolist()
-        if isinstance(source, PredictorForecast) and unc_obs is None:
+        if isinstance(source, PredictorForecast) and unc_obs is None and smp_obs is None:
             self._table_forecasts(worlds, times, rows_of, robot, fc_obs)
             obs = self._obs
             obs["forecasts"][worlds] = fc_obs.reshape(nw, -1) if b.flat else fc_obs
@@ -702,10 +704,15 @@ class BatchedCrowdNavEnv(VectorEnv):
             if unc_obs is not None and world.uncertainty is not None:
                 unc = world.uncertainty.radius(world._replay, times[j], rows, float(age[j]), int(index[j]))  # type: ignore[arg-type]
                 unc_obs[j, :m] = np.clip(unc, 0.0, b.fc_bound)
+            if smp_obs is not None and self.samples is not None:
+                smp = self.samples.draw(world._replay, times[j], rows)  # type: ignore[arg-type]
+                smp_obs[j, :m] = _clip(smp - robot[j], b.fc_bound)
         obs = self._obs
         obs["forecasts"][worlds] = fc_obs.reshape(nw, -1) if b.flat else fc_obs
         if unc_obs is not None:
             obs["forecast_uncertainty"][worlds] = unc_obs.reshape(nw, -1) if b.flat else unc_obs
+        if smp_obs is not None:
+            obs["forecast_samples"][worlds] = smp_obs.reshape(nw, -1) if b.flat else smp_obs
 
     def _table_forecasts(
         self, worlds: np.ndarray, times: list[float], rows_of: list[np.ndarray], robot: np.ndarray, out: np.ndarray

@@ -18,7 +18,6 @@ from envs.forecasting.resampling import resample_matrix
 from envs.forecasting.uncertainty import CalibratedUncertainty, OnlineUncertainty
 from envs.forecasting.window import PredictorForecast
 from envs.replay import Replay
-from envs.vector import BatchedCrowdNavEnv
 
 START = np.linspace(2.0, 2.6, 12)  # the split thresholds of the synthetic calibration (Mahalanobis radii)
 
@@ -204,24 +203,3 @@ def test_cv_gaussian_has_calibrated_radii(data_dir: Path) -> None:
             obs, *_ = env.step(np.zeros(2, np.float32))
         radii = obs["forecast_uncertainty"].reshape(10, 12)[obs["mask"].astype(bool)]
         assert len(radii) and np.all(np.isfinite(radii)) and np.all(np.diff(radii, axis=1) >= 0)
-
-
-def test_the_batched_env_tracks_each_world_as_a_single_env_does(data_dir: Path) -> None:
-    kwargs = {
-        "predictor": "cv",
-        "split": "eth",
-        "part": "test",
-        "forecast_uncertainty": True,
-        "forecast_uncertainty_method": "online",
-    }
-    singles = [CrowdNavEnv(**kwargs) for _ in range(2)]
-    batched = BatchedCrowdNavEnv(num_envs=2, **kwargs)
-    obs_b, _ = batched.reset(seed=[4, 9])
-    obs_s = [env.reset(seed=s)[0] for env, s in zip(singles, (4, 9), strict=True)]
-    rng = np.random.default_rng(0)
-    for _ in range(30):
-        for i in range(2):
-            np.testing.assert_array_equal(obs_b["forecast_uncertainty"][i], obs_s[i]["forecast_uncertainty"])
-        actions = rng.uniform(-1, 1, (2, 2)).astype(np.float32)
-        obs_b, *_ = batched.step(actions)
-        obs_s = [env.step(a)[0] for env, a in zip(singles, actions, strict=True)]  # no episode ends in 30 steps here
