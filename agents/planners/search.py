@@ -99,6 +99,8 @@ _LEVELS: Final[int] = 2**12
 
 #: Observations searched at once by :class:`SearchPlanner` (memory grows with it; results do not depend on it).
 _SEARCH_CHUNK: Final[int] = 16
+#: With samples: observations searched at once times samples per pedestrian (at least one observation at a time).
+_SAMPLED_ROWS_CHUNK: Final[int] = 64
 #: Headings of the search planners, degrees from the goal direction: 16 around the full circle (backing away too).
 SEARCH_HEADINGS_DEG: Final[tuple[float, ...]] = tuple(22.5 * k for k in range(16))
 #: Speeds of the search planners, fractions of the preferred speed (and of the goal-directed cap).
@@ -320,7 +322,7 @@ class SearchPlanner(_Planner):
         scale = np.divide(cap, dist, out=np.zeros_like(dist), where=dist >= 1e-9)
         chosen = goal * scale[:, None]  # no pedestrian observed: straight at the goal
         todo = np.flatnonzero(mask.any(axis=1) & (dist >= 1e-9))
-        chunk = max(1, _SEARCH_CHUNK // group)  # bounded memory for large batches (DAgger labels thousands)
+        chunk = max(1, _SAMPLED_ROWS_CHUNK // group) if group > 1 else _SEARCH_CHUNK  # bounded memory for large batches
         for lo in range(0, len(todo), chunk):
             rows = todo[lo : lo + chunk]
             chosen[rows] = self._search(goal[rows], fut[rows], mask[rows], grow[rows], group)
