@@ -8,8 +8,9 @@ from __future__ import annotations
 import gymnasium
 
 ENTRY_POINT = "envs.crowd_nav:CrowdNavEnv"
-#: ``gymnasium.make_vec(id, num_envs=N, vectorization_mode="vector_entry_point")``: N episodes batched in one process.
-VECTOR_ENTRY_POINT = "envs.vector:BatchedCrowdNavEnv"
+#: ``gymnasium.make_vec(id, num_envs=N, vectorization_mode="vector_entry_point")``: N episodes batched in one process
+#: (single environments, with a warning, for what the batched one does not step).
+VECTOR_ENTRY_POINT = "envs.vector:make_vector_env"
 
 #: id -> the forecast source it uses; every other setting is the same.
 ENV_IDS: dict[str, str] = {

@@ -1,7 +1,7 @@
 """Train a navigation policy and evaluate it on the held-out scene, in a few lines.
 
-    python examples/train_and_evaluate.py                       # the recipe's budget (about 7 minutes on one core)
-    python examples/train_and_evaluate.py --tiny --out /tmp/x   # seconds: a smoke run (CI runs this)
+    python examples/train_and_evaluate.py                       # the recipe's budget (docs/first-hour.md: timings)
+    python examples/train_and_evaluate.py --tiny --out /tmp/x   # a smoke run of under a minute (CI runs this)
 
 The recipe is ``configs/agent/ppo.yaml`` (a DAgger warm start from the sampling planner, then PPO); the policy
 sees MESRNN forecasts (``--predictor``, any forecast arm or installed predictor plug-in) and is trained on the
@@ -42,7 +42,7 @@ def main() -> None:
     p.add_argument("--predictor", default="mesrnn", help="forecast arm the policy sees (default: mesrnn)")
     p.add_argument("--split", default="zara1", help="held-out scene; trained on the other four (default: zara1)")
     p.add_argument("--episodes", type=int, default=None, help="evaluation episodes (default: 500, or 5 with --tiny)")
-    p.add_argument("--tiny", action="store_true", help="a smoke run of a few seconds instead of the recipe")
+    p.add_argument("--tiny", action="store_true", help="a smoke run (under a minute) instead of the recipe")
     p.add_argument("--out", default="runs/example", help="run folder (default: runs/example)")
     args = p.parse_args()
     episodes = args.episodes or (5 if args.tiny else 500)

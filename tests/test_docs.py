@@ -90,7 +90,15 @@ def sandbox(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     return tmp_path
 
 
-@pytest.mark.parametrize("page", PY_PAGES, ids=_id)
+#: pages whose blocks take long (first-hour trains a policy and evaluates it): run in CI (``-m "slow or not slow"``)
+SLOW_PAGES = {"docs/first-hour.md"}
+
+
+def _page_param(page: Path) -> object:
+    return pytest.param(page, marks=pytest.mark.slow) if _id(page) in SLOW_PAGES else page
+
+
+@pytest.mark.parametrize("page", [_page_param(p) for p in PY_PAGES], ids=[_id(p) for p in PY_PAGES])
 def test_python_blocks_run(page: Path, sandbox: Path, data_dir: Path) -> None:
     namespace: dict[str, object] = {"__name__": "__docs__"}
     ran = 0
@@ -157,18 +165,9 @@ CODE_WIDTH = 80
 #: The pages held to :data:`CODE_WIDTH`: README.md and the guides in docs/. The pages under docs/results/ are
 #: generated reports and recorded outputs, whose printed tables keep their columns (a reader scrolls them).
 NARROW_PAGES = [p for p in PAGES if "results" not in p.relative_to(ROOT).parts]
-#: Pages whose blocks are wrapped on another branch (issue 31): strict, so the mark must go once they fit.
-BEING_WRAPPED = {"docs/reaction.md"}
 
 
-def _narrow_param(page: Path) -> object:
-    if _id(page) in BEING_WRAPPED:
-        reason = "its code blocks are being edited on another branch; drop it from BEING_WRAPPED once they fit"
-        return pytest.param(page, marks=pytest.mark.xfail(strict=True, reason=reason))
-    return page
-
-
-@pytest.mark.parametrize("page", [_narrow_param(p) for p in NARROW_PAGES], ids=[_id(p) for p in NARROW_PAGES])
+@pytest.mark.parametrize("page", NARROW_PAGES, ids=_id)
 def test_code_blocks_fit_the_content_width(page: Path) -> None:
     """No line of a fenced block is cut on the right: long trailing comments go on a line of their own, long
     commands are continued with a backslash."""

@@ -25,6 +25,7 @@ def test_the_plugin_example_is_an_installable_package() -> None:
     }
 
 
+@pytest.mark.slow
 def test_the_installed_plugin_is_benchmarked(data_dir: Path, tmp_path: Path) -> None:
     predictors.refresh()
     if "kalman" not in predictors.registered():

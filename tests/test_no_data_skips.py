@@ -40,6 +40,7 @@ def test_a_recording_loads(data_dir: Path) -> None:
     assert data_dir.is_dir()
 
 
+@pytest.mark.slow
 def test_the_data_in_the_user_cache_is_found_without_the_variable(data_dir: Path, tmp_path: Path) -> None:
     """After ``crowdnav-mesrnn data download`` (which installs into ``~/.cache/crowdnav-mesrnn/eth_ucy``) the data
     tests run, with ``$CROWDNAV_MESRNN_DATA`` unset."""
@@ -52,6 +53,7 @@ def test_the_data_in_the_user_cache_is_found_without_the_variable(data_dir: Path
     assert re.search(r"\b1 passed\b", done.stdout) and "skipped" not in done.stdout, done.stdout[-3000:]
 
 
+@pytest.mark.slow
 def test_the_no_data_skips_are_reported_on_one_line(tmp_path: Path) -> None:
     if (REPO / "data" / "eth_ucy" / "all_data").is_dir():
         pytest.skip("this checkout holds ./data/eth_ucy: the project finds data there, so nothing skips")

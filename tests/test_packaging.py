@@ -17,6 +17,9 @@ REPO = Path(__file__).resolve().parents[1]
 #: The project's top-level packages (pyproject.toml's package discovery).
 PACKAGES = ("crowdnav_mesrnn", "envs", "agents")
 
+#: building the wheel takes a while: the whole module runs in CI (`-m "slow or not slow"`)
+pytestmark = pytest.mark.slow
+
 
 def _setuptools_major() -> int:
     try:

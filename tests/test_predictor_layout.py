@@ -127,6 +127,7 @@ def test_renamed_names_are_served_from_their_old_path() -> None:
         assert value is getattr(importlib.import_module(new), new_name)
 
 
+@pytest.mark.slow
 def test_the_warning_points_at_the_line_using_the_old_path() -> None:
     """``stacklevel`` reaches past the shim and importlib: the filter of ``pyproject.toml``
     (``error::DeprecationWarning:crowdnav_mesrnn.*``) then catches any old path used inside the package."""

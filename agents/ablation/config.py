@@ -457,16 +457,23 @@ def _check_policy_env(policy: PolicySpec, grid_env: Mapping[str, Any]) -> None:
         )
 
 
-def _check_planner_options(policy: PolicySpec) -> None:
-    """Build the planner with its options (``agents.planners.make_planner``, default environment settings), so an option
-    the planner does not know -- e.g. one another change has not implemented yet -- is refused when the grid is loaded,
-    naming ``policies.<name>.options``."""
+def _check_planner_options(policy: PolicySpec, grid_env: Mapping[str, Any]) -> None:
+    """Build the planner with its options (``agents.planners.make_planner``) in the policy's environment settings (the
+    grid's ``env``, then the policy's own, on the environment's defaults), so an option the planner does not know --
+    e.g. one another change has not implemented yet -- or one its environment does not allow (the privileged reactive
+    ceiling under ``reaction: none``) is refused when the grid is loaded, naming ``policies.<name>.options``; settings
+    the environment refuses are named as ``policies.<name>.env`` (or ``env``)."""
     if not policy.options:
         return
-    from agents.planners import make_planner
+    from agents.planners import as_env_config, make_planner
 
     try:
-        make_planner(policy.kind, None, **dict(policy.options))
+        env_config = as_env_config({**grid_env, **policy.env})
+    except ConfigError as exc:
+        where = f"policies.{policy.name}.env" if policy.env else "env"
+        raise ConfigError(f"ablation config key {where!r}: the environment refuses these settings: {exc}") from None
+    try:
+        make_planner(policy.kind, env_config, **dict(policy.options))
     except (TypeError, ValueError) as exc:
         raise _bad(
             f"policies.{policy.name}.options",
@@ -539,9 +546,7 @@ def _policies(value: Any) -> tuple[PolicySpec, ...]:
                     f"nothing: a samples arm sets it ({', '.join(s + SAMPLES_SUFFIX for s in SAMPLES_SOURCES)})",
                 )
             env = _env_mapping(spec.get("env"), f"{where}.env")
-            policy = PolicySpec(str(name), kind, options=dict(options), env=env, priority=priority)
-            _check_planner_options(policy)
-            out.append(policy)
+            out.append(PolicySpec(str(name), kind, options=dict(options), env=env, priority=priority))
     return tuple(out)
 
 
@@ -752,6 +757,7 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
     _check_reaction(env, "env")
     for policy in policies:
         _check_policy_env(policy, env)
+        _check_planner_options(policy, env)
     comparisons = _pairs(raw.get("comparisons"), "comparisons", labels)
     policy_comparisons = _pairs(raw.get("policy_comparisons"), "policy_comparisons", [p.name for p in policies])
     reactions = [r for r in dict.fromkeys((dict(env) | dict(p.env)).get("reaction") for p in policies) if r]

@@ -39,7 +39,8 @@ def _err(entry: Mapping[str, Any], key: str) -> tuple[float, float, float]:
 
 
 def write_plots(summary: Mapping[str, Any], dest: Path) -> list[str]:
-    """Rates per arm; success/collision against closed-loop forecast ADE; success by crowd density."""
+    """Rates per arm; success/collision against closed-loop forecast ADE; success by crowd density; and, for a grid
+    with reacting pedestrians, each declared gain on the replay and under each reaction."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -132,7 +133,57 @@ def write_plots(summary: Mapping[str, Any], dest: Path) -> list[str]:
         fig.tight_layout(rect=(0.0, 0.0, 1.0, _figure_legend(fig, axes)))
         written.append(str(_save(fig, dest / "rates_by_density.png")))
         plt.close(fig)
+    tests = [t for t in summary.get("reaction_tests") or [] if not t.get("missing")]
+    if tests:
+        written.append(_gains_by_reaction(tests, dest / "gains_by_reaction.png"))
     return written
+
+
+#: Colours of the reactions in ``gains_by_reaction.png`` (the replay grey).
+REACTION_COLOURS: dict[str, str] = {
+    "none": "tab:grey",
+    "orca": "tab:blue",
+    "pause": "tab:orange",
+    "social_force": "tab:purple",
+}
+
+
+def _gains_by_reaction(tests: list[Mapping[str, Any]], path: Path) -> str:
+    """Each declared gain (``a - b`` in success, points, with its bootstrap interval) on the replay and under each
+    reaction, one panel per planner: does a forecast's gain survive when people react?"""
+    import matplotlib.pyplot as plt
+
+    planners = list(dict.fromkeys(t["planner"] for t in tests))
+    fig, axes = plt.subplots(1, len(planners), figsize=(5.5 * len(planners), 3.8), squeeze=False, sharey=True)
+    for ax, planner in zip(axes[0], planners, strict=True):
+        mine = [t for t in tests if t["planner"] == planner]
+        gains = list(dict.fromkeys(f"{t['gain']['a']} - {t['gain']['b']}" for t in mine))
+        reactions = [mine[0]["baseline"], *dict.fromkeys(t["reaction"] for t in mine)]
+        width = 0.8 / len(reactions)
+        for k, reaction in enumerate(reactions):
+            xs, ys, errs = [], [], []
+            for g, gain in enumerate(gains):
+                t = next((t for t in mine if f"{t['gain']['a']} - {t['gain']['b']}" == gain
+                          and reaction in (t["reaction"], t["baseline"])), None)  # fmt: skip
+                if t is None:
+                    continue
+                key = "gain_baseline" if reaction == t["baseline"] else "gain_reaction"
+                value, (lo, hi) = 100 * t[key], t[f"{key}_ci"]
+                xs.append(g + (k - (len(reactions) - 1) / 2) * width)
+                ys.append(value)
+                errs.append((max(value - 100 * lo, 0.0), max(100 * hi - value, 0.0)))
+            label = f"{reaction} (replay)" if k == 0 else reaction
+            colour = REACTION_COLOURS.get(reaction)
+            ax.bar(xs, ys, width, yerr=np.asarray(errs).reshape(-1, 2).T, capsize=2, color=colour, label=label)
+        ax.axhline(0.0, color="black", lw=0.8)
+        ax.set_xticks(np.arange(len(gains)), gains)
+        name = {"planner": "sampling planner", "search": "search planner"}.get(planner, planner)
+        ax.set_title(f"{name}: gain in success, pooled over splits")
+    axes[0][0].set_ylabel("points (95 % bootstrap CI)")
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, _figure_legend(fig, axes)))
+    saved = _save(fig, path)
+    plt.close(fig)
+    return str(saved)
 
 
 def _label_points(ax: Any, points: list[tuple[float, float, str]]) -> None:

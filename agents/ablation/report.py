@@ -92,8 +92,13 @@ def _ceiling_lines(summary: Mapping[str, Any]) -> list[str]:
     for ceiling in ceilings:
         splits = [sp for sp in summary["splits"] if sp in ceiling["by_split"]]
         rates = ", ".join(f"{sp} {100 * ceiling['by_split'][sp]:.1f} %" for sp in splits)
+        reads = (
+            "rolls the reaction model forward for every candidate plan (the pedestrians' replies to the robot)"
+            if ceiling.get("reactive")
+            else "reads the replay's true future of every pedestrian"
+        )
         lines += [
-            f"`{ceiling['policy']}` is PRIVILEGED: it reads the replay's true future of every pedestrian, which no "
+            f"`{ceiling['policy']}` is PRIVILEGED: it {reads}, which no "
             f"policy's observation carries -- a measuring stick, not a competitor. Its success: {rates}. Each cell "
             "below is a policy's success divided by the ceiling's on the same episodes (pooled over seeds).",
             "",
@@ -353,15 +358,24 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
             lines.append("")
     mc = summary["multiple_comparisons"]
     fam = mc["family_sizes"]
+    against_fixed = any(t.get("test", "").startswith("exact sign-flip") for t in summary["tests"])
     lines += [
         "## Paired tests",
         "",
         f"Declared in the config before any result: arm comparisons {', '.join(f'{a} vs {b}' for a, b in cfg.comparisons) or '(none declared)'} "
         f"within each policy and split; policy comparisons {', '.join(f'{a} vs {b}' for a, b in cfg.policy_comparisons) or '(none declared)'} "
-        "within each arm and split. Pairs are (training seed, episode). Success: exact McNemar test (two-sided "
-        "binomial test on the discordant pairs); navigation time: Wilcoxon signed-rank test over episodes both sides "
-        "finished (a policy without seeds pairs its episode with that episode of every seed). "
-        f"Holm-Bonferroni correction within each endpoint: {fam.get('success', 0)} success tests and "
+        "within each arm and split. "
+        + (
+            "Pairs are (training seed, episode). Success: exact McNemar test (two-sided binomial test on the "
+            "discordant pairs; against a policy without seeds, the test marked † below); navigation time: Wilcoxon "
+            "signed-rank test over episodes both sides finished (a policy without seeds pairs its episode with that "
+            "episode of every seed). "
+            if against_fixed
+            else "Pairs are (training seed, episode); a policy without seeds pairs its episode with that episode of "
+            "every seed. Success: exact McNemar test (two-sided binomial test on the discordant pairs); navigation "
+            "time: Wilcoxon signed-rank test over episodes both sides finished. "
+        )
+        + f"Holm-Bonferroni correction within each endpoint: {fam.get('success', 0)} success tests and "
         f"{fam.get('navigation_time_s', 0)} navigation-time tests; significant = Holm-adjusted p <= {mc['alpha']}.",
         "",
         f"Minimum detectable difference (MDD): the difference in success rate the McNemar design detects with "
@@ -370,7 +384,7 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         "'-' where no difference the observed discordance allows reaches that power (or no pair is discordant).",
         "",
     ]
-    if any(t.get("test", "").startswith("exact sign-flip") for t in summary["tests"]):
+    if against_fixed:
         lines += [
             "A policy with training seeds against one without (a deterministic planner, run once on the same "
             "episodes; rows marked †) counts each of the planner's episodes once: per episode d = the seeded "

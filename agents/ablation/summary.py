@@ -35,11 +35,13 @@ from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_
 def ceiling_fractions(cfg: AblationConfig, policies: dict[str, Any], which: int = 0) -> dict[str, Any] | None:
     """Every policy's success per arm and split as a fraction of the privileged ceiling's on the same episodes
     (``None`` when the grid has no ``privileged`` policy). The ceiling is a measuring stick: it reads the replay's
-    true future, which no other policy's observation carries; it runs one arm (its forecast input is unused).
-    ``which``: the grid's ``which``-th privileged policy; only the policies in the same environment as it (the same
-    reaction, :meth:`AblationConfig.env_for`) are divided by it.
+    true future (with the option ``reactive: true``, the reaction model rolled forward for its candidate plans), which
+    no other policy's observation carries; it runs one arm (its forecast input is unused). ``which``: the grid's
+    ``which``-th privileged policy; only the policies in the same environment as it (the same reaction,
+    :meth:`AblationConfig.env_for`) are divided by it.
 
-    Returns ``{"policy": NAME, "by_split": {split: rate}, "fractions": {policy: {arm: {split: fraction}}}}``.
+    Returns ``{"policy": NAME, "by_split": {split: rate}, "fractions": {policy: {arm: {split: fraction}}}}``, plus
+    ``"reactive": true`` for the reactive ceiling.
     """
     from agents.ablation.config import PRIVILEGED_KIND
 
@@ -61,7 +63,10 @@ def ceiling_fractions(cfg: AblationConfig, policies: dict[str, Any], which: int 
             }
             for arm, entry in pol["arms"].items()
         }
-    return {"policy": names[which], "by_split": rates, "fractions": fractions}
+    out = {"policy": names[which], "by_split": rates, "fractions": fractions}
+    if cfg.policy(names[which]).options.get("reactive"):
+        out["reactive"] = True
+    return out
 
 
 def summarize(

@@ -210,7 +210,11 @@ def format_summary(summary: Mapping[str, Any]) -> str:
         f"{summary.get('policy')} on {where}, forecasts {summary.get('predictor')}, "
         f"{summary['episodes']} episodes in {summary.get('seconds', 0):.1f} s"
     ]
-    if summary.get("privileged"):
+    if summary.get("privileged") and (summary.get("planner") or {}).get("reactive"):
+        lines.append(
+            "  PRIVILEGED: rolls the reaction model forward for every candidate plan (a ceiling, not a policy)"
+        )
+    elif summary.get("privileged"):
         lines.append("  PRIVILEGED: reads every pedestrian's true future from the replay (a ceiling, not a policy)")
     lines.append(f"  {'key':<{width}}{'value':<9}{'[95 % interval]':<18}{'n':>5}  what")
     for key, value, interval, count, label in rows:

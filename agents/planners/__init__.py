@@ -12,16 +12,21 @@
   closest approach to the goal that stays clear).
 - :class:`PrivilegedPlanner` (``make_planner("privileged")``): PRIVILEGED, reads the replay's true future of every
   pedestrian; the ceiling of what is attainable, never a policy.
+- :class:`ReactivePrivilegedPlanner` (``make_planner("privileged", reactive=True)``): PRIVILEGED, the ceiling among
+  pedestrians who react to the robot (``reaction`` ``pause``, ``orca`` or ``social_force``): a beam search whose
+  every candidate step is rolled through the environment's reaction model, so it plans against the pedestrians'
+  replies; refuses ``reaction="none"``, where the replay ceiling reads the true future.
 
-All but the privileged one read only the observation. Each accepts a single observation dict or a
+All but the privileged ones read only the observation. Each accepts a single observation dict or a
 batched one (a leading dimension on every key) and returns ``(actions, None)`` like an SB3 model, so
 evaluation (and DAgger, which uses a planner as its teacher) treats planners and learned policies
 alike; the scoring and the search are vectorised over the batch, and a batched ``predict`` equals one
 ``predict`` per observation.
 
 One module each: :mod:`agents.planners.base` (the ``predict`` plumbing, actions from velocities, straight to the
-goal), :mod:`agents.planners.sampling`, :mod:`agents.planners.search` and :mod:`agents.planners.privileged`; this
-package names them (:data:`PLANNERS`, :func:`make_planner`) and re-exports their public names.
+goal), :mod:`agents.planners.sampling`, :mod:`agents.planners.search`, :mod:`agents.planners.privileged` and
+:mod:`agents.planners.privileged_reactive`; this package names them (:data:`PLANNERS`, :func:`make_planner`) and
+re-exports their public names.
 """
 
 from __future__ import annotations
@@ -37,7 +42,14 @@ from agents.planners.base import (
     velocities_to_actions,
     velocity_to_action,
 )
-from agents.planners.privileged import Plan, PlannerStats, PrivilegedPlanner
+from agents.planners.privileged import Plan, PlannerStats, PrivilegedPlanner, command_velocities
+from agents.planners.privileged_reactive import (
+    REACTIVE_OPTIONS,
+    ReactivePlan,
+    ReactivePlannerStats,
+    ReactivePrivilegedPlanner,
+    env_velocities,
+)
 from agents.planners.sampling import (
     CANDIDATE_SETS,
     DEFAULT_HEADINGS_DEG,
@@ -62,15 +74,21 @@ __all__ = [
     "DENSE_HEADINGS_DEG",
     "DENSE_SPEED_FRACTIONS",
     "PLANNERS",
+    "REACTIVE_OPTIONS",
     "SEARCH_HEADINGS_DEG",
     "SEARCH_SPEED_FRACTIONS",
     "Plan",
     "PlannerStats",
     "PrivilegedPlanner",
+    "ReactivePlan",
+    "ReactivePlannerStats",
+    "ReactivePrivilegedPlanner",
     "SamplingPlanner",
     "SearchPlanner",
     "StraightToGoal",
     "as_env_config",
+    "command_velocities",
+    "env_velocities",
     "go_to_goal",
     "lattice_select",
     "make_planner",
@@ -80,14 +98,16 @@ __all__ = [
     "velocity_to_action",
 ]
 
-#: Names accepted by :func:`make_planner` (``privileged`` reads the replay: see :mod:`agents.planners.privileged`).
+#: Names accepted by :func:`make_planner` (``privileged`` reads the replay, or with ``reactive=True`` the reaction
+#: model: see :mod:`agents.planners.privileged` and :mod:`agents.planners.privileged_reactive`).
 PLANNERS: Final[tuple[str, ...]] = ("straight", "planner", "search", "privileged")
 
 
 def make_planner(name: str, env_config: CrowdNavConfig | Mapping[str, Any] | None = None, **kwargs: Any) -> Any:
     """A planner by name: ``"straight"`` (:class:`StraightToGoal`), ``"planner"`` (:class:`SamplingPlanner`),
-    ``"search"`` (:class:`SearchPlanner`) or ``"privileged"`` (:class:`PrivilegedPlanner`, which must be bound to
-    its environments before it acts); ``kwargs`` are passed on."""
+    ``"search"`` (:class:`SearchPlanner`) or ``"privileged"`` (:class:`PrivilegedPlanner`, or with ``reactive=True``
+    :class:`ReactivePrivilegedPlanner`; both must be bound to their environments before they act); the other
+    ``kwargs`` are passed on."""
     if name == "straight":
         if kwargs:
             raise ValueError(f"the straight-to-goal policy takes no options, got {sorted(kwargs)}")
@@ -97,5 +117,16 @@ def make_planner(name: str, env_config: CrowdNavConfig | Mapping[str, Any] | Non
     if name == "search":
         return SearchPlanner(env_config, **kwargs)
     if name == "privileged":
-        return PrivilegedPlanner(env_config, **kwargs)
+        reactive = kwargs.pop("reactive", False)
+        if not isinstance(reactive, bool):
+            raise ValueError(f"privileged planner option 'reactive': got {reactive!r}; allowed: true or false")
+        if not reactive:
+            return PrivilegedPlanner(env_config, **kwargs)
+        unknown = {k: v for k, v in sorted(kwargs.items()) if k not in {"env", *REACTIVE_OPTIONS}}
+        if unknown:
+            raise ValueError(
+                f"privileged reactive planner option(s) {', '.join(map(repr, unknown))}: got {unknown!r}; allowed: "
+                f"{', '.join(REACTIVE_OPTIONS)}"
+            )
+        return ReactivePrivilegedPlanner(env_config, **kwargs)
     raise ValueError(f"unknown planner {name!r}; valid: {', '.join(PLANNERS)}")

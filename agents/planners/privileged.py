@@ -29,6 +29,19 @@ _CHUNK: Final[int] = 4000
 _ON_PLAN_M: Final[float] = 1e-6
 
 
+def command_velocities(velocity: np.ndarray, speed_mps: float) -> tuple[np.ndarray, np.ndarray]:
+    """The float32 actions ``(..., 2)`` of holonomic motions at velocities ``(..., 2)`` m/s, and the velocities the
+    environment commands for them (scaled by the preferred speed ``speed_mps``, norm capped at it, as ``env.step``
+    does; the norm with numpy's ``hypot``, which can differ from the environment's :func:`math.hypot` in the last bit:
+    :func:`agents.planners.privileged_reactive.env_velocities` gives the environment's floats exactly)."""
+    action = np.clip(velocity / speed_mps, -1.0, 1.0).astype(np.float32)
+    cmd = action.astype(np.float64) * speed_mps
+    speed = np.hypot(cmd[..., 0], cmd[..., 1])
+    over = speed > speed_mps
+    cmd = np.where(over[..., None], cmd * (speed_mps / np.where(over, speed, 1.0))[..., None], cmd)
+    return action, cmd
+
+
 @dataclass
 class Plan:
     """A plan from step ``start_step`` of an episode.
@@ -63,7 +76,43 @@ class PlannerStats:
     failures: list[tuple[str, float]] = field(default_factory=list)
 
 
-class PrivilegedPlanner(_Planner):
+class BoundPlanner(_Planner):
+    """What the privileged planners share: they read their environments, bound row by row before each ``predict``,
+    never the observation (which only gives the batch size). A subclass implements ``_action(env) -> (2,)`` float32
+    and may refuse an environment in ``_check_env(config)``."""
+
+    privileged: Final[bool] = True
+    #: The planner as error messages name it.
+    label: str = "the privileged planner"
+
+    _envs: list[Any]
+
+    def _check_env(self, config: CrowdNavConfig) -> None:  # pragma: no cover - default: every environment
+        pass
+
+    def _action(self, env: Any) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def bind_envs(self, envs: Sequence[Any]) -> None:
+        """The environments of the rows of the next ``predict`` (row ``i`` is ``envs[i]``; wrappers are unwrapped)."""
+        unwrapped = [getattr(e, "unwrapped", e) for e in envs]
+        for e in unwrapped:
+            self._check_env(e.config)
+        self._envs = unwrapped
+
+    def act(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Actions ``(B, 2)`` float32 for the bound environments' current states (the batched observation only gives
+        ``B``: the planner never reads it)."""
+        b = len(obs["mask"])
+        if len(self._envs) != b:
+            raise ValueError(
+                f"{self.label} is bound to {len(self._envs)} environment(s) but got {b} observation(s): "
+                "call bind_envs(envs) with one environment per row first"
+            )
+        return np.stack([self._action(env) for env in self._envs])
+
+
+class PrivilegedPlanner(BoundPlanner):
     """PRIVILEGED: searches the rest of the episode for the fastest contact-free route, knowing every pedestrian's
     true future.
 
@@ -90,8 +139,6 @@ class PrivilegedPlanner(_Planner):
         headings_deg: headings relative to the goal direction, degrees.
         speed_fractions: speeds as fractions of the preferred speed.
     """
-
-    privileged: Final[bool] = True
 
     def __init__(
         self,
@@ -126,23 +173,9 @@ class PrivilegedPlanner(_Planner):
 
     # ------------------------------------------------------------------ the SB3 interface
 
-    def bind_envs(self, envs: Sequence[Any]) -> None:
-        """The environments of the rows of the next ``predict`` (row ``i`` is ``envs[i]``; wrappers are unwrapped)."""
-        self._envs = [getattr(e, "unwrapped", e) for e in envs]
-        for e in self._envs:
-            if e.config.kinematics != "holonomic":
-                raise ValueError("the privileged planner plans holonomic motions; the environment is unicycle")
-
-    def act(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
-        """Actions ``(B, 2)`` float32 for the bound environments' current states (the batched observation only gives
-        ``B``: the planner never reads it)."""
-        b = len(obs["mask"])
-        if len(self._envs) != b:
-            raise ValueError(
-                f"the privileged planner is bound to {len(self._envs)} environment(s) but got {b} observation(s): "
-                "call bind_envs(envs) with one environment per row first"
-            )
-        return np.stack([self._action(env) for env in self._envs])
+    def _check_env(self, config: CrowdNavConfig) -> None:
+        if config.kinematics != "holonomic":
+            raise ValueError("the privileged planner plans holonomic motions; the environment is unicycle")
 
     def _action(self, env: Any) -> np.ndarray:
         plan = self._plans.get(id(env))
@@ -163,14 +196,8 @@ class PrivilegedPlanner(_Planner):
 
     def command(self, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The float32 actions ``(..., 2)`` for velocities ``(..., 2)`` m/s, and the velocities the environment
-        commands for them (scaled by the preferred speed, norm capped at it, as ``env.step`` does)."""
-        v = self.cfg.robot_pref_speed_mps
-        action = np.clip(velocity / v, -1.0, 1.0).astype(np.float32)
-        cmd = action.astype(np.float64) * v
-        speed = np.hypot(cmd[..., 0], cmd[..., 1])
-        over = speed > v
-        cmd = np.where(over[..., None], cmd * (v / np.where(over, speed, 1.0))[..., None], cmd)
-        return action, cmd
+        commands for them (:func:`command_velocities`)."""
+        return command_velocities(velocity, self.cfg.robot_pref_speed_mps)
 
     def plan(self, env: Any) -> Plan:
         """The fastest contact-free route from the environment's current state to its goal (see the class doc)."""

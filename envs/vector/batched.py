@@ -62,6 +62,11 @@ class _World:
         self.uncertainty: UncertaintySource | None = None  # the episode's radii (for_episode of the env's source)
 
 
+class NotBatchedError(NotImplementedError, ValueError):
+    """A setting the batched environment does not step (pedestrians that react, rendering): step single environments
+    (:func:`envs.vector.make_vector_env` does so by itself, with a warning)."""
+
+
 class BatchedCrowdNavEnv(VectorEnv):
     """N crowd-navigation episodes stepped at once: the environment of :class:`envs.crowd_nav.CrowdNavEnv`, batched.
 
@@ -110,7 +115,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         if not isinstance(num_envs, int | np.integer) or not 1 <= num_envs <= MAX_WORLDS:
             raise ValueError(f"num_envs must be an integer in [1, {MAX_WORLDS}], got {num_envs!r}")
         if render_mode is not None:
-            raise ValueError(
+            raise NotBatchedError(
                 f"the batched environment does not render (render_mode={render_mode!r}); render a single "
                 "CrowdNavEnv (gymnasium.make(id, render_mode=...)) to watch an episode"
             )
@@ -118,7 +123,8 @@ class BatchedCrowdNavEnv(VectorEnv):
         #: the reference environment: its configuration, recordings, forecast source, sampler and constants
         self.env = CrowdNavEnv(config=config, predictor=predictor, crowd=crowd, **kwargs)
         if self.env.reaction != "none":
-            raise NotImplementedError(
+            self.env.close()
+            raise NotBatchedError(
                 f"config key 'reaction' = {self.env.reaction!r}: the batched environment replays the recordings only "
                 "(reaction='none'); for reacting pedestrians step single environments: CrowdNavEnv, or "
                 "gymnasium.make_vec(id, num_envs=N, vectorization_mode='sync') (a SyncVectorEnv)"

@@ -119,7 +119,7 @@ def test_the_issue_example_no_longer_contradicts_itself() -> None:
     assert hi == pytest.approx(3 / 20 * (2 * (1 - 0.025 ** (1 / 3)) - 1))
 
 
-@pytest.mark.parametrize("n", [12, 40])
+@pytest.mark.parametrize("n", [12, pytest.param(40, marks=pytest.mark.slow)])
 def test_the_exact_interval_excludes_zero_exactly_when_the_test_rejects(n: int) -> None:
     for b10 in range(n + 1):
         for b01 in range(n + 1 - b10):

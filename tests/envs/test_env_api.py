@@ -49,6 +49,7 @@ def test_registered_ids_pass_gymnasium_and_sb3_checkers(env_id: str, data_dir: P
     env.close()
 
 
+@pytest.mark.slow
 def test_mesrnn_id_with_pretrained_weights(data_dir: Path) -> None:
     # The weights ship with the package: a missing file is a failure, not a skip.
     for split, recordings in SPLIT_TEST_RECORDINGS.items():

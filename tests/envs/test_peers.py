@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 
+@pytest.mark.slow
 def test_torchrl_builds_the_env_by_id_checks_its_specs_and_rolls_out(data_dir: Path) -> None:
     """TorchRL's ``GymEnv`` passes ``frameskip=`` and retries without it only on a ``TypeError`` naming it."""
     if importlib.util.find_spec("torchrl") is None:

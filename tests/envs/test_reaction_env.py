@@ -251,6 +251,7 @@ def test_a_pedestrian_never_near_the_robot_moves_as_recorded(model: str) -> None
 # ---------------------------------------------------------------------------------------------- people react
 
 
+@pytest.mark.slow
 def test_a_standing_robot_is_avoided_with_orca(data_dir: Path) -> None:
     """A robot standing in univ's crowds: the replay walks into it in many episodes, ORCA pedestrians (almost) never."""
     hits = {}

@@ -48,6 +48,7 @@ def test_paired_differences_refuse_different_windows_and_average_only_complete_m
     assert diff["eth"]["nll_m"] == 0.0 and "nll_m" not in diff["average"]
 
 
+@pytest.mark.slow
 def test_versus_gives_each_models_own_figures_and_their_paired_differences(
     data_dir: Path, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:

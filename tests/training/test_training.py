@@ -22,6 +22,7 @@ def tiny_trainer(out: Path, data_dir: Path, epochs: int = 2) -> Trainer:
     return Trainer(m, t, out)
 
 
+@pytest.mark.slow
 def test_resume_equals_uninterrupted_run(tmp_path: Path, data_dir: Path) -> None:
     straight = tiny_trainer(tmp_path / "a", data_dir)
     straight.fit(progress=False, log=lambda *_: None)

@@ -22,6 +22,7 @@ def trainer(out: Path, data_dir: Path, **extra: object) -> Trainer:
     return Trainer(m, t, out)
 
 
+@pytest.mark.slow
 def test_decoupled_head_trains_the_means_exactly_as_the_point_head(tmp_path: Path, data_dir: Path) -> None:
     point = trainer(tmp_path / "p", data_dir)
     point.fit(progress=False, log=lambda *_: None)

@@ -322,6 +322,7 @@ def test_expert_rates_are_the_declared_ones() -> None:
         expert_rates(7, 1.0)
 
 
+@pytest.mark.slow
 def test_online_cli_with_experts_reports_their_weights(data_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
     args = ["predictor", "calibrate", "--model", "cv", "--split", "zara1", "--json", "--resamples", "200"]
     assert main([*args, "--method", "online", "--gamma", "experts"]) == 0
@@ -406,6 +407,7 @@ def test_observed_rule_uses_nothing_before_it_is_observed() -> None:
         Stream(base.scored, base.scores, base.time).thresholds(start, 0.9, 1.0, "observed")
 
 
+@pytest.mark.slow
 def test_observed_rule_runs_with_experts_only_and_the_cli_records_it(
     data_dir: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -464,6 +464,7 @@ def test_a_pool_is_handed_no_more_cells_than_it_runs_so_a_first_ctrl_c_starts_no
     assert len(result["interrupted"]) == len(ab.expand(cfg)) - 2
 
 
+@pytest.mark.slow
 def test_pool_workers_are_fresh_processes_for_every_cell() -> None:
     pool = ab.backends._Pool(1)
     try:

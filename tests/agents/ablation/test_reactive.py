@@ -65,11 +65,14 @@ def test_the_reactive_config_declares_the_issue_grid() -> None:
             p = cfg.policy(f"{base}@{r}")
             assert p.kind == kind and cfg.reaction(p) == r and p.uses(cfg.arm("none"))
     assert cfg.policy("privileged@none").kind == "privileged" and cfg.policy("privileged@none").arms == ("oracle",)
+    for r in reactions[1:]:  # the reactive ceilings: the reaction model rolled forward (agents.planners)
+        p = cfg.policy(f"privileged@{r}")
+        assert p.options == {"reactive": True} and cfg.reaction(p) == r and p.arms == ("oracle",)
     assert cfg.comparisons == (("oracle", "none"), ("mesrnn", "cv"), ("mesrnn", "none"))
     assert cfg.reaction_comparisons == (("orca", "none"), ("pause", "none"), ("social_force", "none"))
     assert cfg.disturbance_comparisons == (("cv", "none"), ("mesrnn", "none"), ("oracle", "none"))
     cells = ab.expand(cfg)
-    assert len(cells) == 2 * 4 * 4 * 5 + 5 and all(c.kind == "eval" for c in cells)
+    assert len(cells) == 2 * 4 * 4 * 5 + 4 * 5 and all(c.kind == "eval" for c in cells)
     names = [c.name for c in cells]
     assert len(set(names)) == len(names) and "eval/univ/search@orca/mesrnn" in names
     # the order of running: replay and ORCA (sampling, then search) before pause and social force; univ, zara1 first
@@ -143,8 +146,8 @@ def test_the_committed_grids_keep_their_cell_specs_and_order() -> None:
         ({"kind": "planner", "env": ["reaction"]}, ["'policies.planner@orca.env'", "a mapping"]),
         ({"kind": "planner", "env": {"reaction": "orca"}, "priority": "high"}, ["'policies.planner@orca.priority'"]),
         (
-            {"kind": "privileged", "env": {"reaction": "orca"}, "options": {"reactive": True}, "arms": ["oracle"]},
-            ["'policies.planner@orca.options'", "reactive", "'privileged' planner"],
+            {"kind": "privileged", "env": {"reaction": "orca"}, "options": {"reactive": True, "beam": 0}},
+            ["'policies.planner@orca.options'", "'beam'", "'privileged' planner"],
         ),
     ],
 )
@@ -348,6 +351,44 @@ def test_across_reaction_tests_find_a_vanishing_gain_and_not_a_null(tmp_path: Pa
     assert fam["success"] == fam["navigation_time_s"] == (3 * 3 + 2) * 2
 
 
+def test_each_reaction_is_divided_by_its_own_ceiling_and_the_reactive_one_says_what_it_reads(
+    tmp_path: Path, no_weights: None
+) -> None:
+    policies = {
+        "planner@none": {"kind": "planner", "env": {"reaction": "none"}},
+        "planner@orca": {"kind": "planner", "env": {"reaction": "orca"}},
+        "privileged@none": {"kind": "privileged", "env": {"reaction": "none"}, "arms": ["oracle"]},
+        "privileged@orca": {
+            "kind": "privileged",
+            "env": {"reaction": "orca"},
+            "options": {"reactive": True},
+            "arms": ["oracle"],
+        },
+    }
+    raw = _raw(tmp_path, arms=["none", "oracle"], policies=policies, comparisons=[["oracle", "none"]])
+    raw.update(reaction_comparisons=[["orca", "none"]], disturbance_comparisons=[["oracle", "none"]])
+    cfg = ab.config_from_mapping(raw)
+    ok = np.arange(60) < 45
+    for split in cfg.splits:
+        for arm in ("none", "oracle"):
+            _cell(cfg, f"eval/{split}/planner@none/{arm}", ok, np.zeros(60))
+            _cell(cfg, f"eval/{split}/planner@orca/{arm}", ok, np.ones(60))
+        _cell(cfg, f"eval/{split}/privileged@none/oracle", np.ones(60, dtype=bool), np.zeros(60))
+        _cell(cfg, f"eval/{split}/privileged@orca/oracle", np.arange(60) < 50, np.ones(60))
+    summary = ab.summarize(cfg, out=lambda s: None, plots=False)
+    replay, orca = summary["ceilings"]
+    assert (
+        replay["policy"] == "privileged@none"
+        and "reactive" not in replay
+        and list(replay["fractions"]) == ["planner@none"]
+    )
+    assert orca["policy"] == "privileged@orca" and orca["reactive"] is True
+    assert orca["fractions"]["planner@orca"]["none"]["univ"] == pytest.approx(45 / 50)
+    text = (cfg.out_path() / "summary.md").read_text(encoding="utf-8")
+    assert "`privileged@orca` is PRIVILEGED: it rolls the reaction model forward" in text
+    assert "`privileged@none` is PRIVILEGED: it reads the replay's true future" in text
+
+
 def test_disturbance_means_intervals_and_tests(tmp_path: Path, no_weights: None) -> None:
     cfg = _known_grid(tmp_path)
     summary = ab.summarize(cfg, out=lambda s: None, plots=False)
@@ -495,3 +536,15 @@ def test_the_committed_planner_grid_rerenders_unchanged(
     assert ab.main(["configs/ablation/planners.yaml", "--summarize-only"]) == 0
     assert "is up to date" in capsys.readouterr().out
     assert {p.name: p.read_bytes() for p in results.iterdir()} == before
+
+
+def test_the_gains_by_reaction_plot_is_drawn_for_a_reacting_grid_only(tmp_path: Path, no_weights: None) -> None:
+    from agents.ablation.plots import write_plots
+
+    cfg = _known_grid(tmp_path)
+    summary = ab.summarize(cfg, out=lambda s: None, plots=False)
+    written = write_plots(summary, tmp_path)
+    assert str(tmp_path / "gains_by_reaction.png") in written
+    assert (tmp_path / "gains_by_reaction.png").stat().st_size > 1000
+    replay_only = {**summary, "reaction_tests": [{**t, "missing": True} for t in summary["reaction_tests"]]}
+    assert not any(p.endswith("gains_by_reaction.png") for p in write_plots(replay_only, tmp_path / "other"))

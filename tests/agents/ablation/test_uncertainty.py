@@ -210,6 +210,7 @@ def test_a_cell_gives_the_environment_and_the_planner_the_uncertainty_option(
     }
 
 
+@pytest.mark.slow
 def test_a_tiny_grid_with_an_uncertainty_arm_plans_with_the_regions(
     tmp_path: Path, data_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

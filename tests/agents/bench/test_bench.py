@@ -75,6 +75,7 @@ def test_bench_grid_pairs_the_predictor_with_the_references(tmp_path: Path) -> N
     assert [a.label for a in bench_grid("cv", tmp_path, ("univ",), 10, 0, ()).arms] == ["cv", "oracle"]
 
 
+@pytest.mark.slow
 def test_bench_writes_the_report_and_resumes(data_dir: Path, tmp_path: Path, still_plugin: str) -> None:
     cfg = BenchConfig(
         still_plugin, splits=("eth",), scenes=("zara1",), episodes=3, noisy_oracle_ade_m=(1.0,), resamples=200

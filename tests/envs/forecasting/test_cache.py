@@ -46,6 +46,7 @@ def files(root: Path) -> list[Path]:
     return sorted(root.glob("*/*.npz"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("memory", ["window", "carried"])
 def test_disk_cache_equals_online_forecasts_and_is_reused(
     data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable, lockstep: Callable, memory: str
@@ -64,6 +65,7 @@ def test_disk_cache_equals_online_forecasts_and_is_reused(
     assert source(fresh).calls == 0 and source(fresh).chunks_loaded > 0 and source(fresh).chunks_computed == 0
 
 
+@pytest.mark.slow
 def test_weights_and_recording_are_part_of_the_key(
     data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable
 ) -> None:
@@ -86,6 +88,7 @@ def test_weights_and_recording_are_part_of_the_key(
     assert len(files(tmp_path)) == 9
 
 
+@pytest.mark.slow
 def test_corrupt_and_stale_files_are_rebuilt_with_a_warning(
     data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable
 ) -> None:
@@ -135,6 +138,7 @@ print(json.dumps({"calls": f.calls, "computed": f.chunks_computed, "loaded": f.c
 """
 
 
+@pytest.mark.slow
 def test_processes_share_the_cache(tmp_path: Path) -> None:
     env = {**os.environ, CACHE_ENV_VAR: str(tmp_path)}
 
@@ -201,6 +205,7 @@ def test_carried_forecasts_are_computed_once_by_processes_started_together(tmp_p
     assert sum(r["computed"] for r in results) == 4 and sum(r["loaded"] for r in results) == 1, results
 
 
+@pytest.mark.slow
 def test_build_command_fills_the_cache_for_envs(
     data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -89,6 +89,7 @@ def test_building_the_cache_computes_on_one_thread_and_restores_the_callers(
     assert seen.threads and set(seen.threads) == {FORECAST_THREADS} == {1}
 
 
+@pytest.mark.slow
 def test_the_cache_build_writes_the_same_bytes_whatever_the_callers_threads(
     data_dir: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:

@@ -166,9 +166,27 @@ def test_errors_name_what_is_wrong() -> None:
 def test_reacting_pedestrians_are_refused_naming_key_value_and_what_to_use(reaction: str) -> None:
     with pytest.raises(NotImplementedError, match=f"'reaction' = '{reaction}'.*SyncVectorEnv"):
         BatchedCrowdNavEnv(num_envs=2, predictor="none", crowd="empty", reaction=reaction)
-    with pytest.raises(NotImplementedError, match=f"'reaction' = '{reaction}'"):
-        gymnasium.make_vec(
+    # gymnasium.make_vec steps single environments instead, and says so
+    with pytest.warns(UserWarning, match=f"'reaction' = '{reaction}'.*SyncVectorEnv"):
+        envs = gymnasium.make_vec(
             "CrowdNav-NoPred-v0", num_envs=2, vectorization_mode="vector_entry_point", crowd="empty", reaction=reaction
         )
+    assert isinstance(envs, gymnasium.vector.SyncVectorEnv) and envs.num_envs == 2
+    assert all(e.unwrapped.reaction == reaction for e in envs.envs)
+    envs.reset(seed=0)
+    envs.step(envs.action_space.sample())
+    envs.close()
     with pytest.raises(NotImplementedError, match=f"'reaction' = '{reaction}'"):  # from a config mapping too
         BatchedCrowdNavEnv(num_envs=2, config={"reaction": reaction}, predictor="none", crowd="empty")
+
+
+def test_make_vec_renders_through_single_environments_and_says_so() -> None:
+    with pytest.raises(NotImplementedError, match="does not render"):
+        BatchedCrowdNavEnv(num_envs=2, predictor="none", crowd="empty", render_mode="rgb_array")
+    with pytest.warns(UserWarning, match="does not render.*SyncVectorEnv"):
+        envs = gymnasium.make_vec("CrowdNav-NoPred-v0", num_envs=2, crowd="empty", render_mode="rgb_array")
+    assert isinstance(envs, gymnasium.vector.SyncVectorEnv)
+    envs.reset(seed=0)
+    frames = envs.render()
+    assert len(frames) == 2 and frames[0].ndim == 3
+    envs.close()
