@@ -33,7 +33,7 @@ from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError
 from envs.config import CrowdNavConfig
 from envs.forecasting.cache import predictor_fingerprint
-from envs.forecasting.factory import WEIGHTS_HELP, PredictorUnavailableError, forecast_store
+from envs.forecasting.factory import forecast_store, load_learned
 from envs.forecasting.resampling import time_key
 from envs.forecasting.sources import ForecastSource, split_of_recording
 from envs.forecasting.window import PredictorForecast
@@ -121,30 +121,6 @@ class SampleSource:
         return out
 
 
-_LOADED: dict[tuple[str, str], Any] = {}
-
-
-def load_distribution(name: str, split: str, needed_for: str) -> Any:
-    """The distribution of forecast source ``name`` for ``split`` (a Gaussian head's weights, or ``cv_gaussian``), one
-    object per process.
-
-    Raises:
-        PredictorUnavailableError: naming the model, the split, what it was needed for and the cause.
-    """
-    key = (name, split)
-    if key not in _LOADED:
-        from crowdnav_mesrnn.evaluation.protocol import load_shipped
-
-        try:
-            _LOADED[key] = load_shipped(name, split, head="gaussian")
-        except Exception as exc:  # any failure to load is reported the same way, with its cause
-            raise PredictorUnavailableError(
-                f"the distribution of {name!r} for split {split!r} (needed to sample the futures of {needed_for}) "
-                f"could not be loaded: {type(exc).__name__}: {str(exc).rstrip('.')}. {WEIGHTS_HELP}"
-            ) from exc
-    return _LOADED[key]
-
-
 def make_sample_source(
     config: CrowdNavConfig, recordings: Sequence[str], forecaster: ForecastSource, predictor: Any = None
 ) -> SampleSource:
@@ -155,6 +131,8 @@ def make_sample_source(
     Raises:
         ConfigError: a predictor object or a source without a distribution (naming the ones with one), carried
             forecasts, or pedestrians who react.
+        PredictorUnavailableError: a distribution could not be loaded
+            (:func:`envs.forecasting.factory.load_learned`).
     """
     name = config.predictor
     with_distribution = predictors.names(*SAMPLED_KINDS, plugins=False)
@@ -174,9 +152,9 @@ def make_sample_source(
     for rec in recordings:
         split = split_of_recording(rec)
         if split is None:
-            default = GaussianTable(load_distribution(name, config.split, rec))
+            default = GaussianTable(load_learned(name, config.split, rec, head="gaussian"))
         else:
-            per_recording[rec] = GaussianTable(load_distribution(name, split, rec))
+            per_recording[rec] = GaussianTable(load_learned(name, split, rec, head="gaussian"))
     table = PredictorForecast(
         f"{name} distribution",
         per_recording,
