@@ -210,15 +210,16 @@ class Arm:
 
     def spec(self) -> dict[str, Any]:
         """What a cell's spec and the summary say of the arm beyond its source: only the keys of the variant it is
-        (none for a point arm, so the specs of every other arm stay as they were)."""
-        out: dict[str, Any] = {}
-        if self.uncertainty:
-            out["uncertainty"] = True
-            if self.uncertainty_method != "split":
-                out["uncertainty_method"] = self.uncertainty_method
-        if self.samples:
-            out["samples"] = self.samples
-        return out
+        (none for a point arm, so the specs of every other arm stay as they were): its environment keys, renamed."""
+        return {_VARIANT_SPEC[k]: v for k, v in self.env_overrides().items() if k in _VARIANT_SPEC}
+
+
+#: The environment keys of an uncertainty or samples arm -> their names in a cell's spec and the summary.
+_VARIANT_SPEC: Final[dict[str, str]] = {
+    "forecast_uncertainty": "uncertainty",
+    "forecast_uncertainty_method": "uncertainty_method",
+    "forecast_samples": "samples",
+}
 
 
 @dataclass(frozen=True)

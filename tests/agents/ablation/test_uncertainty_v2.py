@@ -11,24 +11,24 @@ import pytest
 
 import agents.ablation as ab
 from crowdnav_mesrnn.config import ConfigError
+from tests.agents.ablation.test_uncertainty import _raw as unc_raw
 
 REPO = Path(__file__).resolve().parents[3]
 
 
 def _raw(tmp_path: Path, **changes: Any) -> dict[str, Any]:
-    raw: dict[str, Any] = {
-        "name": "tiny_v2",
-        "runs_dir": str(tmp_path / "runs"),
-        "out_dir": str(tmp_path / "results"),
-        "splits": ["zara1"],
-        "arms": ["mesrnn", "mesrnn_unc", "mesrnn_unc_online", "mesrnn_samples", "cv_gaussian_samples"],
-        "seeds": [0],
-        "policies": {"search": {"kind": "search"}},
-        "evaluation": {"episodes": 2, "seed": 0},
-        "comparisons": [["mesrnn_samples", "mesrnn"], ["mesrnn_unc_online", "mesrnn_unc"]],
-    }
-    raw.update(changes)
-    return raw
+    """The uncertainty arms' tiny grid (:func:`tests.agents.ablation.test_uncertainty._raw`) with online and samples
+    arms on the search planner."""
+    return unc_raw(
+        tmp_path,
+        **{
+            "name": "tiny_v2",
+            "arms": ["mesrnn", "mesrnn_unc", "mesrnn_unc_online", "mesrnn_samples", "cv_gaussian_samples"],
+            "policies": {"search": {"kind": "search"}},
+            "comparisons": [["mesrnn_samples", "mesrnn"], ["mesrnn_unc_online", "mesrnn_unc"]],
+            **changes,
+        },
+    )
 
 
 def test_online_and_samples_arms_set_the_environment_and_the_planner(tmp_path: Path) -> None:

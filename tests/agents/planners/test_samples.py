@@ -11,27 +11,24 @@ import pytest
 from agents.planners import SearchPlanner, StraightToGoal
 from envs.config import config_from
 from envs.crowd_nav import CrowdNavEnv
+from tests.agents.planners.test_uncertainty import observation as region_observation
 
 CFG = config_from({"num_pedestrians": 2, "horizon_steps": 12, "flatten_observation": False, "forecast_samples": 10}, {})
 
 
 def observation(now_y: float, sample_y: list[float], from_step: int = 0) -> dict[str, np.ndarray]:
-    """Robot at rest, goal 10 m ahead on x; one pedestrian at (2, ``now_y``) whose forecast stays there and whose
-    samples stand at (2, ``sample_y[s]``) from look-ahead step ``from_step`` on."""
-    fc = np.zeros((2, 12, 2), np.float32)
-    fc[0] = (2.0, now_y)
-    peds = np.zeros((2, 4), np.float32)
-    peds[0, :2] = (2.0, now_y)
+    """The region tests' scene (:func:`tests.agents.planners.test_uncertainty.observation`: robot at rest, goal 10 m
+    ahead on x) with its pedestrian at (2, ``now_y``), forecast to stay there, and samples standing at
+    (2, ``sample_y[s]``) from look-ahead step ``from_step`` on."""
+    obs = region_observation(0.0)
+    del obs["forecast_uncertainty"]
+    obs["forecasts"][0] = (2.0, now_y)
+    obs["pedestrians"][0, :2] = (2.0, now_y)
     samples = np.zeros((2, len(sample_y), 12, 2), np.float32)
     samples[0] = (2.0, now_y)
     samples[0, :, from_step:, 1] = np.asarray(sample_y, np.float32)[:, None]
-    return {
-        "robot": np.array([10.0, 0.0, 0.0, 0.0], np.float32),
-        "pedestrians": peds,
-        "mask": np.array([1, 0], np.int8),
-        "forecasts": fc,
-        "forecast_samples": samples,
-    }
+    obs["forecast_samples"] = samples
+    return obs
 
 
 def test_samples_all_on_the_point_forecast_give_the_point_planners_choice() -> None:
