@@ -329,6 +329,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
       episode metrics add the disturbance metrics (0 without a reaction). ``reaction="none"``, the default, gives the
       episodes of revision 1 bit for bit (observations, rewards and every earlier info key; tested), so results of
       revision 1 stay valid for it; a reaction model is named beside the revision (:func:`env_rules`).
+    * v0, ``env_revision`` 1 (unchanged): ``forecast_uncertainty_method`` (``online`` thresholds) and
+      ``forecast_samples`` (the optional ``forecast_samples`` key). Their defaults, ``split`` and 0, give the
+      observations of revision 1 bit for bit (tested).
     """
 
     metadata: dict[str, Any] = {"render_modes": ["human", "rgb_array"], "render_fps": 2.5}  # noqa: RUF012
