@@ -37,6 +37,8 @@ FORECAST_MEMORIES: Final[tuple[str, ...]] = ("window", "carried")
 #: Which part of each recording's duration episodes lie in (``episode_time=``): ``val`` = the last
 #: ``val_fraction``, ``train`` = before it, ``all`` = anywhere.
 EPISODE_TIMES: Final[tuple[str, ...]] = ("all", "train", "val")
+#: How the ``forecast_uncertainty`` thresholds are set (``forecast_uncertainty_method=``); ``split`` is the default.
+UNCERTAINTY_METHODS: Final[tuple[str, ...]] = ("split", "online")
 
 
 @dataclass(frozen=True)
@@ -140,6 +142,20 @@ class CrowdNavConfig:
     (:mod:`envs.forecasting.uncertainty`)."""
     forecast_uncertainty_level: float = 0.9
     """Coverage level of the ``forecast_uncertainty`` radii, in (0, 1)."""
+    forecast_uncertainty_method: str = "split"
+    """How each forecast step's threshold is set: ``split`` (split conformal, fixed on the split's validation windows)
+    or ``online`` (the strictly causal ``observed`` rule with step-size experts of
+    :mod:`crowdnav_mesrnn.uncertainty.online_conformal`, run inside each episode: it starts from the split thresholds
+    at the episode's first annotation and learns from how far the episode's earlier forecasts missed, as their truth
+    is annotated; it restarts every episode). ``online`` needs a named forecast source's window forecasts and
+    ``reaction: none``."""
+    forecast_samples: int = 0
+    """Add ``forecast_samples`` ``(K, S, H, 2)`` to the observation: ``S`` (this many) sampled futures of each observed
+    pedestrian at ``t + h * dt_s``, relative to the robot, drawn from the forecast source's distribution (the Gaussian
+    head of ``mesrnn``, ``srnn``, ``vlstm``: their shipped ``gaussian`` weights of the split, beside the point weights
+    of ``forecasts``; ``cv_gaussian``'s own), coherently, with a seed fixed by the recording and the time
+    (:mod:`envs.forecasting.samples`). 0: none. Only for those sources, ``forecast_memory: window`` and ``reaction:
+    none``."""
 
     # ----------------------------------------------------------------- forecasts
     cache_forecasts: bool = True
@@ -309,6 +325,7 @@ _CHOICES: Final[dict[str, tuple[str, ...]]] = {
     "kinematics": KINEMATICS,
     "forecast_memory": FORECAST_MEMORIES,
     "episode_time": EPISODE_TIMES,
+    "forecast_uncertainty_method": UNCERTAINTY_METHODS,
 }
 #: Boolean keys.
 _FLAGS: Final[tuple[str, ...]] = (
@@ -328,6 +345,7 @@ _INTEGERS: Final[dict[str, tuple[int, int | None]]] = {
     "render_trail_steps": (1, 10_000),
     "synthetic_seed": (0, None),
     "crowd_overlays": (0, 100),
+    "forecast_samples": (0, 1000),
 }
 #: Real keys -> (low, high, low open, high open); None = unbounded. Every one must also be finite.
 _NUMBERS: Final[dict[str, tuple[float | None, float | None, bool, bool]]] = {

@@ -33,6 +33,7 @@ from envs.config import (
 from envs.episodes import Episode, EpisodeSampler, episode_time_window
 from envs.forecasting.factory import make_forecast_source
 from envs.forecasting.observed import needs_observed, observed_forecasts
+from envs.forecasting.samples import SampleSource, make_sample_source
 from envs.forecasting.sources import ForecastModel, ForecastSource, TrueFuture, fill_forward
 from envs.forecasting.uncertainty import UncertaintySource, make_uncertainty_source
 from envs.forecasting.window import PredictorForecast
@@ -232,6 +233,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     | ``mask`` | (K,) | 1 where the row holds a pedestrian within R | 0 | 1 | |
     | ``forecasts`` | (K, H, 2) | forecast position at t + h dt minus robot position (absent for ``none``) | -(R+sHdt) | R+sHdt | m |
     | ``forecast_uncertainty`` | (K, H) | radius of the calibrated region around each forecast (``forecast_uncertainty`` only) | 0 | R+sHdt | m |
+    | ``forecast_samples`` | (K, S, H, 2) | S sampled futures at t + h dt minus robot position (``forecast_samples`` = S > 0 only) | -(R+sHdt) | R+sHdt | m |
 
     (*) Pedestrians are perceived causally, as a tracker reporting at the recording's annotation rate:
     at time t the latest annotation at or before t (its positions; velocities = the slope of the
@@ -327,6 +329,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
       episode metrics add the disturbance metrics (0 without a reaction). ``reaction="none"``, the default, gives the
       episodes of revision 1 bit for bit (observations, rewards and every earlier info key; tested), so results of
       revision 1 stay valid for it; a reaction model is named beside the revision (:func:`env_rules`).
+    * v0, ``env_revision`` 1 (unchanged): ``forecast_uncertainty_method`` (``online`` thresholds) and
+      ``forecast_samples`` (the optional ``forecast_samples`` key). Their defaults, ``split`` and 0, give the
+      observations of revision 1 bit for bit (tested).
     """
 
     metadata: dict[str, Any] = {"render_modes": ["human", "rgb_array"], "render_fps": 2.5}  # noqa: RUF012
@@ -379,6 +384,10 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self.predictor_name = self.forecaster.name
         self.with_forecasts = self.forecaster.active
         self.uncertainty: UncertaintySource | None = None
+        self._episode_uncertainty: UncertaintySource | None = None
+        self.samples: SampleSource | None = None
+        if cfg.forecast_samples:
+            self.samples = make_sample_source(cfg, [r.name for r in self.recordings], self.forecaster, predictor_obj)
         if cfg.forecast_uncertainty and self.with_forecasts:  # the none arm has no forecasts to be uncertain about
             self.uncertainty = make_uncertainty_source(cfg, self.forecaster, predictor_obj)
         self.reaction: str = cfg.reaction
@@ -642,6 +651,9 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._k0: int | None = k0 if abs(ep.t0_s - k0 * cfg.dt_s) < 1e-9 else None
         if self._reactive is not None:
             self._reactive.reset(self._replay, self._time(0))
+        if self.uncertainty is not None:  # the radii of this episode (a tracker per episode under "online")
+            tracked = self._tracked()
+            self._episode_uncertainty = self.uncertainty.for_episode(tracked, tracked.perceived_at(self._time(0)).index)
         return ep
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
@@ -861,8 +873,11 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             intruding = bool(np.any((dfut < self._r_sum) & present[1:] & pres_now[None, :]))
         fc = self._forecast(t_s, rows, seen.positions, positions, present) if len(rows) else None
         unc = None
-        if self.uncertainty is not None and fc is not None:
-            unc = self.uncertainty.radius(tracked, t_s, rows, seen.age_s, seen.index)
+        if self._episode_uncertainty is not None and fc is not None:
+            unc = self._episode_uncertainty.radius(tracked, t_s, rows, seen.age_s, seen.index)
+        samples = None
+        if self.samples is not None and fc is not None:
+            samples = self.samples.draw(tracked, t_s, rows)
         time_left = 1.0 - self._n / self.episode.max_steps
         obs = self._builder.build(
             robot,
@@ -875,6 +890,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             time_left,
             seen.age_s,
             unc,
+            samples,
         )
         ttc = self._time_to_collision(robot, p_now, pres_now) if self._n > 0 else math.inf
         self._trails.append((p_now, pres_now))

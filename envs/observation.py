@@ -33,6 +33,9 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
         ``forecast_uncertainty`` (with ``forecast_uncertainty`` and forecasts): ``(K, H)`` float32 radius (m) of
         the disc around each forecast position holding the true one with probability ``forecast_uncertainty_level``
         (0 on empty rows; :mod:`envs.forecasting.uncertainty`).
+        ``forecast_samples`` (with ``forecast_samples`` = S > 0 and forecasts): ``(K, S, H, 2)`` float32 sampled future
+        positions relative to the robot's current position (m) at ``t + h * dt_s`` (0 on empty rows;
+        :mod:`envs.forecasting.samples`).
     """
     k, h = cfg.num_pedestrians, cfg.horizon_steps
     v = cfg.robot_pref_speed_mps
@@ -62,12 +65,18 @@ def observation_space(cfg: CrowdNavConfig, with_forecasts: bool) -> spaces.Dict:
             if cfg.flatten_observation:
                 unc_hi = unc_hi.reshape(-1)
             out["forecast_uncertainty"] = spaces.Box(np.zeros_like(unc_hi), unc_hi, dtype=np.float32)
+        if cfg.forecast_samples:
+            smp_hi = np.full((k, cfg.forecast_samples, h, 2), forecast_bound_m(cfg), dtype=np.float32)
+            if cfg.flatten_observation:
+                smp_hi = smp_hi.reshape(-1)
+            out["forecast_samples"] = spaces.Box(-smp_hi, smp_hi, dtype=np.float32)
     return spaces.Dict(out)
 
 
 def structured(obs: dict[str, np.ndarray], num_pedestrians: int, horizon_steps: int) -> dict[str, np.ndarray]:
-    """Views of an observation (single or batched ``(B, ...)``) with ``pedestrians`` as ``(..., K, 4)``
-    and ``forecasts`` as ``(..., K, H, 2)``, whether or not it was flattened."""
+    """Views of an observation (single or batched ``(B, ...)``) with ``pedestrians`` as ``(..., K, 4)``,
+    ``forecasts`` as ``(..., K, H, 2)`` and ``forecast_samples`` as ``(..., K, S, H, 2)``, whether or not it was
+    flattened."""
     out = dict(obs)
     lead = obs["mask"].shape[:-1]
     out["pedestrians"] = obs["pedestrians"].reshape(*lead, num_pedestrians, 4)
@@ -75,6 +84,8 @@ def structured(obs: dict[str, np.ndarray], num_pedestrians: int, horizon_steps: 
         out["forecasts"] = obs["forecasts"].reshape(*lead, num_pedestrians, horizon_steps, 2)
     if "forecast_uncertainty" in obs:
         out["forecast_uncertainty"] = obs["forecast_uncertainty"].reshape(*lead, num_pedestrians, horizon_steps)
+    if "forecast_samples" in obs:
+        out["forecast_samples"] = obs["forecast_samples"].reshape(*lead, num_pedestrians, -1, horizon_steps, 2)
     return out
 
 
@@ -133,6 +144,7 @@ class ObservationBuilder:
         self.fc_bound = forecast_bound_m(cfg)
         self.flat = cfg.flatten_observation
         self.with_uncertainty = with_forecasts and cfg.forecast_uncertainty
+        self.samples = cfg.forecast_samples if with_forecasts else 0
 
     def build(
         self,
@@ -146,6 +158,7 @@ class ObservationBuilder:
         time_left: float = 1.0,
         perception_age_s: float = 0.0,
         uncertainty: np.ndarray | None = None,
+        samples: np.ndarray | None = None,
     ) -> dict[str, np.ndarray]:
         """One observation.
 
@@ -160,6 +173,7 @@ class ObservationBuilder:
             time_left: fraction of the time limit left (used with ``observe_time_left``).
             perception_age_s: age of the perceived annotation, s (used with ``observe_perception_age``).
             uncertainty: ``(m, H)`` radii of the forecasts' regions, metres (used with ``forecast_uncertainty``).
+            samples: ``(m, S, H, 2)`` world positions of sampled futures (used with ``forecast_samples``).
         """
         m = len(ped_positions)
         robot = np.empty(self.robot_size, dtype=np.float32)
@@ -194,4 +208,9 @@ class ObservationBuilder:
             if m and uncertainty is not None:
                 unc[:m] = np.clip(uncertainty, 0.0, self.fc_bound)
             obs["forecast_uncertainty"] = unc.reshape(-1) if self.flat else unc
+        if self.samples:
+            smp = np.zeros((self.k, self.samples, self.h, 2), dtype=np.float32)
+            if m and samples is not None:
+                smp[:m] = _clip(samples - robot_position, self.fc_bound)
+            obs["forecast_samples"] = smp.reshape(-1) if self.flat else smp
         return obs

@@ -139,8 +139,7 @@ def cell_spec(cfg: AblationConfig, cell: Cell) -> dict[str, Any]:
         "env": dict(sorted(cfg.env_for(cell.policy).items())),
         "env_revision": _env_revision(),
     }
-    if cell.arm.uncertainty:  # only then: the specs of every other arm stay as they were (their cells stay done)
-        spec["uncertainty"] = True
+    spec.update(cell.arm.spec())  # only for a variant: the specs of every other arm stay as they were (cells stay done)
     if cell.kind == "train":
         spec.update(
             agent_config=cell.policy.config,
@@ -303,10 +302,17 @@ def _pooled(samples: Mapping[_RateKey, list[float]]) -> dict[_RateKey, float]:
     return {k: len(v) / sum(1.0 / r for r in v) for k, v in samples.items() if v}
 
 
+def _rate_arm(arm: Arm) -> str:
+    """What a rate is kept per: the arm's source, or for an arm that plans with more (regions, samples: another cost)
+    its label."""
+    return arm.label if arm.variant else arm.predictor
+
+
 def measured_rates(cfg: AblationConfig) -> dict[_RateKey, float]:
     """Throughput of the finished cells in the grid's run folders: ``(kind, policy kind, arm source) -> rate``
     (training: env steps/s, evaluation: episodes/s; each cell's own ``cell.json``, wall time of the whole cell
-    -- warm start, validation, every attempt -- included), pooled as total work over total time."""
+    -- warm start, validation, every attempt -- included), pooled as total work over total time. Uncertainty and
+    samples arms are kept per arm label (:func:`_rate_arm`)."""
     samples: dict[_RateKey, list[float]] = {}
     root = cfg.runs_path()
     if not root.is_dir():
@@ -318,7 +324,9 @@ def measured_rates(cfg: AblationConfig) -> dict[_RateKey, float]:
         spec = meta.get("spec") or {}
         rate = meta.get("steps_per_s") if spec.get("kind") == "train" else meta.get("episodes_per_s")
         if isinstance(rate, int | float) and rate > 0:
-            key = (str(spec.get("kind")), str(spec.get("policy_kind")), str(spec.get("predictor")))
+            variant = "uncertainty" in spec or "samples" in spec
+            arm = spec.get("arm") if variant else spec.get("predictor")
+            key = (str(spec.get("kind")), str(spec.get("policy_kind")), str(arm))
             samples.setdefault(key, []).append(float(rate))
     return _pooled(samples)
 
@@ -334,7 +342,7 @@ def recorded_rates(cfg: AblationConfig) -> dict[_RateKey, float]:
         rate = rec.get("steps_per_s" if cell is not None and cell.kind == "train" else "episodes_per_s")
         if cell is None or rec.get("state") != "done" or not isinstance(rate, int | float) or rate <= 0:
             continue
-        samples.setdefault((cell.kind, cell.policy.kind, cell.arm.predictor), []).append(float(rate))
+        samples.setdefault((cell.kind, cell.policy.kind, _rate_arm(cell.arm)), []).append(float(rate))
     return _pooled(samples)
 
 
@@ -355,8 +363,9 @@ def estimate_seconds(
 ) -> tuple[float, str]:
     """Estimated run time of a cell, seconds, and where its rate comes from (one of :data:`RATE_SOURCES`):
     ``rates`` (:func:`measured_rates`), else ``recorded`` (:func:`recorded_rates`), else the config's
-    ``estimates``."""
-    key = (cell.kind, cell.policy.kind, cell.arm.predictor)
+    ``estimates`` (an evaluation's by ``<policy name>/<arm label>``, arm label, policy name, policy kind, then
+    ``default``)."""
+    key = (cell.kind, cell.policy.kind, _rate_arm(cell.arm))
     if cell.kind == "train":
         work = float(cell.policy.timesteps or 0)
         defaults = cfg.train_steps_per_s
@@ -364,7 +373,8 @@ def estimate_seconds(
     else:
         work = float(cfg.episodes)
         defaults = cfg.eval_episodes_per_s
-        default = defaults.get(cell.policy.name, defaults.get(cell.policy.kind, defaults.get("default", 2.0)))
+        keys = (f"{cell.policy.name}/{cell.arm.label}", cell.arm.label, cell.policy.name, cell.policy.kind, "default")
+        default = next((defaults[k] for k in keys if k in defaults), 2.0)
     for source, table in zip(RATE_SOURCES, (rates, recorded or {}), strict=False):
         if key in table:
             return work / table[key], source

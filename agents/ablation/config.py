@@ -32,11 +32,36 @@ UNCERTAINTY_SUFFIX: Final[str] = "_unc"
 #: (its regions are the known noise, not a calibration) or plug-ins (no calibration).
 UNCERTAINTY_SOURCES: Final[tuple[str, ...]] = predictors.names(
     predictors.BASELINE, predictors.PRETRAINED, plugins=False
-)
+) + predictors.names(predictors.FITTED_BASELINE, plugins=False)
+
+
+#: Suffix of an online-region arm: ``<source>_unc_online`` is ``<source>_unc`` with the regions' thresholds tracked
+#: inside each episode (the environment's ``forecast_uncertainty_method="online"``).
+ONLINE_UNCERTAINTY_SUFFIX: Final[str] = "_unc_online"
 
 
 #: Policy kinds with the ``uncertainty`` option (:mod:`agents.planners`), the only ones uncertainty arms run.
 UNCERTAINTY_KINDS: Final[tuple[str, ...]] = ("planner", "search")
+
+
+#: Suffix of a samples arm: ``<source>_samples`` plans against :data:`ARM_SAMPLES` sampled futures of each pedestrian
+#: from the source's distribution (the environment's ``forecast_samples``, the search planner's ``samples=True``).
+SAMPLES_SUFFIX: Final[str] = "_samples"
+
+
+#: Sources with a samples arm: those with a distribution (``cv_gaussian``, the Gaussian heads of the structural RNNs;
+#: :mod:`envs.forecasting.samples`).
+SAMPLES_SOURCES: Final[tuple[str, ...]] = predictors.names(
+    predictors.FITTED_BASELINE, predictors.PRETRAINED, plugins=False
+)
+
+
+#: Sampled futures per pedestrian of a samples arm (the environment's ``forecast_samples``): best-of-20's K.
+ARM_SAMPLES: Final[int] = 20
+
+
+#: Policy kinds with the ``samples`` option (:class:`agents.planners.SearchPlanner`), the only ones samples arms run.
+SAMPLES_KINDS: Final[tuple[str, ...]] = ("search",)
 
 
 #: Policy kinds: learned ones are trained per arm and seed, the others only evaluated.
@@ -142,7 +167,7 @@ _GRID_OVERRIDES: Final[dict[str, str]] = {
 @dataclass(frozen=True)
 class Arm:
     """One forecast arm: a forecast source, for ``noisy_oracle`` its target ADE, and whether it plans with the
-    forecasts' uncertainty regions."""
+    forecasts' uncertainty regions (split or online thresholds) or with sampled futures."""
 
     label: str
     """Name in cell paths and the summary (``mesrnn``, ``noisy_oracle-0.25``, ``mesrnn_unc``)."""
@@ -154,17 +179,47 @@ class Arm:
     """An uncertainty arm (``<source>_unc``, source in :data:`UNCERTAINTY_SOURCES`): the environment adds the
     forecasts' calibrated uncertainty radii (``forecast_uncertainty=True``) and the planner keeps clear of the
     regions (``uncertainty=True``)."""
+    uncertainty_method: str = "split"
+    """The regions' thresholds (the environment's ``forecast_uncertainty_method``): ``online`` for
+    ``<source>_unc_online``."""
+    samples: int = 0
+    """A samples arm (``<source>_samples``, source in :data:`SAMPLES_SOURCES`): this many sampled futures per pedestrian
+    in the observation (``forecast_samples``), planned against by the search planner (``samples=True``)."""
+
+    @property
+    def variant(self) -> bool:
+        """The arm plans with more than its source's forecasts (regions or samples): a source's name never names it."""
+        return self.uncertainty or self.samples > 0
 
     def env_overrides(self) -> dict[str, Any]:
         """Environment keys this arm sets besides ``predictor``."""
         out: dict[str, Any] = {} if self.noisy_oracle_ade_m is None else {"noisy_oracle_ade_m": self.noisy_oracle_ade_m}
         if self.uncertainty:
             out["forecast_uncertainty"] = True
+            if self.uncertainty_method != "split":
+                out["forecast_uncertainty_method"] = self.uncertainty_method
+        if self.samples:
+            out["forecast_samples"] = self.samples
         return out
 
     def planner_options(self) -> dict[str, Any]:
         """Planner options this arm sets (on top of the policy's ``options``)."""
+        if self.samples:
+            return {"samples": True}
         return {"uncertainty": True} if self.uncertainty else {}
+
+    def spec(self) -> dict[str, Any]:
+        """What a cell's spec and the summary say of the arm beyond its source: only the keys of the variant it is
+        (none for a point arm, so the specs of every other arm stay as they were): its environment keys, renamed."""
+        return {_VARIANT_SPEC[k]: v for k, v in self.env_overrides().items() if k in _VARIANT_SPEC}
+
+
+#: The environment keys of an uncertainty or samples arm -> their names in a cell's spec and the summary.
+_VARIANT_SPEC: Final[dict[str, str]] = {
+    "forecast_uncertainty": "uncertainty",
+    "forecast_uncertainty_method": "uncertainty_method",
+    "forecast_samples": "samples",
+}
 
 
 @dataclass(frozen=True)
@@ -252,7 +307,8 @@ class AblationConfig:
     train_steps_per_s: Mapping[str, float] = field(default_factory=lambda: {"default": 1000.0})
     """Fallback training throughputs per arm label or source (``default`` for the others), env steps/s."""
     eval_episodes_per_s: Mapping[str, float] = field(default_factory=lambda: {"default": 2.0})
-    """Fallback evaluation throughputs per policy kind (``default`` for the others), episodes/s."""
+    """Fallback evaluation throughputs per ``<policy name>/<arm label>``, arm label, policy name or policy kind, looked
+    up in that order (``default`` for the others), episodes/s."""
     description: str = ""
     source: str = ""
     """The YAML file it was read from."""
@@ -484,6 +540,12 @@ def _policies(value: Any) -> tuple[PolicySpec, ...]:
                     options["uncertainty"],
                     f"nothing: an uncertainty arm sets it ({', '.join(s + UNCERTAINTY_SUFFIX for s in UNCERTAINTY_SOURCES)})",
                 )
+            if "samples" in options:
+                raise _bad(
+                    f"{where}.options.samples",
+                    options["samples"],
+                    f"nothing: a samples arm sets it ({', '.join(s + SAMPLES_SUFFIX for s in SAMPLES_SOURCES)})",
+                )
             env = _env_mapping(spec.get("env"), f"{where}.env")
             out.append(PolicySpec(str(name), kind, options=dict(options), env=env, priority=priority))
     return tuple(out)
@@ -497,8 +559,8 @@ def _policy_arms(policy: PolicySpec, raw: Mapping[str, Any], arms: Sequence[Arm]
     key = f"policies.{policy.name}.arms"
     labels = [a.label for a in arms]
     # a source that is not itself an arm's label names every arm of that source (the noisy-oracle sweep); never
-    # an uncertainty arm, which is named by its label only
-    names = labels + sorted({a.predictor for a in arms if not a.uncertainty} - set(labels))
+    # an uncertainty or samples arm, which is named by its label only
+    names = labels + sorted({a.predictor for a in arms if not a.variant} - set(labels))
     if not isinstance(value, list) or not value:
         raise _bad(key, value, "a non-empty list of " + ", ".join(names))
     chosen: list[str] = []
@@ -508,29 +570,36 @@ def _policy_arms(policy: PolicySpec, raw: Mapping[str, Any], arms: Sequence[Arm]
         chosen += [
             a.label
             for a in arms
-            if (v == a.label or (v not in labels and v == a.predictor and not a.uncertainty)) and a.label not in chosen
+            if (v == a.label or (v not in labels and v == a.predictor and not a.variant)) and a.label not in chosen
         ]
     return dataclasses.replace(policy, arms=tuple(chosen))
 
 
 def _check_uncertainty_arms(policies: Sequence[PolicySpec], arms: Sequence[Arm]) -> None:
-    """Uncertainty arms run only policies with the planners' ``uncertainty`` option (:data:`UNCERTAINTY_KINDS`):
-    learned policies are not trained on the regions (out of scope), and straight-to-goal and the privileged
-    ceiling do not read forecasts. Raises :class:`ConfigError` naming ``policies.<name>.arms``."""
+    """Uncertainty arms run only policies with the planners' ``uncertainty`` option (:data:`UNCERTAINTY_KINDS`), samples
+    arms only those with the ``samples`` option (:data:`SAMPLES_KINDS`): learned policies are not trained on the
+    regions or samples (out of scope), and straight-to-goal and the privileged ceiling do not read forecasts. Raises
+    :class:`ConfigError` naming ``policies.<name>.arms``."""
     for policy in policies:
-        unc = [a.label for a in arms if a.uncertainty and policy.uses(a)]
-        if unc and policy.kind not in UNCERTAINTY_KINDS:
-            plain = [a.label for a in arms if not a.uncertainty]
+        for what, kinds, chosen in (
+            ("uncertainty", UNCERTAINTY_KINDS, [a.label for a in arms if a.uncertainty and policy.uses(a)]),
+            ("samples", SAMPLES_KINDS, [a.label for a in arms if a.samples and policy.uses(a)]),
+        ):
+            if not chosen or policy.kind in kinds:
+                continue
+            plain = [a.label for a in arms if not a.variant]
+            plan_with = "uncertainty regions" if what == "uncertainty" else "sampled futures"
             why = (
-                f"a learned {policy.kind!r} policy is not trained with uncertainty regions (out of scope)"
+                f"a learned {policy.kind!r} policy is not trained with {plan_with} (out of scope)"
                 if policy.learned
-                else f"a {policy.kind!r} policy does not plan with uncertainty regions"
+                else f"a {policy.kind!r} policy does not plan with {plan_with}"
             )
             raise _bad(
                 f"policies.{policy.name}.arms",
                 list(policy.arms) or "every arm",
-                f"arms without the uncertainty arms {', '.join(unc)}: {why}; only the {' and '.join(UNCERTAINTY_KINDS)} "
-                f"kinds run them. List this policy's arms, e.g. arms: [{', '.join(plain)}]",
+                f"arms without the {what} arms {', '.join(chosen)}: {why}; only the {' and '.join(kinds)} "
+                f"kind{'s' if len(kinds) > 1 else ''} run{'' if len(kinds) > 1 else 's'} them. List this policy's arms, "
+                f"e.g. arms: [{', '.join(plain)}]",
             )
 
 
@@ -595,6 +664,49 @@ def _check_training(policies: Sequence[PolicySpec], arms: Sequence[Arm], split: 
                 ) from None
 
 
+def _variant_arm(src: str) -> Arm | None:
+    """The uncertainty, online-region or samples arm ``src`` names; None for a forecast source or a predictor plug-in
+    (crowdnav-mesrnn bench's arm). Raises :class:`ConfigError` naming ``arms`` and the arms allowed for anything else."""
+    if src in ARM_SOURCES or predictors.is_plugin(src):
+        return None
+    unc_names = ", ".join(s + UNCERTAINTY_SUFFIX for s in UNCERTAINTY_SOURCES)
+    for suffix, sources in (
+        (ONLINE_UNCERTAINTY_SUFFIX, UNCERTAINTY_SOURCES),
+        (UNCERTAINTY_SUFFIX, UNCERTAINTY_SOURCES),
+        (SAMPLES_SUFFIX, SAMPLES_SOURCES),
+    ):
+        base = src.removesuffix(suffix)
+        if base == src:
+            continue
+        if base in sources:
+            if suffix == SAMPLES_SUFFIX:
+                return Arm(src, base, samples=ARM_SAMPLES)
+            method = "online" if suffix == ONLINE_UNCERTAINTY_SUFFIX else "split"
+            return Arm(src, base, uncertainty=True, uncertainty_method=method)
+        if suffix == SAMPLES_SUFFIX:
+            names = ", ".join(s + SAMPLES_SUFFIX for s in SAMPLES_SOURCES)
+            raise _bad("arms", src, f"samples arms {names} ({base!r} has no distribution to sample)")
+        why = {
+            "none": "none has no forecast to be uncertain about",
+            "oracle": f"the oracle's regions are 0, so oracle{suffix} would be the oracle arm again",
+            "noisy_oracle": "the noisy oracle's regions are its known noise, not a calibration",
+        }.get(base, f"{base!r} has no calibrated regions")
+        names = ", ".join(s + suffix for s in UNCERTAINTY_SOURCES)
+        raise _bad(
+            "arms",
+            src,
+            f"{'online-region' if suffix == ONLINE_UNCERTAINTY_SUFFIX else 'uncertainty'} arms {names} ({why})",
+        )
+    raise _bad(
+        "arms",
+        src,
+        ", ".join(ARM_SOURCES)
+        + f", an uncertainty arm ({unc_names}), an online-region arm (<source>{ONLINE_UNCERTAINTY_SUFFIX}, the same "
+        f"sources), a samples arm ({', '.join(s + SAMPLES_SUFFIX for s in SAMPLES_SOURCES)}), an installed predictor "
+        "plug-in or package.module:Factory",
+    )
+
+
 def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationConfig:
     """Validate a grid mapping (the YAML's content); every error is a :class:`ConfigError` naming the key."""
     check_keys(raw, _TOP_KEYS, "ablation config")
@@ -603,29 +715,11 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
         raise _bad("name", name, "a non-empty name without slashes or spaces")
     splits = _str_list(raw, "splits", SPLITS)
     sources = _str_list(raw, "arms")
-    unc_names = ", ".join(s + UNCERTAINTY_SUFFIX for s in UNCERTAINTY_SOURCES)
-    for src in sources:  # a forecast source, an uncertainty arm, or a predictor plug-in (crowdnav-mesrnn bench's arm)
-        if src in ARM_SOURCES or predictors.is_plugin(src):
-            continue
-        base = src.removesuffix(UNCERTAINTY_SUFFIX)
-        if base != src and base not in UNCERTAINTY_SOURCES:
-            why = {
-                "none": "none has no forecast to be uncertain about",
-                "oracle": "the oracle's regions are 0, so oracle_unc would be the oracle arm again",
-                "noisy_oracle": "the noisy oracle's regions are its known noise, not a calibration",
-            }.get(base, f"{base!r} has no calibrated regions")
-            raise _bad("arms", src, f"uncertainty arms {unc_names} ({why})")
-        if base == src:
-            raise _bad(
-                "arms",
-                src,
-                ", ".join(ARM_SOURCES)
-                + f", an uncertainty arm ({unc_names}), an installed predictor plug-in or package.module:Factory",
-            )
     arms: list[Arm] = []
     for src in sources:
-        if src.endswith(UNCERTAINTY_SUFFIX) and src.removesuffix(UNCERTAINTY_SUFFIX) in UNCERTAINTY_SOURCES:
-            arms.append(Arm(src, src.removesuffix(UNCERTAINTY_SUFFIX), uncertainty=True))
+        variant = _variant_arm(src)
+        if variant is not None:
+            arms.append(variant)
             continue
         if src != "noisy_oracle":
             arms.append(Arm(src, src))

@@ -74,7 +74,7 @@ def _run_eval(task: CellTask, folder: Path) -> dict[str, Any]:
 
     cell = task.cell
     spec = task.model if cell.policy.learned else cell.policy.kind
-    options = {**dict(cell.policy.options), **cell.arm.planner_options()}  # an uncertainty arm: uncertainty=True
+    options = {**dict(cell.policy.options), **cell.arm.planner_options()}  # an uncertainty or samples arm's option
     result = evaluate(
         spec,
         cell.arm.predictor,

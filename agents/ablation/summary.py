@@ -99,7 +99,7 @@ def summarize(
             entry: dict[str, Any] = {
                 "predictor": arm.predictor,
                 "noisy_oracle_ade_m": arm.noisy_oracle_ade_m,
-                **({"uncertainty": True} if arm.uncertainty else {}),  # absent in other arms: their summaries stay
+                **arm.spec(),  # absent in point arms: their summaries stay
                 "seeds": sorted({s for _, s, _ in eps.keys if s is not None}),
                 "splits": sorted({sp for sp, _, _ in eps.keys}),
                 **aggregate(eps),

@@ -99,6 +99,8 @@ _LEVELS: Final[int] = 2**12
 
 #: Observations searched at once by :class:`SearchPlanner` (memory grows with it; results do not depend on it).
 _SEARCH_CHUNK: Final[int] = 16
+#: With samples: observations searched at once times samples per pedestrian (at least one observation at a time).
+_SAMPLED_ROWS_CHUNK: Final[int] = 64
 #: Headings of the search planners, degrees from the goal direction: 16 around the full circle (backing away too).
 SEARCH_HEADINGS_DEG: Final[tuple[float, ...]] = tuple(22.5 * k for k in range(16))
 #: Speeds of the search planners, fractions of the preferred speed (and of the goal-directed cap).
@@ -124,7 +126,15 @@ class SearchPlanner(_Planner):
     constant-velocity extrapolations of the observed velocities; only the observation is used. With
     ``uncertainty=True`` a pedestrian is a region, not a point: during each step its disk grows by the larger
     radius of the step's two ends of ``forecast_uncertainty`` (0 at the present, observed position), so every gap,
-    clearance and the escape are measured from the edge of the region (as :class:`SamplingPlanner` does). Motions are
+    clearance and the escape are measured from the edge of the region (as :class:`SamplingPlanner` does).
+
+    With ``samples=True`` a pedestrian is its ``S`` sampled futures (the observation key ``forecast_samples``
+    ``(K, S, H, 2)`` of ``forecast_samples=S``; each sample moves from the present, observed position), and the plan
+    is chance-constrained: a step is admissible if it keeps the gap to at least ``sample_share`` of each
+    pedestrian's samples (``k = ceil(sample_share S)`` of them), i.e. if the ``k``-th largest of the ``S`` gaps to a
+    pedestrian is at least the margin; that ``k``-th largest gap is the pedestrian's gap everywhere a gap is used
+    (clearance, the escape). With every sample on the point forecast it is the point gap, so the plans are the point
+    planner's; ``sample_share=0`` keeps clear of nothing. Motions are
     holonomic; with unicycle kinematics the first velocity is turned into an action by
     :func:`velocities_to_actions`. Every environment of a batch is searched at once (numpy over ``(B, M, A, K)``)
     and independently: a batched ``predict`` equals one ``predict`` per observation.
@@ -145,6 +155,10 @@ class SearchPlanner(_Planner):
         uncertainty: require clearance of each forecast step's uncertainty region instead of its point (the
             observation key ``forecast_uncertainty`` of ``forecast_uncertainty=True``; see :func:`region_radii`).
             Needs that key.
+        samples: plan against the sampled futures of the observation key ``forecast_samples`` instead of the
+            forecasts, chance-constrained (above). Needs that key; not with ``uncertainty``.
+        sample_share: with ``samples``, the share of each pedestrian's samples a plan keeps clear of at every step,
+            in [0, 1].
     """
 
     def __init__(
@@ -161,10 +175,18 @@ class SearchPlanner(_Planner):
         clearance_pref_m: float = 0.3,
         clearance_weight: float = 1.0,
         uncertainty: bool = False,
+        samples: bool = False,
+        sample_share: float = 0.9,
     ) -> None:
         super().__init__(env_config)
         cfg = self.cfg
         self.uncertainty = bool(uncertainty)
+        self.samples = bool(samples)
+        if self.samples and self.uncertainty:
+            raise ValueError("samples and uncertainty are two ways to plan with a forecast's spread: choose one")
+        if not (isinstance(sample_share, int | float) and 0.0 <= sample_share <= 1.0):
+            raise ValueError(f"sample_share must be a number in [0, 1], got {sample_share!r}")
+        self.sample_share = float(sample_share)
         if lookahead_steps < 1:
             raise ValueError(f"lookahead_steps must be >= 1, got {lookahead_steps!r}")
         for name, value in (
@@ -197,16 +219,31 @@ class SearchPlanner(_Planner):
         return len(self.headings) * len(self.fractions) + len(self.fractions) + 1
 
     def futures(self, obs: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Positions of the observation rows relative to the robot now and over the look-ahead.
+        """Positions of the observation rows relative to the robot now and over the look-ahead; with ``samples``,
+        every sample of every row is a row (``K S`` of them, row-major: the samples of a pedestrian together).
 
         Returns:
             ``(positions (B, K, L + 1, 2) metres at t + h dt_s, h = 0..L; mask (B, K) bool)``.
+
+        Raises:
+            ValueError: ``samples`` without the observation key ``forecast_samples``.
         """
         cfg = self.cfg
         o = structured(dict(obs), cfg.num_pedestrians, cfg.horizon_steps)
         mask = o["mask"].astype(bool)
         peds = o["pedestrians"].astype(np.float64)
         now = peds[..., :2]
+        if self.samples:
+            if "forecast_samples" not in o:
+                raise ValueError(
+                    "the search planner's samples option needs the observation key 'forecast_samples' (make the "
+                    f"environment with forecast_samples=S > 0 and a source with a distribution); got keys {sorted(obs)}"
+                )
+            ahead = o["forecast_samples"][:, :, :, : self.lookahead].astype(np.float64)  # (B, K, S, L, 2)
+            b, k, s = ahead.shape[:3]
+            start = np.broadcast_to(now[:, :, None, None, :], (b, k, s, 1, 2))
+            rows = np.concatenate([start, ahead], axis=3).reshape(b, k * s, self.lookahead + 1, 2)
+            return rows, np.repeat(mask, s, axis=1)
         if "forecasts" in o:
             ahead = o["forecasts"][:, :, : self.lookahead].astype(np.float64)
             return np.concatenate([now[:, :, None], ahead], axis=2), mask
@@ -230,12 +267,18 @@ class SearchPlanner(_Planner):
         q1: np.ndarray,
         mask: np.ndarray,
         inflate: np.ndarray | None = None,
+        group: int = 1,
     ) -> np.ndarray:
         """Smallest surface gap ``(B, M, A)`` during a step, metres: robots from ``x`` ``(B, M, 2)`` (rows in ``valid``)
         moving by ``move`` ``(B, M, A, 2)``, pedestrians from ``q0`` to ``q1`` ``(B, K, 2)`` (rows in ``mask``), both
         straight and uniform (the exact closest approach), each pedestrian's disk grown by ``inflate`` ``(B, K)``
         metres (default 0). Pairs of a state and a pedestrian farther apart than :attr:`far_m` plus the growth and
-        the robot's step are not computed: their gap is ``inf`` (it is at least ``far_m`` minus the sum of radii)."""
+        the robot's step are not computed: their gap is ``inf`` (it is at least ``far_m`` minus the sum of radii).
+        With ``group`` > 1 every ``group`` consecutive rows are one pedestrian's samples, and a pedestrian's gap is the
+        ``k``-th largest of its rows' (``k = ceil(sample_share group)``; ``inf`` for ``k = 0``)."""
+        keep = math.ceil(self.sample_share * group - 1e-9) if group > 1 else 1
+        if keep == 0:
+            return np.full(move.shape[:3], np.inf)
         grow = np.zeros(mask.shape) if inflate is None else inflate
         seg = q1 - q0  # (B, K, 2)
         w = x[:, :, None, :] - q0[:, None, :, :]  # (B, M, K, 2)
@@ -257,6 +300,13 @@ class SearchPlanner(_Planner):
         t = np.clip(-num / np.where(den > 1e-12, den, 1.0), 0.0, 1.0)
         dist = np.hypot(d0[:, None, 0] + t * dd[..., 0], d0[:, None, 1] + t * dd[..., 1])  # (n, A)
         dist -= grow[bi, ki][:, None]
+        if group > 1:  # each pedestrian's k-th largest gap over its samples (rows not computed: inf)
+            ped = ki // group
+            new = np.r_[True, (bi[1:] != bi[:-1]) | (mi[1:] != mi[:-1]) | (ped[1:] != ped[:-1])]
+            table = np.full((int(np.count_nonzero(new)), group, dist.shape[1]), np.inf)
+            table[np.cumsum(new) - 1, ki % group] = dist
+            dist = np.partition(table, group - keep, axis=1)[:, group - keep]
+            bi, mi = bi[new], mi[new]
         starts = np.flatnonzero(np.r_[True, (bi[1:] != bi[:-1]) | (mi[1:] != mi[:-1])])
         gap[bi[starts], mi[starts]] = np.minimum.reduceat(dist, starts, axis=0) - self.r_sum
         return gap
@@ -267,18 +317,22 @@ class SearchPlanner(_Planner):
         b_all = len(robot)
         goal, dist, cap = _goal_velocity(robot, cfg)  # goal relative to the robot
         fut, mask = self.futures(obs)
-        grow = self.step_inflation(obs)
+        group = fut.shape[1] // cfg.num_pedestrians if self.samples else 1  # rows per pedestrian: its samples
+        grow = self.step_inflation(obs) if group == 1 else np.zeros((b_all, fut.shape[1], self.lookahead))
         scale = np.divide(cap, dist, out=np.zeros_like(dist), where=dist >= 1e-9)
         chosen = goal * scale[:, None]  # no pedestrian observed: straight at the goal
         todo = np.flatnonzero(mask.any(axis=1) & (dist >= 1e-9))
-        for lo in range(0, len(todo), _SEARCH_CHUNK):  # bounded memory for large batches (DAgger labels thousands)
-            rows = todo[lo : lo + _SEARCH_CHUNK]
-            chosen[rows] = self._search(goal[rows], fut[rows], mask[rows], grow[rows])
+        chunk = max(1, _SAMPLED_ROWS_CHUNK // group) if group > 1 else _SEARCH_CHUNK  # bounded memory for large batches
+        for lo in range(0, len(todo), chunk):
+            rows = todo[lo : lo + chunk]
+            chosen[rows] = self._search(goal[rows], fut[rows], mask[rows], grow[rows], group)
         return velocities_to_actions(chosen, robot.reshape(b_all, -1), cfg)
 
-    def _search(self, goal: np.ndarray, fut: np.ndarray, mask: np.ndarray, grow: np.ndarray) -> np.ndarray:
+    def _search(
+        self, goal: np.ndarray, fut: np.ndarray, mask: np.ndarray, grow: np.ndarray, group: int = 1
+    ) -> np.ndarray:
         """First velocities ``(B, 2)`` of the best plans (goal ``(B, 2)`` and futures relative to the robot; ``grow``
-        ``(B, K, L)``: :meth:`step_inflation`)."""
+        ``(B, K, L)``: :meth:`step_inflation`; ``group``: consecutive rows per pedestrian, its samples)."""
         cfg = self.cfg
         b = len(goal)
         dt, v, tol = cfg.dt_s, cfg.robot_pref_speed_mps, cfg.goal_tolerance_m - 1e-6
@@ -295,7 +349,7 @@ class SearchPlanner(_Planner):
             move = vel * dt
             travelled = np.hypot(*(fut[:, :, h + 1] - fut[:, :, 0]).transpose(2, 0, 1))  # (B, K) metres
             inflate = self.margin_per_m * travelled + grow[:, :, h]
-            gap = self._gaps(x, valid, move, fut[:, :, h], fut[:, :, h + 1], mask, inflate)
+            gap = self._gaps(x, valid, move, fut[:, :, h], fut[:, :, h + 1], mask, inflate, group)
             if h == 0:  # the first velocity of every plan; the escape (largest gap) when none is clear
                 first = vel[:, 0][:, None].copy()  # (B, 1, A, 2) -> per child below
                 result = vel[rows, 0, np.argmax(gap[:, 0], axis=1)]

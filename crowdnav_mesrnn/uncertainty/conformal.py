@@ -162,11 +162,19 @@ class Calibration:
         q = self.threshold(level)[None, :]
         if self.score == "radius":
             return np.broadcast_to(q, (len(speed), len(q[0]))).copy()
+        return q * self.unit_m(speed, sigma, rho)
+
+    def unit_m(self, speed: np.ndarray, sigma: np.ndarray | None = None, rho: np.ndarray | None = None) -> np.ndarray:
+        """``(M, P)`` metres the radius grows by per unit of threshold (:meth:`radius_m` is the threshold times it): 1 for
+        ``radius``; for ``scaled`` the Gaussian's major semi-axis (the forecast's own, ``sigma (M, P, 2)`` and
+        ``rho (M, P)``, else the error model's at ``speed (M,)``)."""
+        if self.score == "radius":
+            return np.ones((len(speed), len(next(iter(self.thresholds.values())))))
         if sigma is None or rho is None:
             if self.error_model is None:
                 raise ValueError(f"the {self.model} calibration needs the forecasts' own Gaussians (sigma, rho)")
-            return q * self.error_model.sigma(speed)
-        return q * gaussian.major_semi_axis(np.asarray(sigma, np.float64), np.asarray(rho, np.float64))
+            return self.error_model.sigma(speed)
+        return gaussian.major_semi_axis(np.asarray(sigma, np.float64), np.asarray(rho, np.float64))
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -78,7 +78,7 @@ import math
 import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 
@@ -187,14 +187,22 @@ def track_thresholds(
         revealed_rows, revealed_windows = 0, 0
         for k, revealed in _revealed_before(scores[:, j], window, time, delay, reveal):
             for i, rows in revealed:
-                n = len(rows)
-                revealed_rows += n
+                revealed_rows += len(rows)
                 revealed_windows += 1
                 missed = np.count_nonzero(rows > out[i, j])
-                mean_n = revealed_rows / revealed_windows
-                q = max(0.0, q + gamma * q0 * (missed - miss_rate * n) / (delay * mean_n))
+                q = tracker_update(q, q0, missed, len(rows), revealed_rows / revealed_windows, miss_rate, gamma, delay)
             out[k, j] = q
     return out
+
+
+def tracker_update(
+    q: Any, q0: float, missed: Any, n: int, mean_n: float, miss_rate: float, gamma: Any, delay: int
+) -> Any:
+    """One revealed window's update of a step's tracker (module docstring): ``max(0, q + γ q0 (m − (1 − c) n) /
+    (d n̄))``, with ``missed`` (``m``) of the window's ``n`` rows above the threshold that was used for them, ``mean_n``
+    (``n̄``) the mean rows per window revealed so far (this one included), ``miss_rate`` ``1 − c`` and ``delay``
+    ``d``. ``q``, ``missed`` and ``gamma`` may be arrays of one length (one tracker per step size, updated at once)."""
+    return np.maximum(q + gamma * q0 * (missed - miss_rate * n) / (delay * mean_n), 0.0)
 
 
 def _delay(reveal: str, j: int, n_steps: int) -> int:
@@ -282,15 +290,113 @@ def aggregate_thresholds(
         w = np.exp(log_w)
         for k, revealed in _revealed_before(scores[:, j], window, time, delay, reveal):
             for i, rows in revealed:
-                diff = rows[None, :] - experts[:, i, j][:, None]  # (K, n): score minus each expert's threshold
-                loss = np.where(diff > 0, level * diff, (level - 1.0) * diff).mean(1) / unit
-                log_w = log_w - eta * loss
-                mixed = np.exp(log_w - log_w.max())
-                log_w = np.log((1.0 - share) * mixed / mixed.sum() + share / k_count)
+                log_w = expert_weights_update(log_w, rows, experts[:, i, j], level, unit, eta, share)
                 w = np.exp(log_w)
             out[k, j] = float(w @ experts[:, k, j])
         weights_end[j] = w
     return out, weights_end
+
+
+def expert_weights_update(
+    log_w: np.ndarray, rows: np.ndarray, used: np.ndarray, level: float, unit: float, eta: float, share: float
+) -> np.ndarray:
+    """One revealed window's update of the experts' log-weights ``(K,)`` of a step (module docstring): each expert's
+    pinball loss on the window's scores ``rows (n,)`` against the threshold it used for them, ``used (K,)``, in units of
+    ``unit`` (the starting threshold, or 1 where it is 0), then exponential weights with rate ``eta`` and fixed share
+    ``share``."""
+    diff = rows[None, :] - used[:, None]  # (K, n): score minus each expert's threshold
+    loss = np.where(diff > 0, level * diff, (level - 1.0) * diff).mean(1) / unit
+    log_w = log_w - eta * loss
+    mixed = np.exp(log_w - log_w.max())
+    return np.log((1.0 - share) * mixed / mixed.sum() + share / len(log_w))
+
+
+class ExpertTracker:
+    """The expert mixture of the module docstring run one window at a time: for every horizon step, a tracker per step
+    size of ``gammas`` and their weights, updated as the caller reveals outcomes.
+
+    The caller keeps the clock: at each forecast time it first reveals every outcome that has become known
+    (:meth:`reveal`, the window's scores of one step with the thresholds the experts used for it, :attr:`experts` as they
+    were at its forecast time), then reads the thresholds to use (:meth:`thresholds`). Run over a stream with the
+    reveal rule's delays it gives the thresholds of :func:`aggregate_thresholds` (``tests/uncertainty``); the environment runs it
+    over an episode's annotations (``forecast_uncertainty_method="online"``, :mod:`envs.forecasting.uncertainty`).
+
+    Args:
+        start: ``(P,)`` starting thresholds (the offline ones); a step with an infinite one stays infinite.
+        level: coverage level ``c`` in (0, 1).
+        gammas: the experts' step sizes.
+        reveal: the reveal rule whose delay damps the updates (:func:`_delay`): ``"observed"`` and ``"step"`` update
+            step ``h`` ``h`` annotations after the forecast, ``"window"`` every step ``P`` after it.
+        interval: the windows the rates are set for (:func:`expert_rates`).
+    """
+
+    def __init__(
+        self,
+        start: np.ndarray,
+        level: float,
+        gammas: Sequence[float] = GAMMA_GRID,
+        reveal: str = "observed",
+        interval: int = EXPERT_INTERVAL,
+    ) -> None:
+        self.start = np.asarray(start, dtype=np.float64).copy()
+        if self.start.ndim != 1 or not len(gammas):
+            raise ValueError(f"need (P,) starting thresholds and at least one step size, got {self.start.shape}")
+        if not 0.0 < level < 1.0 or not all(g > 0.0 for g in gammas):
+            raise ValueError(f"need 0 < level < 1 and step sizes > 0, got level {level!r}, gammas {list(gammas)!r}")
+        if reveal not in REVEAL_RULES:
+            raise ValueError(f"unknown reveal rule {reveal!r}; valid: {', '.join(REVEAL_RULES)}")
+        steps, k = len(self.start), len(gammas)
+        self.level = float(level)
+        self.gammas = np.asarray(gammas, dtype=np.float64)
+        self.delays = [_delay(reveal, j, steps) for j in range(steps)]
+        self.eta, self.share = expert_rates(k, level, interval)
+        # (K, P) each expert's threshold per step; a step's column is a strided vector, as the batch's is, so that
+        # the weighted mean is summed in the same order (a contiguous one may be summed otherwise in the last bit)
+        self._q = np.repeat(self.start[None, :], k, axis=0)
+        self._log_w = np.full((steps, k), -math.log(k))
+        # the weights of a step never updated: exp of the starting log-weights (1 / K where the start is infinite)
+        self._w = np.where(np.isfinite(self.start)[:, None], np.exp(self._log_w), 1.0 / k)
+        self._rows = np.zeros(steps, dtype=np.int64)
+        self._windows = np.zeros(steps, dtype=np.int64)
+
+    @property
+    def experts(self) -> np.ndarray:
+        """``(K, P)`` every expert's current threshold of each step (a copy)."""
+        return self._q.copy()
+
+    @property
+    def weights(self) -> np.ndarray:
+        """``(P, K)`` the experts' current weights per step (a copy)."""
+        return self._w.copy()
+
+    def thresholds(self) -> np.ndarray:
+        """``(P,)`` the thresholds to use now: per step the experts' weighted mean, or the start where it is infinite or
+        nothing has been revealed yet (where the mean of the equal experts could differ from it in the last bit)."""
+        out = self.start.copy()
+        for j in np.flatnonzero(np.isfinite(self.start) & (self._windows > 0)):
+            out[j] = float(self._w[j] @ self._q[:, j])
+        return out
+
+    def reveal(self, step: int, scores: np.ndarray, used: np.ndarray) -> None:
+        """Learn from one window's outcomes of step ``step`` (0-based): ``scores (n,)`` its rows' conformal scores
+        (NaN rows, not observed, are dropped; a window left without a row changes nothing) and ``used (K,)`` the
+        thresholds the experts used for that window (:attr:`experts` at its forecast time, column ``step``)."""
+        q0 = self.start[step]
+        rows = np.asarray(scores, dtype=np.float64)
+        rows = rows[~np.isnan(rows)]
+        if not np.isfinite(q0) or not len(rows):
+            return
+        used = np.asarray(used, dtype=np.float64)
+        self._rows[step] += len(rows)
+        self._windows[step] += 1
+        missed = np.count_nonzero(rows[None, :] > used[:, None], axis=1)
+        mean_n = int(self._rows[step]) / int(self._windows[step])
+        self._q[:, step] = tracker_update(
+            self._q[:, step], q0, missed, len(rows), mean_n, 1.0 - self.level, self.gammas, self.delays[step]
+        )
+        unit = q0 if q0 > 0 else 1.0
+        self._log_w[step] = expert_weights_update(self._log_w[step], rows, used, self.level, unit, self.eta, self.share)
+        self._w[step] = np.exp(self._log_w[step])
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ class PredictorUnavailableError(FileNotFoundError):
     """A pretrained predictor (its weights) could not be loaded; the message says what and how to get it."""
 
 
-_LOADED: dict[tuple[str, str], Any] = {}
+_LOADED: dict[tuple[str, str, str], Any] = {}
 
 
 def _without_weights() -> str:
@@ -50,21 +50,29 @@ WEIGHTS_HELP: Final[str] = (
 )
 
 
-def load_learned(name: str, split: str, needed_for: str) -> Any:
-    """The predictor ``name`` of ``split`` (:func:`crowdnav_mesrnn.predictors.load`), one object per process.
+def load_learned(name: str, split: str, needed_for: str, head: str = "point") -> Any:
+    """The predictor ``name`` of ``split`` (:func:`crowdnav_mesrnn.predictors.load`), one object per process; with
+    ``head="gaussian"`` its distribution (a structural RNN's Gaussian-head weights, ``cv_gaussian`` itself:
+    :func:`crowdnav_mesrnn.evaluation.protocol.load_shipped`).
 
     Raises:
         PredictorUnavailableError: naming the model, the split, the recording it was needed for,
             the underlying error and how to get the weights.
     """
-    key = (name, split)
+    key = (name, split, head)
     if key not in _LOADED:
         try:
-            _LOADED[key] = predictors.load(name, split)
+            if head == "point":
+                _LOADED[key] = predictors.load(name, split)
+            else:
+                from crowdnav_mesrnn.evaluation.protocol import load_shipped
+
+                _LOADED[key] = load_shipped(name, split, head=head)
         except Exception as exc:  # any failure to load is reported the same way, with its cause
             shipped = predictors.kind(name) in (predictors.PRETRAINED, predictors.FITTED_BASELINE)
+            what = "predictor" if head == "point" else f"{head} distribution"
             raise PredictorUnavailableError(
-                f"the {'pretrained ' if shipped else 'plug-in '}{name!r} predictor for split {split!r} (needed to "
+                f"the {'pretrained ' if shipped else 'plug-in '}{name!r} {what} for split {split!r} (needed to "
                 f"forecast {needed_for}) could not be loaded: {type(exc).__name__}: {str(exc).rstrip('.')}. "
                 + (WEIGHTS_HELP if shipped else "See crowdnav_mesrnn.predictors for the plug-in protocol.")
             ) from exc

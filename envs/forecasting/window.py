@@ -367,28 +367,40 @@ class PredictorForecast(ForecastSource):
             self._cache[key] = out
         return out
 
-    def _resampled(self, rec: Recording, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        empty = (np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2)))
+    def frame_at(self, rec: Recording, t_s: float) -> tuple[int, float] | None:
+        """``(i, offset_s)``: the annotation frame ``i`` perceived at ``t_s`` (the latest at or before it) and how long
+        before ``t_s`` it was; None before the first, or when every track has been dropped (an annotation gap, or after
+        the recording)."""
         times = self._times.get(rec.name)
         if times is None or times[0] is not rec:
             times = self._times[rec.name] = (rec, rec.times_s().tolist())
         i = bisect.bisect_right(times[1], t_s + TIME_TOL_S) - 1
         if i < 0 or rec.present.shape[1] == 0:
-            return empty
+            return None
         offset = t_s - times[1][i]
         offset = offset if offset > TIME_TOL_S else 0.0
         if offset >= rec.step_s - TIME_TOL_S:
-            return empty  # the tracker has dropped every track (an annotation gap, or after the recording)
+            return None
+        return i, offset
+
+    def resample_weights(self, step_s: float, pred_len: int, offset_s: float) -> np.ndarray:
+        """The ``(H, pred_len + 1)`` matrix from the annotation grid onto the env's (:func:`resample_matrix`), kept."""
+        wkey = (float(step_s), pred_len, time_key(offset_s))
+        weights = self._weights.get(wkey)
+        if weights is None:
+            weights = self._weights[wkey] = resample_matrix(float(step_s), self.dt_s, self.horizon, pred_len, offset_s)
+        return weights
+
+    def _resampled(self, rec: Recording, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        empty = (np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2)))
+        at = self.frame_at(rec, t_s)
+        if at is None:
+            return empty
+        i, offset = at
         cols, fc = self.frame_forecasts(rec, i)
         if len(cols) == 0:
             return empty
-        pred_len = fc.shape[1]
-        wkey = (float(rec.step_s), pred_len, time_key(offset))
-        weights = self._weights.get(wkey)
-        if weights is None:
-            weights = self._weights[wkey] = resample_matrix(
-                float(rec.step_s), self.dt_s, self.horizon, pred_len, offset
-            )
+        weights = self.resample_weights(rec.step_s, fc.shape[1], offset)
         out = weights[:, 1:] @ fc.astype(np.float64)  # (H, P) @ (n, P, 2) -> (n, H, 2)
         if weights[:, 0].any():  # the first env steps fall before the first forecast step: the annotated position
             out += weights[None, :, 0, None] * rec.positions[i, cols][:, None, :]

@@ -23,6 +23,7 @@ from crowdnav_mesrnn.data.constants import OBS_LEN
 from envs.crowd_nav import _CONFIGURED, TIMING_KEYS, UNDISTURBED, CrowdNavEnv, reset_info, reset_options
 from envs.episodes import Episode
 from envs.forecasting.sources import TrueFuture, fill_forward
+from envs.forecasting.uncertainty import UncertaintySource
 from envs.forecasting.window import PredictorForecast
 from envs.observation import nearest_visible
 from envs.popin import POPIN_MARGIN_M, PopInRule
@@ -58,6 +59,7 @@ class _World:
         self.velocities: list[np.ndarray] = []
         self.last_rows = np.zeros(0, dtype=np.int64)
         self.last_forecasts: np.ndarray | None = None
+        self.uncertainty: UncertaintySource | None = None  # the episode's radii (for_episode of the env's source)
 
 
 class NotBatchedError(NotImplementedError, ValueError):
@@ -140,6 +142,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         self.predictor_name = env.predictor_name
         self.with_forecasts = env.with_forecasts
         self.uncertainty = env.uncertainty
+        self.samples = env.samples
         self.crowd_kind = env.crowd_kind
         self._worlds = [_World(env) for _ in range(n)]
         self._timer = PhaseTimer(TIMING_KEYS)
@@ -381,7 +384,10 @@ class BatchedCrowdNavEnv(VectorEnv):
         self._m_min_ttc[w] = math.inf
         self._m_min_gap[w] = math.inf
         self._m_vel[w] = 0.0
-        world.popin.reset(replay, float(self._times(np.array([w]), np.zeros(1, dtype=np.int64))[0]), ep.start)
+        t0 = float(self._times(np.array([w]), np.zeros(1, dtype=np.int64))[0])
+        world.popin.reset(replay, t0, ep.start)
+        if self.uncertainty is not None:
+            world.uncertainty = self.uncertainty.for_episode(replay, replay.perceived_at(t0).index)
         self._sync_popin(w)
         nrow = replay.num_pedestrians
         self._reset_ghost[w] = False
@@ -675,9 +681,10 @@ class BatchedCrowdNavEnv(VectorEnv):
         nw = len(worlds)
         fc_obs = np.zeros((nw, k, hor, 2), dtype=np.float32)
         unc_obs = np.zeros((nw, k, hor), dtype=np.float32) if b.with_uncertainty else None
+        smp_obs = np.zeros((nw, k, b.samples, hor, 2), dtype=np.float32) if b.samples else None
         source = self.forecaster
         times = t_s.tolist()
-        if isinstance(source, PredictorForecast) and unc_obs is None:
+        if isinstance(source, PredictorForecast) and unc_obs is None and smp_obs is None:
             self._table_forecasts(worlds, times, rows_of, robot, fc_obs)
             obs = self._obs
             obs["forecasts"][worlds] = fc_obs.reshape(nw, -1) if b.flat else fc_obs
@@ -700,13 +707,18 @@ class BatchedCrowdNavEnv(VectorEnv):
             world._forecast_log.append((times[j], rows, fc))
             world.last_forecasts = fc
             fc_obs[j, :m] = _clip(fc - robot[j], b.fc_bound)
-            if unc_obs is not None and self.uncertainty is not None:
-                unc = self.uncertainty.radius(world._replay, times[j], rows, float(age[j]), int(index[j]))  # type: ignore[arg-type]
+            if unc_obs is not None and world.uncertainty is not None:
+                unc = world.uncertainty.radius(world._replay, times[j], rows, float(age[j]), int(index[j]))  # type: ignore[arg-type]
                 unc_obs[j, :m] = np.clip(unc, 0.0, b.fc_bound)
+            if smp_obs is not None and self.samples is not None:
+                smp = self.samples.draw(world._replay, times[j], rows)  # type: ignore[arg-type]
+                smp_obs[j, :m] = _clip(smp - robot[j], b.fc_bound)
         obs = self._obs
         obs["forecasts"][worlds] = fc_obs.reshape(nw, -1) if b.flat else fc_obs
         if unc_obs is not None:
             obs["forecast_uncertainty"][worlds] = unc_obs.reshape(nw, -1) if b.flat else unc_obs
+        if smp_obs is not None:
+            obs["forecast_samples"][worlds] = smp_obs.reshape(nw, -1) if b.flat else smp_obs
 
     def _table_forecasts(
         self, worlds: np.ndarray, times: list[float], rows_of: list[np.ndarray], robot: np.ndarray, out: np.ndarray

@@ -55,7 +55,7 @@ def test_uncertainty_arms_use_their_sources_forecasts_with_regions(tmp_path: Pat
         ("sgan_unc", ["'sgan_unc'", "cv_unc, mesrnn_unc", "no calibrated regions"]),
         (
             "sgan",
-            ["'sgan'", "none, cv, cv_gaussian, mesrnn", "an uncertainty arm (cv_unc, mesrnn_unc, srnn_unc, vlstm_unc)"],
+            ["'sgan'", "none, cv, cv_gaussian, mesrnn", "an uncertainty arm (cv_unc, mesrnn_unc, srnn_unc, vlstm_unc,"],
         ),
     ],
 )

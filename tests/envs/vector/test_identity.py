@@ -80,6 +80,14 @@ def test_settings(extra: dict[str, Any], data_dir: Path, side_by_side: Any) -> N
     assert counts["steps"] == 100
 
 
+def test_sampled_futures_and_online_regions(data_dir: Path, side_by_side: Any) -> None:
+    # the samples are seeded by recording and time, the online tracker restarts with every world's episode
+    kwargs = {"predictor": "cv_gaussian", "split": "hotel", "part": "test", "forecast_samples": 4}
+    kwargs.update(forecast_uncertainty=True, forecast_uncertainty_method="online")
+    counts = side_by_side(3, kwargs, steps=80, seed=5, reset_every=35)
+    assert counts["forecast_rows"] > 0
+
+
 def test_reaction_none_with_parameters_and_a_goal_tolerance(data_dir: Path, side_by_side: Any) -> None:
     # reaction "none" with parameters set: the reset info echoes them (resolved), as the single env's; a wider goal
     # tolerance changes the distance required (path_ratio_required, spl) and goal-seeking worlds succeed
