@@ -125,7 +125,9 @@ def test_ctrl_c_on_the_local_pool_waits_then_stops_training_at_a_round_boundary(
             f"{Path(__file__).resolve()}::test_ctrl_c_on_the_local_pool_waits_then_stops_training_at_a_round_boundary"
         )
         done = subprocess.run(
-            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", name, "--basetemp", str(tmp_path / "t")],
+            # -m: this test is marked slow, which the default addopts deselect
+            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "slow or not slow", name]
+            + ["--basetemp", str(tmp_path / "t")],
             cwd=Path(__file__).resolve().parents[3],
             env={**os.environ, _ISOLATED: "1"},
             capture_output=True,
