@@ -124,10 +124,10 @@ def test_ctrl_c_on_the_local_pool_waits_then_stops_training_at_a_round_boundary(
         name = (
             f"{Path(__file__).resolve()}::test_ctrl_c_on_the_local_pool_waits_then_stops_training_at_a_round_boundary"
         )
+        # -m: this test is marked slow, which the default addopts deselect
+        args = ["-q", "-p", "no:cacheprovider", "-m", "slow or not slow", name, "--basetemp", str(tmp_path / "t")]
         done = subprocess.run(
-            # -m: this test is marked slow, which the default addopts deselect
-            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "slow or not slow", name]
-            + ["--basetemp", str(tmp_path / "t")],
+            [sys.executable, "-m", "pytest", *args],
             cwd=Path(__file__).resolve().parents[3],
             env={**os.environ, _ISOLATED: "1"},
             capture_output=True,
