@@ -324,6 +324,13 @@ class ActionScoringHead(nn.Module):
     Score of action ``a``: ``w . act(W2 act(W1 x_a + U c + b1) + b2) + b3`` with ``x_a`` its features and ``c``
     the context (``U c`` computed once per observation); the same weights for every action. Value latent:
     ``act(V [c, mean_a h_a, max_a h_a])`` with ``h_a`` the last hidden code of action ``a``.
+
+    The per-action features are the extractor's parameter-free geometry, so no gradient is taken with respect to
+    them (it would cost a ``(B * A, hidden) x (hidden, F)`` product and a zero-filled copy of the whole feature
+    tensor per update step, and be thrown away). The maximum over actions is ``max(...).values``, whose backward
+    passes the gradient to the largest code alone (``amax`` shares it among exact ties, which distinct actions
+    practically never have). The outputs are the same bits as the plain formula's and the gradients the same up
+    to float rounding (``tests/agents/test_scoring.py``); a PPO update of the shipped recipe is about 13 % cheaper.
     """
 
     def __init__(
@@ -345,10 +352,11 @@ class ActionScoringHead(nn.Module):
         """``(per-action codes (B, A, hidden), context (B, C))`` of flattened extractor features."""
         b = features.shape[0]
         split = self.num_actions * self.num_features
-        x = features[:, :split].reshape(b, self.num_actions, self.num_features)
+        x = features[:, :split].detach().reshape(b, self.num_actions, self.num_features)  # geometry: no gradient
         ctx = features[:, split:]
-        h = self.act(self.action_in(x) + self.context_in(ctx)[:, None, :])
-        return self.act(self.hidden(h)), ctx
+        z = self.action_in(x)
+        z.add_(self.context_in(ctx)[:, None, :])  # in place: one (B, A, hidden) tensor fewer per call
+        return self.act(self.hidden(self.act(z))), ctx
 
     def forward_actor(self, features: torch.Tensor) -> torch.Tensor:
         h, _ = self.codes(features)
@@ -359,7 +367,7 @@ class ActionScoringHead(nn.Module):
         return self._value(h, ctx)
 
     def _value(self, h: torch.Tensor, ctx: torch.Tensor) -> torch.Tensor:
-        return self.act(self.value_in(torch.cat([ctx, h.mean(dim=1), h.amax(dim=1)], dim=1)))
+        return self.act(self.value_in(torch.cat([ctx, h.mean(dim=1), h.max(dim=1).values], dim=1)))
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         h, ctx = self.codes(features)  # once for both heads

@@ -197,6 +197,39 @@ def test_ppo_learns_saves_and_loads_with_logits_from_shared_weights(tmp_path: Pa
     torch.testing.assert_close(loaded.policy.get_distribution(obs).distribution.logits, logits)
 
 
+@pytest.mark.parametrize("activation", ["relu", "tanh"])
+def test_head_outputs_and_gradients_equal_the_plain_formula(activation: str) -> None:
+    """The head's update shortcuts (no gradient into the parameter-free geometry, the context added in place, the
+    maximum over actions by ``max``) change neither its outputs (the same bits as the formula of the class docstring
+    written out plainly) nor any gradient the update uses (the same up to float rounding: the sums of a code's
+    gradients run in another order)."""
+    from agents.scoring import ActionScoringHead
+
+    f, c, b = num_rollout_features(H), 25, 64
+    torch.manual_seed(0)
+    head = ActionScoringHead(A, f, c, hidden_dim=16, activation=activation)
+    geometry = torch.randn(b, A * f) * 2  # as the extractor's: computed without gradient
+    context = torch.randn(b, c, requires_grad=True)  # the context encoder's output: it has a gradient
+
+    def plain(h: ActionScoringHead, ctx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = torch.cat([geometry, ctx], dim=1)[:, : A * f].reshape(b, A, f)
+        codes = h.act(h.hidden(h.act(h.action_in(x) + h.context_in(ctx)[:, None, :])))
+        value = h.act(h.value_in(torch.cat([ctx, codes.mean(dim=1), codes.amax(dim=1)], dim=1)))
+        return h.score(codes).squeeze(-1), value
+
+    def loss_and_grads(outputs: tuple[torch.Tensor, torch.Tensor]) -> list[torch.Tensor]:
+        logits, value = outputs
+        loss = torch.log_softmax(logits, dim=1)[:, 3].sum() + value.square().sum()
+        return list(torch.autograd.grad(loss, [context, *head.parameters()]))
+
+    expected = plain(head, context)
+    got = head(torch.cat([geometry, context], dim=1))
+    for e, g in zip(expected, got, strict=True):
+        assert torch.equal(e, g)
+    for e, g in zip(loss_and_grads(plain(head, context)), loss_and_grads(got), strict=True):
+        torch.testing.assert_close(g, e, rtol=1e-5, atol=1e-6)
+
+
 def test_dqn_uses_the_scores_as_q_values() -> None:
     from stable_baselines3 import DQN
 
