@@ -294,6 +294,70 @@ def test_rollout_buffer_caches_the_geometry_once_per_rollout() -> None:
     assert calls == [32]  # get() after the rollout computed nothing new
 
 
+def test_rollout_buffer_keeps_the_geometry_the_rollout_computed() -> None:
+    """With the policy attached, the update uses the geometry the rollout's forward passes computed (stored step by
+    step, in SB3's flattened order): the same as computing it from the buffer's observations, and nothing computed
+    again. A step whose observations are not those of the last forward pass is computed at the update."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.scoring import GeometryCachingBuffer, attach_geometry_cache
+
+    venv = DummyVecEnv([lambda: _env(True), lambda: _env(True)])  # two environments: the (step, env) order matters
+    model = PPO(ActionScoringPolicy, venv, n_steps=16, batch_size=16, n_epochs=1, policy_kwargs=_policy_kwargs(),
+                rollout_buffer_class=GeometryCachingBuffer, seed=0, device="cpu")  # fmt: skip
+    assert attach_geometry_cache(model)
+    buffer = model.rollout_buffer
+    geometry = buffer.geometry_fn
+    calls: list[int] = []
+    buffer.geometry_fn = lambda obs: calls.append(len(obs["mask"])) or geometry(obs)
+    model.learn(32)  # one rollout of 16 steps x 2 environments, one epoch
+    assert calls == []  # taken from the rollout, not computed
+    recomputed = geometry({k: buffer.to_torch(v) for k, v in buffer.observations.items()})
+    assert buffer._geometry is not None
+    torch.testing.assert_close(buffer._geometry, recomputed, rtol=0, atol=0)
+
+    # observations other than the forward pass's: not taken; that step is computed at the first minibatch
+    buffer.reset()
+    policy = model.policy
+    for step in range(buffer.buffer_size):
+        obs = {k: np.stack([model.observation_space[k].sample() for _ in range(2)]) for k in buffer.observations}
+        policy(policy.obs_to_tensor(obs)[0])
+        if step == 3:
+            obs = {**obs, "robot": obs["robot"] + 1.0}
+        buffer.add(obs, np.zeros((2, 1)), np.zeros(2), np.zeros(2), torch.zeros(2, 1), torch.zeros(2))
+    assert policy.take_rollout_geometry(obs) is None  # taken by the buffer: kept once only
+    assert not buffer._have[3] and buffer._have.sum() == buffer.buffer_size - 1
+    buffer.compute_returns_and_advantage(torch.zeros(2, 1), np.zeros(2))
+    next(buffer.get(8))
+    assert calls == [32]
+
+
+def test_training_with_the_rollout_geometry_kept_is_the_same_training() -> None:
+    """PPO with the rollout's geometry kept for the update and PPO computing it at the update train the same
+    weights, bit for bit."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.scoring import GeometryCachingBuffer, attach_geometry_cache
+
+    def trained(keep: bool) -> list[torch.Tensor]:
+        venv = DummyVecEnv([lambda: _env(True), lambda: _env(True)])
+        for i, env in enumerate(venv.envs):  # the same observations in both trainings
+            env.unwrapped.observation_space.seed(i)
+        model = PPO(ActionScoringPolicy, venv, n_steps=16, batch_size=8, n_epochs=2, policy_kwargs=_policy_kwargs(),
+                    rollout_buffer_class=GeometryCachingBuffer, seed=0, device="cpu")  # fmt: skip
+        if keep:
+            assert attach_geometry_cache(model)
+        else:  # the cache as before: computed from the buffer's observations at the first minibatch
+            model.rollout_buffer.attach(model.policy.features_extractor.geometry)
+        model.learn(64)
+        return [p.detach().clone() for p in model.policy.parameters()]
+
+    for a, b in zip(trained(True), trained(False), strict=True):
+        assert torch.equal(a, b)
+
+
 @pytest.mark.parametrize("predictor", ["none", "mesrnn"])
 def test_the_recipe_candidate_builds_for_every_arm(predictor: str) -> None:
     from agents.scoring import GeometryCachingBuffer
