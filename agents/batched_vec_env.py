@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -123,7 +123,8 @@ class BatchedVecEnv(VecEnv):
 
 def _unbatch(info: Mapping[str, Any], num: int) -> list[dict[str, Any]]:
     """Per-environment info dicts from a vector info (a dict of arrays with ``_key`` masks), with the values the
-    single environment gives (Python scalars; None where a float array holds NaN for it)."""
+    single environment gives (Python scalars; None where a float array holds NaN for it). One ``tolist`` per key and
+    the NaNs found by one ``isnan`` (a step's info has a dozen keys for every environment)."""
     out: list[dict[str, Any]] = [{} for _ in range(num)]
     for key, value in info.items():
         if key.startswith("_"):
@@ -131,20 +132,24 @@ def _unbatch(info: Mapping[str, Any], num: int) -> list[dict[str, Any]]:
         mask = info.get(f"_{key}")
         if mask is None:
             continue
+        idx = np.flatnonzero(mask).tolist()
         if isinstance(value, Mapping):
             inner = _unbatch(value, num)
-            for i in np.flatnonzero(mask).tolist():
+            for i in idx:
                 out[i][key] = inner[i]
             continue
-        for i, item in _items(value, mask):
+        for i, item in zip(idx, _values(value, idx), strict=True):
             out[i][key] = item
     return out
 
 
-def _items(array: np.ndarray, mask: np.ndarray) -> Iterable[tuple[int, Any]]:
-    idx = np.flatnonzero(mask).tolist()
-    values = array[idx].tolist() if array.dtype != object else [array[i] for i in idx]
-    for i, v in zip(idx, values, strict=True):
-        if isinstance(v, float) and math.isnan(v):
-            v = None
-        yield i, v
+def _values(array: np.ndarray, idx: list[int]) -> list[Any]:
+    """``array``'s entries at ``idx`` as Python values, a float NaN as None."""
+    if array.dtype == object:
+        return [None if isinstance(v, float) and math.isnan(v) else v for v in (array[i] for i in idx)]
+    chosen = array if len(idx) == len(array) else array[idx]
+    values = chosen.tolist()
+    if chosen.dtype.kind == "f" and chosen.ndim == 1:  # (rows of a 2-D array are lists, never None)
+        for j in np.flatnonzero(np.isnan(chosen)).tolist():
+            values[j] = None
+    return values

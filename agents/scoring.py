@@ -37,6 +37,7 @@ import math
 from collections.abc import Sequence
 from typing import Any, Final
 
+import numpy as np
 import torch
 from gymnasium import spaces
 from stable_baselines3.common.buffers import DictRolloutBuffer
@@ -324,6 +325,13 @@ class ActionScoringHead(nn.Module):
     Score of action ``a``: ``w . act(W2 act(W1 x_a + U c + b1) + b2) + b3`` with ``x_a`` its features and ``c``
     the context (``U c`` computed once per observation); the same weights for every action. Value latent:
     ``act(V [c, mean_a h_a, max_a h_a])`` with ``h_a`` the last hidden code of action ``a``.
+
+    The per-action features are the extractor's parameter-free geometry, so no gradient is taken with respect to
+    them (it would cost a ``(B * A, hidden) x (hidden, F)`` product and a zero-filled copy of the whole feature
+    tensor per update step, and be thrown away). The maximum over actions is ``max(...).values``, whose backward
+    passes the gradient to the largest code alone (``amax`` shares it among exact ties, which distinct actions
+    practically never have). The outputs are the same bits as the plain formula's and the gradients the same up
+    to float rounding (``tests/agents/test_scoring.py``); a PPO update of the shipped recipe is about 13 % cheaper.
     """
 
     def __init__(
@@ -345,10 +353,11 @@ class ActionScoringHead(nn.Module):
         """``(per-action codes (B, A, hidden), context (B, C))`` of flattened extractor features."""
         b = features.shape[0]
         split = self.num_actions * self.num_features
-        x = features[:, :split].reshape(b, self.num_actions, self.num_features)
+        x = features[:, :split].detach().reshape(b, self.num_actions, self.num_features)  # geometry: no gradient
         ctx = features[:, split:]
-        h = self.act(self.action_in(x) + self.context_in(ctx)[:, None, :])
-        return self.act(self.hidden(h)), ctx
+        z = self.action_in(x)
+        z.add_(self.context_in(ctx)[:, None, :])  # in place: one (B, A, hidden) tensor fewer per call
+        return self.act(self.hidden(self.act(z))), ctx
 
     def forward_actor(self, features: torch.Tensor) -> torch.Tensor:
         h, _ = self.codes(features)
@@ -359,7 +368,7 @@ class ActionScoringHead(nn.Module):
         return self._value(h, ctx)
 
     def _value(self, h: torch.Tensor, ctx: torch.Tensor) -> torch.Tensor:
-        return self.act(self.value_in(torch.cat([ctx, h.mean(dim=1), h.amax(dim=1)], dim=1)))
+        return self.act(self.value_in(torch.cat([ctx, h.mean(dim=1), h.max(dim=1).values], dim=1)))
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         h, ctx = self.codes(features)  # once for both heads
@@ -418,6 +427,39 @@ class ActionScoringPolicy(_HeadKwargs, MultiInputActorCriticPolicy):
         if self.share_features_extractor:
             return self.features_extractor(pre)
         return self.pi_features_extractor(pre), self.vf_features_extractor(pre)
+
+    #: Whether :meth:`forward` keeps the geometry it computes (:meth:`take_rollout_geometry`); set by
+    #: :func:`attach_geometry_cache`.
+    keep_rollout_geometry: bool = False
+    _kept: tuple[dict[str, torch.Tensor], torch.Tensor] | None = None
+
+    def forward(self, obs: Any, deterministic: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """SB3's (a rollout step's actions, values and log-probabilities). With :attr:`keep_rollout_geometry` the
+        geometry is computed first, passed on under :data:`GEOMETRY_KEY` (the same features) and kept with a copy
+        of the observations, so that the rollout buffer stores it instead of computing it again."""
+        if not (self.keep_rollout_geometry and isinstance(obs, dict)) or GEOMETRY_KEY in obs:
+            return super().forward(obs, deterministic)
+        extractor = self.pi_features_extractor  # shared or not, the geometry is the same (no parameters)
+        assert isinstance(extractor, ActionRolloutExtractor)
+        pre = preprocess_obs(obs, self.observation_space, normalize_images=self.normalize_images)
+        geometry = extractor.geometry(pre)  # type: ignore[arg-type]
+        self._kept = ({k: v.clone() for k, v in obs.items()}, geometry)
+        return super().forward({**obs, GEOMETRY_KEY: geometry}, deterministic)
+
+    def take_rollout_geometry(self, observations: dict[str, np.ndarray]) -> torch.Tensor | None:
+        """The geometry ``(B, A * F)`` the last :meth:`forward` computed, if it was given exactly ``observations``
+        (as SB3's rollout buffer holds them: float32), else None; either way it is not kept any longer."""
+        kept, self._kept = self._kept, None
+        if kept is None:
+            return None
+        seen, geometry = kept
+        if set(seen) != set(observations):
+            return None
+        for key, value in observations.items():
+            given = torch.as_tensor(np.asarray(value, dtype=np.float32))
+            if given.shape != seen[key].shape or not torch.equal(given, seen[key].to(torch.float32)):
+                return None
+        return geometry
 
     def get_distribution(self, obs: Any) -> Any:
         """SB3's, through :meth:`extract_features` (SB3 calls the base class's, which rejects the geometry key)."""
@@ -478,47 +520,78 @@ class ActionScoringQPolicy(_HeadKwargs, DQNMultiInputPolicy):
 class GeometryCachingBuffer(DictRolloutBuffer):
     """PPO's rollout buffer, adding to every minibatch the observations' rollout geometry (:data:`GEOMETRY_KEY`),
     computed once per rollout instead of once per epoch and minibatch (the geometry depends on the observation
-    alone). Without :meth:`attach` it is SB3's buffer. Results equal recomputation up to float rounding."""
+    alone). With a policy attached (:func:`attach_geometry_cache`), the geometry its forward pass computed for the
+    rollout's steps is stored as they are added and not computed at all for the update; a step added without it is
+    computed at the first minibatch, as is everything without a policy. Without :meth:`attach` it is SB3's buffer.
+    Results equal recomputation up to float rounding."""
 
     geometry_fn: Any = None
+    policy: Any = None
     _geometry: torch.Tensor | None = None
+    _rows: torch.Tensor | None = None
+    _have: np.ndarray | None = None
     _CHUNK_ROWS: Final[int] = 512
 
-    def attach(self, geometry_fn: Any) -> None:
+    def attach(self, geometry_fn: Any, policy: Any = None) -> None:
         """Use ``geometry_fn`` (:meth:`ActionRolloutExtractor.geometry`: batch of observation tensors ->
-        ``(B, A * F)``)."""
+        ``(B, A * F)``), and take what ``policy`` (:class:`ActionScoringPolicy`, or None) computed in the rollout
+        (:meth:`ActionScoringPolicy.take_rollout_geometry`)."""
         self.geometry_fn = geometry_fn
+        self.policy = policy
         self._geometry = None
+        self._rows, self._have = None, np.zeros(self.buffer_size, dtype=bool)
 
     def reset(self) -> None:
         super().reset()
         self._geometry = None
+        if self._have is not None:
+            self._have[:] = False
+
+    def add(self, obs: dict[str, np.ndarray], *args: Any, **kwargs: Any) -> None:  # type: ignore[override]
+        pos = self.pos
+        super().add(obs, *args, **kwargs)
+        if self.policy is None or self._have is None:
+            return
+        geometry = self.policy.take_rollout_geometry(obs)
+        if geometry is None or geometry.shape[0] != self.n_envs:
+            return
+        if self._rows is None or self._rows.shape[2] != geometry.shape[1]:
+            self._rows = torch.empty(self.buffer_size, self.n_envs, geometry.shape[1], dtype=geometry.dtype)
+        self._rows[pos] = geometry
+        self._have[pos] = True
 
     def _get_samples(self, batch_inds: Any, env: Any = None) -> Any:  # type: ignore[override]
         samples = super()._get_samples(batch_inds, env)
         if self.geometry_fn is None:
             return samples
         if self._geometry is None:  # first minibatch of this rollout: observations are flattened by now
-            n = self.buffer_size * self.n_envs
-            parts = []
-            for lo in range(0, n, self._CHUNK_ROWS):
-                chunk = {k: self.to_torch(v[lo : lo + self._CHUNK_ROWS]) for k, v in self.observations.items()}
-                parts.append(self.geometry_fn(chunk))
-            self._geometry = torch.cat(parts)
+            if self._rows is not None and self._have is not None and self._have.all():
+                # kept in the rollout, (step, env) -> SB3's flattened order (env, step)
+                self._geometry = self._rows.transpose(0, 1).reshape(self.buffer_size * self.n_envs, -1)
+            else:
+                n = self.buffer_size * self.n_envs
+                parts = []
+                for lo in range(0, n, self._CHUNK_ROWS):
+                    chunk = {k: self.to_torch(v[lo : lo + self._CHUNK_ROWS]) for k, v in self.observations.items()}
+                    parts.append(self.geometry_fn(chunk))
+                self._geometry = torch.cat(parts)
         obs = dict(samples.observations)
-        obs[GEOMETRY_KEY] = self._geometry[torch.as_tensor(batch_inds, device=self._geometry.device)]
+        rows = torch.as_tensor(batch_inds, device=self._geometry.device)
+        obs[GEOMETRY_KEY] = torch.index_select(self._geometry, 0, rows)  # the same rows, 6x faster than [rows]
         return samples._replace(observations=obs)
 
 
 def attach_geometry_cache(model: Any) -> bool:
-    """Let ``model``'s rollout buffer cache the scoring policy's geometry (:class:`GeometryCachingBuffer`); returns
-    whether it applies (a PPO model with that buffer and :class:`ActionScoringPolicy`)."""
+    """Let ``model``'s rollout buffer cache the scoring policy's geometry (:class:`GeometryCachingBuffer`), keeping
+    what the policy computes in the rollouts; returns whether it applies (a PPO model with that buffer and
+    :class:`ActionScoringPolicy`)."""
     buffer = getattr(model, "rollout_buffer", None)
     policy = getattr(model, "policy", None)
     if isinstance(buffer, GeometryCachingBuffer) and isinstance(policy, ActionScoringPolicy):
         extractor = policy.features_extractor
         assert isinstance(extractor, ActionRolloutExtractor)
-        buffer.attach(extractor.geometry)
+        policy.keep_rollout_geometry = True
+        buffer.attach(extractor.geometry, policy)
         return True
     return False
 

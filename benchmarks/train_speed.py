@@ -1,161 +1,326 @@
 """PPO training throughput (environment steps per second, updates included) per forecast arm, and where a step goes.
 
-Run: ``python benchmarks/train_speed.py [--json] [--steps 8192] [--arms none cv mesrnn oracle]
-[--cells 8:batched 8:dummy 2:subproc] [--config configs/agent/ppo_scoring.yaml] [--split zara1] [--set key=value ...]``.
+Run: ``python benchmarks/train_speed.py [--json] [--steps 8192] [--arms none mesrnn] [--vec-env vector dummy]
+[--cells 64:vector 8:dummy] [--config configs/agent/ppo_scoring.yaml] [--split zara1] [--set key=value ...]``.
 
-Each cell builds the PPO of the config (``agents.training``: the same policy, vectorised environment kind and networks;
-validation, checkpoints and the warm start off) on the split's training scenes, with ``n_steps`` scaled so that
-every update sees the config's rollout size (``n_steps x n_envs``); fills the shared forecast cache first (its time
-is printed, not counted); runs one warm-up rollout; then times ``--steps`` steps of ``model.learn`` — rollouts and
-updates — and splits the process's CPU time into the vectorised environment's steps (environments, observations, forecasts
-lookup, action mapping), the policy's forward pass in the rollouts, the updates (``PPO.train``) and the rest
-(rollout buffer, advantages, callbacks), per environment step.
+Each measurement builds the PPO of the config (``agents.training``: the same policy, networks and rollout buffer;
+validation, checkpoints and the warm start off) on the split's training scenes, with ``n_steps`` scaled so that every
+update sees the config's rollout size (``n_steps x n_envs``) when a cell changes ``n_envs``; fills the shared forecast
+cache first (its time is printed, not counted); runs one warm-up rollout and update; then times ``--steps`` steps of
+one ``model.learn`` call and splits it per environment step, from inside that run:
 
-A cell is a number of environments and how they run (``vec_env``): ``vector`` (the batched environment,
-``agents.batched_vec_env``; ``auto`` is it where the settings allow), ``batched`` (in this process, the wrappers' work
-batched: ``agents.vec_env``), ``dummy`` (SB3's ``DummyVecEnv`` over wrapped environments) or ``subproc`` (one
-forkserver worker each). Without ``--cells`` the config's own (``n_envs``, ``vec_env``) is the only cell.
+- ``env``: the vectorised environment's ``step`` (a ``VecEnv`` wrapper): environments, observations, the forecast
+  lookup, the discrete action mapping, the resets of finished episodes;
+- ``policy_forward``: the policy's forward pass in the rollouts (``policy.forward`` and the value of truncated
+  episodes' last observations, ``predict_values``);
+- ``update``: the PPO update (from a callback's rollout end to the next rollout start or the end of training), per
+  sample: every collected step is one sample of one update;
+- ``other``: the rest (rollout buffer, observation to tensor, callbacks, ``learn``'s set-up).
 
-``--json`` prints one object: ``{"config", "split", "steps", "cell", "arms": {arm: steps/s}, "slowdown_vs_none":
-{arm: none's steps/s / arm's}, "arms_per_cpu_second": {arm: steps per CPU second}, "cpu_us_per_step": {arm:
-{"env", "policy_forward", "update", "other"}}}`` for the config's own cell (the shipped recipe with the default
-config). Wall-time rates depend on what else the machine runs; the CPU-time rate and split do much less. Prints
-figures; never asserts on time.
+The split is given in wall microseconds (``split_us``: it sums to ``1e6 / steps_per_s``) and in this process's CPU
+microseconds (``cpu_split_us``: steadier on a shared machine; with ``subproc`` workers it leaves out the workers'
+environments).
+
+``--vec-env`` sets how the environments run (default ``vector``, the batched environment; the recipes pin theirs to
+keep committed grid cells' hashes, and every kind gives the same transitions): ``vector`` (``agents.batched_vec_env``),
+``batched`` (single environments in this process, the wrappers' work batched: ``agents.vec_env``), ``dummy`` (SB3's
+``DummyVecEnv`` over wrapped environments), ``subproc`` (one forkserver worker each). Several kinds are measured one
+after another (``--vec-env vector dummy``). ``--cells N:KIND ...`` (table only) measures other numbers of environments.
+
+``--json`` prints one object for the config's ``n_envs``::
+
+    {"arms": {arm: steps/s}, "split_us": {arm: {"env", "policy_forward", "update", "other"}},
+     "cpu_split_us": {...}, "arms_per_cpu_second": {arm: steps per CPU second}, "ratio_vs_none": {arm: none's steps/s
+     / arm's}, "vec_env", "n_envs", "config", "scenes", "steps", "matmul_gflops", "cpu_count", "load_average":
+     {"start", "end"}, "by_vec_env": {kind: {"arms", "split_us", ...}}}
+
+``arms`` and ``split_us`` are the first ``--vec-env`` kind's; ``by_vec_env`` holds every kind's. The machine's float32
+matmul peak on one thread (``benchmarks/_timing.py``), its CPU count and its load average before and after are printed
+beside the figures: machines differ by up to 4x, so compare figures of one run (ratios), or read them against that
+peak. Prints figures; never asserts on time.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
+from _timing import matmul_peak_gflops
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvWrapper
 
 from agents.entry import parse_set
 from agents.scoring import attach_geometry_cache
-from agents.training.config import _algo_class, algorithm_kwargs, load_train_config, policy_class
+from agents.training.config import (
+    VEC_ENVS,
+    _algo_class,
+    algorithm_kwargs,
+    load_train_config,
+    policy_class,
+    vec_env_kind,
+)
 from agents.training.run import make_vec_env, prepare_training_forecasts
 
 torch.set_num_threads(1)
 
 REPO = Path(__file__).resolve().parent.parent
 PHASES = ("env", "policy_forward", "update", "other")
+#: The shipped recipe (configs/ablation/learned.yaml's PPO); configs/agent/ppo.yaml is the previous grid's.
+DEFAULT_CONFIG = REPO / "configs" / "agent" / "ppo_scoring.yaml"
 
 
-def _timed(obj: Any, name: str, totals: dict[str, float], key: str) -> None:
-    """Replace ``obj.name`` by a wrapper adding its CPU time (this process's) to ``totals[key]``."""
-    inner = getattr(obj, name)
+class _Clock:
+    """Wall and CPU seconds accumulated per phase."""
 
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        t0 = time.process_time()
-        try:
-            return inner(*args, **kwargs)
-        finally:
-            totals[key] += time.process_time() - t0
+    def __init__(self) -> None:
+        self.reset()
 
-    setattr(obj, name, wrapper)
+    def reset(self) -> None:
+        self.wall = dict.fromkeys(PHASES, 0.0)
+        self.cpu = dict.fromkeys(PHASES, 0.0)
+
+    def add(self, phase: str, wall_s: float, cpu_s: float) -> None:
+        self.wall[phase] += wall_s
+        self.cpu[phase] += cpu_s
+
+    def timed(self, fn: Any, phase: str) -> Any:
+        """``fn`` with its time added to ``phase``."""
+
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            w, c = time.perf_counter(), time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.add(phase, time.perf_counter() - w, time.process_time() - c)
+
+        return wrapper
 
 
-def cell(
-    config: Path, predictor: str, n_envs: int | None, vec_env: str | None, steps: int, split: str, extra: dict
-) -> tuple[float, float, float, dict[str, float]]:
-    """(steps per wall second of learning, steps per CPU second of this process, seconds spent filling the forecast
-    cache, CPU microseconds per step by phase) for one arm and cell (``n_envs``/``vec_env`` None: the config's
-    own). On a shared machine the CPU rate is the steadier figure; with ``subproc`` workers it leaves out the
-    workers' CPU (their environments)."""
-    base = load_train_config(config, None, extra)
-    n_envs = base.n_envs if n_envs is None else n_envs
+class TimedVecEnv(VecEnvWrapper):
+    """A ``VecEnv`` passing everything through, adding the time of every ``step`` (``step_async`` and
+    ``step_wait``) to its clock's ``env`` phase."""
+
+    def __init__(self, venv: Any, clock: _Clock) -> None:
+        super().__init__(venv)
+        self.clock = clock
+
+    def reset(self) -> Any:
+        return self.venv.reset()
+
+    def step_async(self, actions: Any) -> None:
+        w, c = time.perf_counter(), time.process_time()
+        self.venv.step_async(actions)
+        self.clock.add("env", time.perf_counter() - w, time.process_time() - c)
+
+    def step_wait(self) -> Any:
+        w, c = time.perf_counter(), time.process_time()
+        out = self.venv.step_wait()
+        self.clock.add("env", time.perf_counter() - w, time.process_time() - c)
+        return out
+
+
+class UpdateTimer(BaseCallback):
+    """Adds the time from each rollout's end to the next rollout's start (or the end of training) -- SB3 runs the
+    update there -- to its clock's ``update`` phase."""
+
+    def __init__(self, clock: _Clock) -> None:
+        super().__init__()
+        self.clock = clock
+        self._ended: tuple[float, float] | None = None
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        self._ended = (time.perf_counter(), time.process_time())
+
+    def _since_rollout_end(self) -> None:
+        if self._ended is not None:
+            self.clock.add("update", time.perf_counter() - self._ended[0], time.process_time() - self._ended[1])
+            self._ended = None
+
+    def _on_rollout_start(self) -> None:
+        self._since_rollout_end()
+
+    def _on_training_end(self) -> None:
+        self._since_rollout_end()
+
+
+def measure(
+    config: Path,
+    predictor: str,
+    steps: int,
+    split: str,
+    extra: Mapping[str, Any],
+    vec_env: str | None = None,
+    n_envs: int | None = None,
+) -> dict[str, Any]:
+    """One arm in one cell: ``{"steps_per_s", "steps_per_cpu_s", "cache_fill_s", "vec_env", "n_envs", "split_us",
+    "cpu_split_us"}`` (``split_us``/``cpu_split_us``: wall/CPU microseconds per environment step by phase, see the
+    module docstring). ``vec_env``/``n_envs`` None: the config's own (with ``extra`` applied)."""
+    base = load_train_config(config, None, dict(extra))
+    n = base.n_envs if n_envs is None else n_envs
     overrides = {
         **extra,
         "predictor": predictor,
         "split": split,
-        "n_envs": n_envs,
+        "n_envs": n,
         "vec_env": vec_env or base.vec_env,
         "n_timesteps": steps,
         "eval.episodes": 0,
         "checkpoint_freq_steps": 0,
         "pretrain": None,
     }
-    if base.algo == "ppo":
-        overrides["n_steps"] = max(1, int(base.hyperparams.get("n_steps", 2048)) * base.n_envs // n_envs)
+    if base.algo == "ppo" and n != base.n_envs:  # the config's rollout size, n_steps x n_envs
+        overrides["n_steps"] = max(1, int(base.hyperparams.get("n_steps", 2048)) * base.n_envs // n)
     cfg = load_train_config(config, None, overrides)
     t0 = time.perf_counter()
     prepare_training_forecasts(cfg)
     cache_s = time.perf_counter() - t0
-    venv = make_vec_env(cfg)
+    clock = _Clock()
+    venv = TimedVecEnv(make_vec_env(cfg), clock)
     try:
         model = _algo_class(cfg.algo)(
             policy_class(cfg.policy), venv, seed=0, verbose=0, device="cpu", **algorithm_kwargs(cfg)
         )
         attach_geometry_cache(model)
-        warmup = int(cfg.hyperparams.get("n_steps", 2048)) * n_envs if cfg.algo == "ppo" else 1000
-        model.learn(warmup)
-        totals = dict.fromkeys(PHASES, 0.0)
-        _timed(model.env, "step", totals, "env")
-        _timed(model.policy, "forward", totals, "policy_forward")
-        _timed(model, "train", totals, "update")
-        t1, c1 = time.perf_counter(), time.process_time()
-        model.learn(steps, reset_num_timesteps=False)
-        elapsed, cpu = time.perf_counter() - t1, time.process_time() - c1
-        totals["other"] = cpu - sum(totals.values())
-        return steps / elapsed, steps / cpu, cache_s, {k: round(1e6 * v / steps, 1) for k, v in totals.items()}
+        for name in ("forward", "predict_values"):  # the policy's calls in the rollouts (the update calls neither)
+            setattr(model.policy, name, clock.timed(getattr(model.policy, name), "policy_forward"))
+        model.learn(int(cfg.hyperparams.get("n_steps", 2048)) * n if cfg.algo == "ppo" else 1000)  # warm-up
+        clock.reset()
+        start = model.num_timesteps
+        w, c = time.perf_counter(), time.process_time()
+        model.learn(steps, callback=UpdateTimer(clock), reset_num_timesteps=False)
+        wall, cpu = time.perf_counter() - w, time.process_time() - c
+        done = model.num_timesteps - start  # whole rollouts: at least ``steps``
     finally:
         venv.close()
+    clock.wall["other"] = wall - sum(clock.wall.values())
+    clock.cpu["other"] = cpu - sum(clock.cpu.values())
+    return {
+        "steps_per_s": done / wall,
+        "steps_per_cpu_s": done / cpu,
+        "cache_fill_s": cache_s,
+        "vec_env": vec_env_kind(cfg)[0],
+        "n_envs": n,
+        "split_us": {k: round(1e6 * v / done, 1) for k, v in clock.wall.items()},
+        "cpu_split_us": {k: round(1e6 * v / done, 1) for k, v in clock.cpu.items()},
+    }
+
+
+def _load() -> list[float]:
+    return [round(x, 2) for x in os.getloadavg()]
+
+
+def machine(matmul_repeats: int = 20) -> dict[str, Any]:
+    """The machine beside the figures: float32 matmul peak on one thread (GFLOP/s), CPU count, load average."""
+    peak = matmul_peak_gflops(torch.float32, threads=1, repeats=matmul_repeats)
+    torch.set_num_threads(1)
+    return {"matmul_gflops": round(peak, 1), "cpu_count": os.cpu_count(), "load_average": _load()}
+
+
+def run_json(
+    config: Path,
+    arms: Sequence[str],
+    vec_envs: Sequence[str],
+    steps: int,
+    split: str,
+    extra: Mapping[str, Any],
+    matmul_repeats: int = 20,
+) -> dict[str, Any]:
+    """The ``--json`` object (module docstring) for the config's ``n_envs``, each arm under each ``vec_envs`` kind."""
+    host = machine(matmul_repeats)
+    by_kind: dict[str, dict[str, Any]] = {}
+    for kind in vec_envs:
+        runs = {arm: measure(config, arm, steps, split, extra, vec_env=kind) for arm in arms}
+        rates = {arm: r["steps_per_s"] for arm, r in runs.items()}
+        by_kind[kind] = {
+            "arms": {arm: round(r, 1) for arm, r in rates.items()},
+            "split_us": {arm: r["split_us"] for arm, r in runs.items()},
+            "cpu_split_us": {arm: r["cpu_split_us"] for arm, r in runs.items()},
+            "arms_per_cpu_second": {arm: round(r["steps_per_cpu_s"], 1) for arm, r in runs.items()},
+            "ratio_vs_none": {arm: round(rates["none"] / r, 3) for arm, r in rates.items()} if "none" in rates else {},
+            "vec_env": next(iter(runs.values()))["vec_env"],
+            "n_envs": next(iter(runs.values()))["n_envs"],
+        }
+    first = by_kind[vec_envs[0]]
+    shown = config.relative_to(REPO) if config.is_relative_to(REPO) else config
+    return {
+        **first,
+        "config": str(shown),
+        "scenes": f"{split} training scenes",
+        "steps": steps,
+        "matmul_gflops": host["matmul_gflops"],
+        "cpu_count": host["cpu_count"],
+        "load_average": {"start": host["load_average"], "end": _load()},
+        "by_vec_env": by_kind,
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--steps", type=int, default=8192, help="timed environment steps per cell (default 8192)")
-    parser.add_argument("--arms", nargs="+", default=["none", "cv", "mesrnn", "oracle"])
-    parser.add_argument("--cells", nargs="+", default=None, help="N:KIND cells (default: the config's own)")
+    parser.add_argument("--steps", type=int, default=8192, help="timed environment steps per arm (default 8192)")
+    parser.add_argument(
+        "--arms",
+        nargs="+",
+        default=None,
+        help="forecast arms (default: none mesrnn with --json, else none cv mesrnn oracle)",
+    )
+    parser.add_argument(
+        "--vec-env",
+        nargs="+",
+        default=["vector"],
+        choices=VEC_ENVS,
+        help="how the environments run (default vector: the batched environment); several are measured in turn",
+    )
+    parser.add_argument("--cells", nargs="+", default=None, help="N:KIND cells (table only; default: --vec-env kinds)")
     parser.add_argument("--split", default="zara1")
-    # the shipped recipe (configs/ablation/learned.yaml's PPO); configs/agent/ppo.yaml is the previous grid's
-    parser.add_argument("--config", type=Path, default=REPO / "configs" / "agent" / "ppo_scoring.yaml")
+    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
     parser.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE", help="config override")
-    parser.add_argument("--json", action="store_true", help="one JSON object for the config's own cell")
+    parser.add_argument("--json", action="store_true", help="one JSON object for the config's n_envs")
     args = parser.parse_args()
     extra = parse_set(args.overrides)
-    arms = args.arms if "none" in args.arms else ["none", *args.arms]
+    arms = args.arms or (["none", "mesrnn"] if args.json else ["none", "cv", "mesrnn", "oracle"])
+    arms = arms if "none" in arms else ["none", *arms]
     if args.json:
         if args.cells:
-            parser.error("--json measures the config's own cell; leave out --cells")
-        rates, cpu_rates, phases = {}, {}, {}
-        for arm in arms:
-            rates[arm], cpu_rates[arm], _, phases[arm] = cell(
-                args.config, arm, None, None, args.steps, args.split, extra
-            )
-        base = load_train_config(args.config, None, extra)
-        out = {
-            "config": str(args.config.relative_to(REPO) if args.config.is_relative_to(REPO) else args.config),
-            "split": args.split,
-            "steps": args.steps,
-            "cell": f"{base.n_envs}:{base.vec_env}",
-            "arms": {a: round(r, 1) for a, r in rates.items()},
-            "slowdown_vs_none": {a: round(rates["none"] / r, 3) for a, r in rates.items()},
-            "arms_per_cpu_second": {a: round(r, 1) for a, r in cpu_rates.items()},
-            "cpu_us_per_step": phases,
-        }
-        print(json.dumps(out))
+            parser.error("--json measures the config's n_envs; leave out --cells (use --set n_envs=N)")
+        print(json.dumps(run_json(args.config, arms, args.vec_env, args.steps, args.split, extra)))
         return
-    print(f"{args.config.name}, split {args.split} (training scenes), {args.steps} timed steps per cell")
+    host = machine()
+    print(
+        f"{args.config.name}, split {args.split} (training scenes), {args.steps} timed steps per cell; "
+        f"matmul peak {host['matmul_gflops']} GFLOP/s (float32, 1 thread), {host['cpu_count']} CPUs, "
+        f"load average {host['load_average']}"
+    )
     head = "".join(f"{p:>16}" for p in PHASES)
     print(
         f"{'arm':<10}{'cell':>15}{'steps/s':>10}{'slowdown':>10}{'per CPU s':>11}{'cache fill s':>14}   CPU us/step:{head}"
     )
-    for spec in args.cells or [None]:
-        n, kind = (None, None) if spec is None else (int(spec.partition(":")[0]), spec.partition(":")[2] or "dummy")
+    cells = args.cells or [f":{kind}" for kind in args.vec_env]
+    for spec in cells:
+        count, _, kind = spec.partition(":")
+        n = int(count) if count else None
         base_rate = None
         for arm in arms:
-            rate, cpu_rate, cache_s, us = cell(args.config, arm, n, kind, args.steps, args.split, extra)
+            r = measure(args.config, arm, args.steps, args.split, extra, vec_env=kind or "dummy", n_envs=n)
+            rate = r["steps_per_s"]
             base_rate = rate if arm == "none" else base_rate
             ratio = f"{base_rate / rate:.2f}x" if base_rate else "-"
-            shown = spec or "config"
-            parts = "".join(f"{us[p]:>16.0f}" for p in PHASES)
+            shown = f"{r['n_envs']}:{r['vec_env']}"
+            parts = "".join(f"{r['cpu_split_us'][p]:>16.0f}" for p in PHASES)
             print(
-                f"{arm:<10}{shown:>15}{rate:>10.0f}{ratio:>10}{cpu_rate:>11.0f}{cache_s:>14.1f}{parts:>15}", flush=True
+                f"{arm:<10}{shown:>15}{rate:>10.0f}{ratio:>10}{r['steps_per_cpu_s']:>11.0f}{r['cache_fill_s']:>14.1f}"
+                f"{parts:>15}",
+                flush=True,
             )
+    print(f"load average after: {_load()}")
 
 
 if __name__ == "__main__":

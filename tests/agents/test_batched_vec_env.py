@@ -188,3 +188,55 @@ def test_more_environments_than_the_batched_env_holds(tiny: Any, config_of: Any)
         load_train_config(config_of("ppo"), None, {**tiny("ppo", "cv", n_envs=300), "vec_env": "vector"})
     cfg = load_train_config(config_of("ppo"), None, {**tiny("ppo", "cv", n_envs=300), "vec_env": "auto"})
     assert vec_env_kind(cfg)[0] == "subproc"
+
+
+def _unbatch_reference(info: dict[str, Any], num: int) -> list[dict[str, Any]]:
+    """Per-environment info dicts the plain way: environment by environment, key by key."""
+    import math
+
+    out: list[dict[str, Any]] = [{} for _ in range(num)]
+    for key, value in info.items():
+        if key.startswith("_") or f"_{key}" not in info:
+            continue
+        for i in range(num):
+            if not info[f"_{key}"][i]:
+                continue
+            if isinstance(value, dict):
+                out[i][key] = _unbatch_reference(value, num)[i]
+                continue
+            item = value[i] if value.dtype == object else value[i].tolist()
+            out[i][key] = None if isinstance(item, float) and math.isnan(item) else item
+    return out
+
+
+def test_unbatched_infos_equal_the_plain_loop() -> None:
+    """The adapter's info unbatching (one tolist per key, NaNs found at once) gives, value for value and type for type,
+    what a loop over environments and keys gives: masks, NaN -> None in float arrays only, 2-D rows, object arrays,
+    nested dicts."""
+    from agents.batched_vec_env import _unbatch
+
+    full, some = np.ones(4, dtype=bool), np.array([True, False, True, False])
+    info = {
+        "time_s": np.array([0.4, np.nan, 1.2, 2.0]),
+        "_time_s": full,
+        "min_gap_m": np.array([np.nan, 0.5, np.nan, 3.0], dtype=np.float32),
+        "_min_gap_m": some,
+        "collision": np.array([False, True, False, True]),
+        "_collision": full,
+        "count": np.arange(4),
+        "_count": some,
+        "position": np.array([[0.0, np.nan], [1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]),
+        "_position": full,
+        "fault": np.array(["robot", None, float("nan"), "pedestrian"], dtype=object),
+        "_fault": full,
+        "reward_components": {"progress": np.array([0.1, np.nan, 0.3, 0.4]), "_progress": full},
+        "_reward_components": some,
+        "unmasked": np.zeros(4),
+    }
+    got, want = _unbatch(info, 4), _unbatch_reference(info, 4)
+    assert repr(got) == repr(want)  # every value (NaN included: repr 'nan') and every key in the same order
+    for g, w in zip(got, want, strict=True):
+        for key in w:
+            assert type(g[key]) is type(w[key]), key
+    assert got[1]["time_s"] is None and got[0]["min_gap_m"] is None and got[2]["fault"] is None
+    assert got[0]["position"][1] != got[0]["position"][1]  # a NaN inside a row stays a float

@@ -197,6 +197,39 @@ def test_ppo_learns_saves_and_loads_with_logits_from_shared_weights(tmp_path: Pa
     torch.testing.assert_close(loaded.policy.get_distribution(obs).distribution.logits, logits)
 
 
+@pytest.mark.parametrize("activation", ["relu", "tanh"])
+def test_head_outputs_and_gradients_equal_the_plain_formula(activation: str) -> None:
+    """The head's update shortcuts (no gradient into the parameter-free geometry, the context added in place, the
+    maximum over actions by ``max``) change neither its outputs (the same bits as the formula of the class docstring
+    written out plainly) nor any gradient the update uses (the same up to float rounding: the sums of a code's
+    gradients run in another order)."""
+    from agents.scoring import ActionScoringHead
+
+    f, c, b = num_rollout_features(H), 25, 64
+    torch.manual_seed(0)
+    head = ActionScoringHead(A, f, c, hidden_dim=16, activation=activation)
+    geometry = torch.randn(b, A * f) * 2  # as the extractor's: computed without gradient
+    context = torch.randn(b, c, requires_grad=True)  # the context encoder's output: it has a gradient
+
+    def plain(h: ActionScoringHead, ctx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = torch.cat([geometry, ctx], dim=1)[:, : A * f].reshape(b, A, f)
+        codes = h.act(h.hidden(h.act(h.action_in(x) + h.context_in(ctx)[:, None, :])))
+        value = h.act(h.value_in(torch.cat([ctx, codes.mean(dim=1), codes.amax(dim=1)], dim=1)))
+        return h.score(codes).squeeze(-1), value
+
+    def loss_and_grads(outputs: tuple[torch.Tensor, torch.Tensor]) -> list[torch.Tensor]:
+        logits, value = outputs
+        loss = torch.log_softmax(logits, dim=1)[:, 3].sum() + value.square().sum()
+        return list(torch.autograd.grad(loss, [context, *head.parameters()]))
+
+    expected = plain(head, context)
+    got = head(torch.cat([geometry, context], dim=1))
+    for e, g in zip(expected, got, strict=True):
+        assert torch.equal(e, g)
+    for e, g in zip(loss_and_grads(plain(head, context)), loss_and_grads(got), strict=True):
+        torch.testing.assert_close(g, e, rtol=1e-5, atol=1e-6)
+
+
 def test_dqn_uses_the_scores_as_q_values() -> None:
     from stable_baselines3 import DQN
 
@@ -259,6 +292,70 @@ def test_rollout_buffer_caches_the_geometry_once_per_rollout() -> None:
     for a, b in zip(cached, fresh, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
     assert calls == [32]  # get() after the rollout computed nothing new
+
+
+def test_rollout_buffer_keeps_the_geometry_the_rollout_computed() -> None:
+    """With the policy attached, the update uses the geometry the rollout's forward passes computed (stored step by
+    step, in SB3's flattened order): the same as computing it from the buffer's observations, and nothing computed
+    again. A step whose observations are not those of the last forward pass is computed at the update."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.scoring import GeometryCachingBuffer, attach_geometry_cache
+
+    venv = DummyVecEnv([lambda: _env(True), lambda: _env(True)])  # two environments: the (step, env) order matters
+    model = PPO(ActionScoringPolicy, venv, n_steps=16, batch_size=16, n_epochs=1, policy_kwargs=_policy_kwargs(),
+                rollout_buffer_class=GeometryCachingBuffer, seed=0, device="cpu")  # fmt: skip
+    assert attach_geometry_cache(model)
+    buffer = model.rollout_buffer
+    geometry = buffer.geometry_fn
+    calls: list[int] = []
+    buffer.geometry_fn = lambda obs: calls.append(len(obs["mask"])) or geometry(obs)
+    model.learn(32)  # one rollout of 16 steps x 2 environments, one epoch
+    assert calls == []  # taken from the rollout, not computed
+    recomputed = geometry({k: buffer.to_torch(v) for k, v in buffer.observations.items()})
+    assert buffer._geometry is not None
+    torch.testing.assert_close(buffer._geometry, recomputed, rtol=0, atol=0)
+
+    # observations other than the forward pass's: not taken; that step is computed at the first minibatch
+    buffer.reset()
+    policy = model.policy
+    for step in range(buffer.buffer_size):
+        obs = {k: np.stack([model.observation_space[k].sample() for _ in range(2)]) for k in buffer.observations}
+        policy(policy.obs_to_tensor(obs)[0])
+        if step == 3:
+            obs = {**obs, "robot": obs["robot"] + 1.0}
+        buffer.add(obs, np.zeros((2, 1)), np.zeros(2), np.zeros(2), torch.zeros(2, 1), torch.zeros(2))
+    assert policy.take_rollout_geometry(obs) is None  # taken by the buffer: kept once only
+    assert not buffer._have[3] and buffer._have.sum() == buffer.buffer_size - 1
+    buffer.compute_returns_and_advantage(torch.zeros(2, 1), np.zeros(2))
+    next(buffer.get(8))
+    assert calls == [32]
+
+
+def test_training_with_the_rollout_geometry_kept_is_the_same_training() -> None:
+    """PPO with the rollout's geometry kept for the update and PPO computing it at the update train the same
+    weights, bit for bit."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.scoring import GeometryCachingBuffer, attach_geometry_cache
+
+    def trained(keep: bool) -> list[torch.Tensor]:
+        venv = DummyVecEnv([lambda: _env(True), lambda: _env(True)])
+        for i, env in enumerate(venv.envs):  # the same observations in both trainings
+            env.unwrapped.observation_space.seed(i)
+        model = PPO(ActionScoringPolicy, venv, n_steps=16, batch_size=8, n_epochs=2, policy_kwargs=_policy_kwargs(),
+                    rollout_buffer_class=GeometryCachingBuffer, seed=0, device="cpu")  # fmt: skip
+        if keep:
+            assert attach_geometry_cache(model)
+        else:  # the cache as before: computed from the buffer's observations at the first minibatch
+            model.rollout_buffer.attach(model.policy.features_extractor.geometry)
+        model.learn(64)
+        return [p.detach().clone() for p in model.policy.parameters()]
+
+    for a, b in zip(trained(True), trained(False), strict=True):
+        assert torch.equal(a, b)
 
 
 @pytest.mark.parametrize("predictor", ["none", "mesrnn"])

@@ -108,3 +108,45 @@ def test_missing_entry_lists_the_entries(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="CrowdNav-CV-v0"):
         load_train_config(path)
     assert load_train_config(path, None, {"predictor": "cv"}).policy == "MultiInputPolicy"
+
+
+SCORING_YAML = REPO / "configs" / "agent" / "ppo_scoring.yaml"
+FAST_YAML = REPO / "configs" / "agent" / "ppo_scoring_fast.yaml"
+
+
+def test_the_fast_candidate_differs_from_the_recipe_only_where_it_declares() -> None:
+    """configs/agent/ppo_scoring_fast.yaml: the shipped recipe but for the learning settings its comments name
+    (n_envs, n_steps, batch_size; the rollout size kept) and the vectorised environment; it loads for every arm and
+    steps the batched environment."""
+    from agents.training.config import vec_env_kind
+
+    fast, recipe = load_yaml(FAST_YAML), load_yaml(SCORING_YAML)
+    entry, shipped = fast["CrowdNav-MESRNN-v0"], recipe["CrowdNav-MESRNN-v0"]
+    assert all(fast[env_id] == entry for env_id in set(ENV_ID_OF.values()))  # every arm the same hyperparameters
+    assert {k for k in entry.keys() | shipped.keys() if entry.get(k) != shipped.get(k)} == {
+        "n_envs",
+        "n_steps",
+        "batch_size",
+    }
+    assert entry["n_envs"] * entry["n_steps"] == shipped["n_envs"] * shipped["n_steps"]
+    project, shipped_project = fast[PROJECT_KEY], recipe[PROJECT_KEY]
+    assert {k for k in project.keys() | shipped_project.keys() if project.get(k) != shipped_project.get(k)} == {
+        "vec_env"
+    }
+    for arm in ("none", "cv", "mesrnn", "oracle"):
+        cfg = load_train_config(FAST_YAML, None, {"predictor": arm})
+        assert vec_env_kind(cfg) == ("vector", None)
+        assert algorithm_kwargs(cfg)["batch_size"] == 512
+
+
+@pytest.mark.parametrize(
+    ("anchor", "misspelt"),
+    [("  batch_size: 512\n", "  n_epoch: 3\n"), ("  vec_env: vector\n", "  vec_envs: dummy\n")],
+)
+def test_the_fast_candidate_refuses_unknown_keys(tmp_path: Path, anchor: str, misspelt: str) -> None:
+    text = FAST_YAML.read_text()
+    assert anchor in text
+    path = tmp_path / "fast.yaml"
+    path.write_text(text.replace(anchor, anchor + misspelt, 1))
+    with pytest.raises(ConfigError, match=misspelt.split(":")[0].strip()):
+        load_train_config(path)
