@@ -296,6 +296,7 @@ def _live_model(algo: str, tiny: Any, **extra: Any) -> tuple[Any, dict[str, Any]
     return model, doc
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("algo", ["ppo", "sac"])
 def test_a_live_model_written_and_read_back_acts_identically(
     algo: str, tiny: Any, data_dir: Path, tmp_path: Path

@@ -30,6 +30,7 @@ print("stepped")
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("predictor", ["mesrnn", "srnn", "vlstm"])
 def test_async_make_vec_with_a_cold_forecast_cache_steps(predictor: str, data_dir: Path, tmp_path: Path) -> None:
     env = {

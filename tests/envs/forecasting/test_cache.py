@@ -315,6 +315,7 @@ def test_a_shared_constant_velocity_table_cannot_be_written_through_one_source(d
     alone[...] = 0
 
 
+@pytest.mark.slow
 def test_a_cache_folder_that_cannot_be_written_falls_back_to_memory_with_a_warning(
     data_dir: Path, tmp_path: Path, tiny_learned_predictor: Callable, lockstep: Callable
 ) -> None:
