@@ -538,6 +538,7 @@ def test_the_committed_planner_grid_rerenders_unchanged(
     assert {p.name: p.read_bytes() for p in results.iterdir()} == before
 
 
+@pytest.mark.slow
 def test_the_gains_by_reaction_plot_is_drawn_for_a_reacting_grid_only(tmp_path: Path, no_weights: None) -> None:
     from agents.ablation.plots import write_plots
 
