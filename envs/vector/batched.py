@@ -9,6 +9,7 @@ actions its observations, rewards, terminations, truncations and ``info`` equal 
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -145,6 +146,12 @@ class BatchedCrowdNavEnv(VectorEnv):
         self.samples = env.samples
         self.crowd_kind = env.crowd_kind
         self._worlds = [_World(env) for _ in range(n)]
+        # Each world asks its own copy of the forecast and uncertainty sources: their memo tables (a time's resampled
+        # forecasts, the resampling weights, the radii's weights) are keyed on rounded times but hold the values of
+        # the first request, so a table shared by the worlds could differ in the last bits from what each single
+        # environment computes for itself (its own first request).
+        self._world_sources = [_own_memos(env.forecaster) for _ in range(n)]
+        self._world_uncertainty = [_own_memos(env.uncertainty) for _ in range(n)]
         self._timer = PhaseTimer(TIMING_KEYS)
         self._phys = BatchedWorld(n, cfg.robot_radius_m, cfg.pedestrian_radius_m)
         self._replay = BatchedReplay(n)
@@ -387,7 +394,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         t0 = float(self._times(np.array([w]), np.zeros(1, dtype=np.int64))[0])
         world.popin.reset(replay, t0, ep.start)
         if self.uncertainty is not None:
-            world.uncertainty = self.uncertainty.for_episode(replay, replay.perceived_at(t0).index)
+            world.uncertainty = self._world_uncertainty[w].for_episode(replay, replay.perceived_at(t0).index)
         self._sync_popin(w)
         nrow = replay.num_pedestrians
         self._reset_ghost[w] = False
@@ -701,7 +708,8 @@ class BatchedCrowdNavEnv(VectorEnv):
                 future, valid = pj[1:, rows].transpose(1, 0, 2), prj[1:, rows].T
                 current = np.where(prj[0, rows, None], pj[0, rows], seen_pos[j, rows])
                 truth = TrueFuture(fill_forward(future, valid, current), valid)
-            fc = source.forecast(world._replay, times[j], rows, truth, world.forecast_rng)  # type: ignore[arg-type]
+            own = self._world_sources[w]
+            fc = own.forecast(world._replay, times[j], rows, truth, world.forecast_rng)  # type: ignore[arg-type,union-attr]
             if fc is None:
                 continue
             world._forecast_log.append((times[j], rows, fc))
@@ -734,7 +742,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         if len(js) == 0:
             return
         tables = [
-            source.all_forecasts(self._worlds[w]._replay, times[j])
+            self._world_sources[w].all_forecasts(self._worlds[w]._replay, times[j])  # type: ignore[union-attr]
             for j, w in zip(js.tolist(), worlds[js].tolist(), strict=True)
         ]  # type: ignore[arg-type]
         sizes = np.array([len(c) for c, _ in tables])
@@ -913,3 +921,16 @@ def _clip(x: np.ndarray, bound: float) -> np.ndarray:
     np.minimum(x, bound, out=x)
     np.maximum(x, -bound, out=x)
     return x
+
+
+def _own_memos(source: Any) -> Any:
+    """A shallow copy of a forecast or uncertainty source with empty memo tables of its own (``_cache``, the
+    resampled forecasts per time, and ``_weights``, the resampling weights), sharing everything else (the per-chunk
+    forecast tables, computed the same whoever asks first); ``source`` itself when it keeps no such memo."""
+    memos = [name for name in ("_cache", "_weights") if isinstance(getattr(source, name, None), dict)]
+    if not memos:
+        return source
+    own = copy.copy(source)
+    for name in memos:
+        setattr(own, name, {})
+    return own
