@@ -91,8 +91,8 @@ def _pair_up(
 
 
 def _seed_level(
-    a: _Episodes,
-    b: _Episodes,
+    a_seeded: bool,
+    b_seeded: bool,
     keys: Sequence[tuple[int | None, int]],
     sa: np.ndarray,
     sb: np.ndarray,
@@ -104,8 +104,6 @@ def _seed_level(
     side has seeds."""
     from agents.stats import paired_seed_test
 
-    a_seeded = any(s is not None for _, s, _ in a.keys)
-    b_seeded = any(s is not None for _, s, _ in b.keys)
     if not (a_seeded or b_seeded):
         return None
     seeds = np.asarray([-1 if s is None else s for s, _ in keys])
@@ -204,7 +202,7 @@ def paired_tests(
             mc = seeds_against_fixed(keys, sa, sb, a_seeded)
         else:
             mc = mcnemar_exact(sa, sb, intervals=intervals)
-        seed_level = _seed_level(ea, eb, keys, sa, sb, 0.95)
+        seed_level = _seed_level(a_seeded, b_seeded, keys, sa, sb, 0.95)
         tests.append({**base, "endpoint": "success", **mc, **({"seed_level": seed_level} if seed_level else {})})
         both = sa & sb
         wx = wilcoxon_paired(ta[both], tb[both])
