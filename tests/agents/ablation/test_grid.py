@@ -118,7 +118,7 @@ def test_expansion_counts_and_noisy_sweep(tmp_path: Path) -> None:
         ({"arms": ["noisy_oracle"]}, ["'noisy_oracle_ade_m'", "None"]),
         ({"comparisons": [["oracle", "none"]]}, ["'comparisons'", "'oracle'", "none, mesrnn"]),
         ({"evaluation": {"episodes": 0}}, ["'evaluation.episodes'", "0", ">= 1"]),
-        ({"evaluation": {"episodes": 5, "sed": 1}}, ["'sed'", "episodes, seed"]),
+        ({"evaluation": {"episodes": 5, "sed": 1}}, ["'sed'", "episodes, episodes_from, seed"]),
         ({"density_bins": [3, 1]}, ["'density_bins'", "increasing"]),
         ({"alpha": 5}, ["'alpha'", "(0, 1)"]),
         ({"env": {"predictor": "cv"}}, ["'env'", "predictor"]),
