@@ -366,13 +366,15 @@ def estimate_seconds(
 ) -> tuple[float, str]:
     """Estimated run time of a cell, seconds, and where its rate comes from (one of :data:`RATE_SOURCES`):
     ``rates`` (:func:`measured_rates`), else ``recorded`` (:func:`recorded_rates`), else the config's
-    ``estimates`` (an evaluation's by ``<policy name>/<arm label>``, arm label, policy name, policy kind, then
-    ``default``)."""
+    ``estimates`` (a training run's by ``<policy name>/<arm label>``, arm label, arm source, policy name, then
+    ``default``: e.g. a policy with a slower teacher; an evaluation's by ``<policy name>/<arm label>``, arm label, policy
+    name, policy kind, then ``default``)."""
     key = (cell.kind, cell.policy.kind, _rate_arm(cell.arm))
     if cell.kind == "train":
         work = float(cell.policy.timesteps or 0)
         defaults = cfg.train_steps_per_s
-        default = defaults.get(cell.arm.label, defaults.get(cell.arm.predictor, defaults.get("default", 1000.0)))
+        keys = (f"{cell.policy.name}/{cell.arm.label}", cell.arm.label, cell.arm.predictor, cell.policy.name, "default")
+        default = next((defaults[k] for k in keys if k in defaults), 1000.0)
     else:
         work = float(cfg.episodes)
         defaults = cfg.eval_episodes_per_s

@@ -316,7 +316,8 @@ class AblationConfig:
     alpha: float = 0.05
     power: float = 0.8
     train_steps_per_s: Mapping[str, float] = field(default_factory=lambda: {"default": 1000.0})
-    """Fallback training throughputs per arm label or source (``default`` for the others), env steps/s."""
+    """Fallback training throughputs per ``<policy name>/<arm label>``, arm label, arm source or policy name, looked up
+    in that order (``default`` for the others), env steps/s."""
     eval_episodes_per_s: Mapping[str, float] = field(default_factory=lambda: {"default": 2.0})
     """Fallback evaluation throughputs per ``<policy name>/<arm label>``, arm label, policy name or policy kind, looked
     up in that order (``default`` for the others), episodes/s."""
