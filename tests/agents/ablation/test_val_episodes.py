@@ -43,7 +43,7 @@ def test_the_shipped_grids_keep_their_cell_specs() -> None:
             continue
         assert cfg.episodes_from == "test", path.name
         assert all("episodes_from" not in ab.cell_spec(cfg, c) for c in ab.expand(cfg)), path.name
-    assert pilots == []
+    assert pilots == ["learned_pilot.yaml"]
 
 
 def test_validation_episodes_change_only_the_evaluation_cells_specs(tmp_path: Path) -> None:
@@ -142,3 +142,43 @@ def test_a_tiny_grid_on_validation_episodes_replays_the_training_scenes_validati
         rec = load_recording(row["recording"], "all_data", data_dir)
         duration_s = (rec.frames[-1] - rec.frames[0]) / 10 * rec.step_s  # annotations every 10 frames
         assert 0.8 * duration_s - 1e-9 <= float(row["t0_s"]) <= duration_s, row
+
+
+def test_the_pilot_runs_on_validation_episodes_and_its_declared_policies() -> None:
+    from agents.training.config import load_train_config
+
+    cfg = ab.load_config(REPO / "configs/ablation/learned_pilot.yaml")
+    assert (cfg.episodes_from, cfg.splits, cfg.arm_labels) == ("val", ("univ", "zara1"), ("mesrnn", "oracle"))
+    v2 = ab.load_config(REPO / "configs/ablation/learned_v2.yaml")
+    assert not set(cfg.seeds) & set(v2.seeds), "the final grid's runs are not the ones the choice was made on"
+    evals = [c for c in ab.expand(cfg) if c.kind == "eval"]
+    assert evals and all(ab.cell_spec(cfg, c)["episodes_from"] == "val" for c in evals)
+    teachers = {}
+    for policy in (p for p in cfg.policies if p.learned):
+        arm = cfg.arm(policy.arms[0] if policy.arms else "mesrnn")
+        train = load_train_config(
+            policy.config, None, ab.train_overrides(ab.Cell("train", "univ", policy, arm, 10), {})
+        )
+        assert train.eval.seed != cfg.eval_seed, "the pilot's list is not the one the best model is selected on"
+        teachers[policy.name] = (Path(policy.config).name, train.pretrain.teacher, train.pretrain.teacher_predictor)
+    assert teachers == {
+        "ppo": ("ppo_scoring.yaml", "planner", None),
+        "ppo_fast": ("ppo_scoring_fast.yaml", "planner", None),
+        "ppo_search": ("ppo_scoring.yaml", "search", None),
+        "ppo_search_true": ("ppo_scoring.yaml", "search", "oracle"),
+    }
+    assert cfg.policy("ppo_search_true").arms == ("mesrnn",)
+
+
+def test_learned_v2_evaluates_fresh_lists_of_all_five_scenes() -> None:
+    """A new episode list no other grid uses, the held-out scenes, and learned.yaml's declared comparisons."""
+    cfg = ab.load_config(REPO / "configs/ablation/learned_v2.yaml")
+    learned = ab.load_config(REPO / "configs/ablation/learned.yaml")
+    others = {p.name: ab.load_config(p).eval_seed for p in (REPO / "configs/ablation").glob("*.yaml")}
+    del others["learned_v2.yaml"]
+    assert cfg.eval_seed not in others.values(), others
+    assert (cfg.episodes_from, cfg.episodes) == ("test", 500)
+    assert cfg.splits == ("eth", "hotel", "univ", "zara1", "zara2") and cfg.seeds == (0, 1, 2, 3, 4)
+    assert cfg.arm_labels == ("none", "cv", "mesrnn", "oracle")
+    assert {p.name: p.kind for p in cfg.policies} == {"ppo": "ppo", "planner": "planner", "search": "search"}
+    assert (cfg.comparisons, cfg.policy_comparisons) == (learned.comparisons, learned.policy_comparisons)
