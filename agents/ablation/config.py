@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
+from agents.evaluation import EPISODE_SOURCES
 from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError, check_keys, existing_config, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
@@ -154,7 +155,7 @@ _EVAL_KEYS: Final[tuple[str, ...]] = ("episodes", "seed", "episodes_from")
 #: ``evaluation.episodes_from``: ``test`` (the default), every evaluation cell on the split's held-out scene; ``val``,
 #: on the split's training scenes in their validation period (a pilot: choices are made there, never on a held-out
 #: scene; :data:`agents.evaluation.EPISODE_SOURCES`).
-EPISODES_FROM: Final[tuple[str, ...]] = ("test", "val")
+EPISODES_FROM: Final[tuple[str, ...]] = tuple(EPISODE_SOURCES)
 
 
 _ESTIMATE_KEYS: Final[tuple[str, ...]] = ("train_steps_per_s", "eval_episodes_per_s")
