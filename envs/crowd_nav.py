@@ -580,6 +580,15 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         fc = self._last["forecasts"]
         return None if fc is None else fc.copy()
 
+    def true_future_forecasts(self) -> np.ndarray:
+        """PRIVILEGED, for teachers only (no policy's observation carries it): the ``forecasts`` entry the last
+        observation would hold under the oracle forecast (``predictor="oracle"``), whatever this environment's predictor
+        -- the true future of the same perceived pedestrians, in the same rows, robot-relative frame, clipping and layout:
+        ``(K, H, 2)`` float32 metres (``(K * H * 2,)`` with ``flatten_observation``), zeros in empty rows."""
+        rows, perceived, positions, present, robot = self._last["truth"]
+        truth = self._true_future(rows, perceived, positions, present).positions if len(rows) else None
+        return self._builder.forecast_entry(robot, truth)
+
     def precompute_forecasts(self, recording: str | None = None) -> int:
         """Compute the forecast tables of the recordings (all by default) now rather than on first use.
 
@@ -894,7 +903,13 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         )
         ttc = self._time_to_collision(robot, p_now, pres_now) if self._n > 0 else math.inf
         self._trails.append((p_now, pres_now))
-        self._last = {"rows": rows, "forecasts": fc, "positions": p_now, "present": pres_now}
+        self._last = {
+            "rows": rows,
+            "forecasts": fc,
+            "positions": p_now,
+            "present": pres_now,
+            "truth": (rows, seen.positions, positions, present, robot),  # for true_future_forecasts, computed on demand
+        }
         return obs, _Sensed(gap, intruding, len(rows), ttc)
 
     def _time_to_collision(self, robot: np.ndarray, p_now: np.ndarray, pres_now: np.ndarray) -> float:
@@ -915,12 +930,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if not self.with_forecasts:
             return None
         assert self._replay is not None and self._forecast_rng is not None
-        truth = None
-        if self.forecaster.needs_truth:
-            future, valid = positions[1:, rows].transpose(1, 0, 2), present[1:, rows].T
-            # a perceived pedestrian may have left the world since its annotation: hold the perceived position
-            current = np.where(present[0, rows, None], positions[0, rows], perceived[rows])
-            truth = TrueFuture(fill_forward(future, valid, current), valid)
+        truth = self._true_future(rows, perceived, positions, present) if self.forecaster.needs_truth else None
         reactive = self._reactive
         if (
             reactive is not None
@@ -934,6 +944,16 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if fc is not None:
             self._forecast_log.append((t_s, rows, fc))
         return fc
+
+    @staticmethod
+    def _true_future(rows: np.ndarray, perceived: np.ndarray, positions: np.ndarray, present: np.ndarray) -> TrueFuture:
+        """The world's true future of the perceived pedestrians ``rows`` (``(m, H, 2)``, held at the last position once
+        one has left): what the oracle forecasts. ``perceived``: ``(N, 2)`` perceived positions; ``positions``,
+        ``present``: ``(1 + H, N, 2)``, ``(1 + H, N)`` of the world from now on."""
+        future, valid = positions[1:, rows].transpose(1, 0, 2), present[1:, rows].T
+        # a perceived pedestrian may have left the world since its annotation: hold the perceived position
+        current = np.where(present[0, rows, None], positions[0, rows], perceived[rows])
+        return TrueFuture(fill_forward(future, valid, current), valid)
 
     def _forecast_errors(self) -> None:
         """Displacement errors of every forecast of the episode against the pedestrians' true future, at once: the

@@ -146,6 +146,15 @@ class ObservationBuilder:
         self.with_uncertainty = with_forecasts and cfg.forecast_uncertainty
         self.samples = cfg.forecast_samples if with_forecasts else 0
 
+    def forecast_entry(self, robot_position: np.ndarray, forecasts: np.ndarray | None) -> np.ndarray:
+        """The observation's ``forecasts`` entry: ``(K, H, 2)`` float32 (flat with ``flatten_observation``), the world
+        forecasts ``(m, H, 2)`` of the ``m`` visible pedestrians relative to ``robot_position`` ``(2,)`` and clipped,
+        zeros in the empty rows (all zeros for None)."""
+        fc = np.zeros((self.k, self.h, 2), dtype=np.float32)
+        if forecasts is not None and len(forecasts):
+            fc[: len(forecasts)] = _clip(forecasts - robot_position, self.fc_bound)
+        return fc.reshape(-1) if self.flat else fc
+
     def build(
         self,
         robot_position: np.ndarray,
@@ -199,10 +208,7 @@ class ObservationBuilder:
             mask[:m] = 1
         obs = {"robot": robot, "pedestrians": peds.reshape(-1) if self.flat else peds, "mask": mask}
         if self.with_forecasts:
-            fc = np.zeros((self.k, self.h, 2), dtype=np.float32)
-            if m and forecasts is not None:
-                fc[:m] = _clip(forecasts - robot_position, self.fc_bound)
-            obs["forecasts"] = fc.reshape(-1) if self.flat else fc
+            obs["forecasts"] = self.forecast_entry(robot_position, forecasts if m else None)
         if self.with_uncertainty:
             unc = np.zeros((self.k, self.h), dtype=np.float32)
             if m and uncertainty is not None:

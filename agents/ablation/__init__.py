@@ -21,7 +21,9 @@ The grid
       policy on the split's training scenes;
     - ``eval/<split>/<policy>/<arm>[/seed<k>]``: the trained model (its ``best`` or ``final`` model) or a
       planner evaluated with :func:`agents.evaluation.run.evaluate` on the split's held-out scene over the fixed
-      episode list (``evaluation.episodes`` episodes from ``evaluation.seed``), identical in every cell.
+      episode list (``evaluation.episodes`` episodes from ``evaluation.seed``), identical in every cell. With
+      ``evaluation.episodes_from: val`` every evaluation cell replays the split's training scenes in their validation
+      period instead (a pilot: choices are made there, never on a held-out scene; the summary says so).
 
 Cells and their state
     Every cell is a folder under ``runs_dir`` (default ``runs/ablation/<name>/``, gitignored) holding
@@ -103,6 +105,7 @@ from agents.ablation.config import (
     CELL_JSON,
     CELL_STATES,
     DONE,
+    EPISODES_FROM,
     GRID_ENV_KEYS,
     LEARNED_KINDS,
     LEARNED_SOURCES,
@@ -153,6 +156,7 @@ __all__ = [
     "CELL_STATES",
     "CONNECT_TIMEOUT_S",
     "DONE",
+    "EPISODES_FROM",
     "GRID_ENV_KEYS",
     "LEARNED_KINDS",
     "LEARNED_SOURCES",

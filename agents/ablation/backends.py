@@ -168,6 +168,7 @@ def _task(cfg: AblationConfig, cell: Cell) -> CellTask:
         episodes=cfg.episodes,
         eval_seed=cfg.eval_seed,
         env=cfg.env_for(cell.policy),
+        episodes_from=cfg.episodes_from,
         model=model,
         model_sha256=model_sha,
         command=f"python -m agents.ablation {cfg.source or '<config>'} --only {cell.name}",

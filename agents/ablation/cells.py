@@ -23,6 +23,7 @@ from agents.ablation.config import (
     Arm,
     PolicySpec,
 )
+from agents.evaluation import episode_part
 from crowdnav_mesrnn.config import ConfigError, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
 
@@ -92,7 +93,7 @@ def check_environments(cfg: AblationConfig, cells: Iterable[Cell]) -> None:
         if cell.kind != "eval" or cell.policy.learned:
             continue
         env = {**cfg.env_for(cell.policy), **cell.arm.env_overrides()}
-        env.update(predictor=cell.arm.predictor, split=cell.split, part="test", episode_time="all")
+        env.update(predictor=cell.arm.predictor, split=cell.split, **episode_part(cfg.episodes_from))
         key = json.dumps(env, sort_keys=True, default=str)
         if key in seen:
             continue
@@ -150,6 +151,8 @@ def cell_spec(cfg: AblationConfig, cell: Cell) -> dict[str, Any]:
         )
     else:
         spec.update(episodes=cfg.episodes, eval_seed=cfg.eval_seed)
+        if cfg.episodes_from != "test":  # only off the default: the specs of every grid before it stay as they were
+            spec["episodes_from"] = cfg.episodes_from
         if cell.policy.learned:
             spec["model"] = cell.policy.model
         elif cell.policy.options:
@@ -363,13 +366,15 @@ def estimate_seconds(
 ) -> tuple[float, str]:
     """Estimated run time of a cell, seconds, and where its rate comes from (one of :data:`RATE_SOURCES`):
     ``rates`` (:func:`measured_rates`), else ``recorded`` (:func:`recorded_rates`), else the config's
-    ``estimates`` (an evaluation's by ``<policy name>/<arm label>``, arm label, policy name, policy kind, then
-    ``default``)."""
+    ``estimates`` (a training run's by ``<policy name>/<arm label>``, arm label, arm source, policy name, then
+    ``default``: e.g. a policy with a slower teacher; an evaluation's by ``<policy name>/<arm label>``, arm label, policy
+    name, policy kind, then ``default``)."""
     key = (cell.kind, cell.policy.kind, _rate_arm(cell.arm))
     if cell.kind == "train":
         work = float(cell.policy.timesteps or 0)
         defaults = cfg.train_steps_per_s
-        default = defaults.get(cell.arm.label, defaults.get(cell.arm.predictor, defaults.get("default", 1000.0)))
+        keys = (f"{cell.policy.name}/{cell.arm.label}", cell.arm.label, cell.arm.predictor, cell.policy.name, "default")
+        default = next((defaults[k] for k in keys if k in defaults), 1000.0)
     else:
         work = float(cfg.episodes)
         defaults = cfg.eval_episodes_per_s
@@ -410,6 +415,8 @@ def dry_run(cfg: AblationConfig, cells: Sequence[Cell], workers: int, out: Calla
         f"grid {cfg.name}: splits {', '.join(cfg.splits)}; arms {', '.join(cfg.arm_labels)}; "
         f"seeds {', '.join(map(str, cfg.seeds))}; policies {pol}; {cfg.episodes} evaluation episodes per cell"
     )
+    if cfg.episodes_from != "test":
+        out(f"evaluation episodes: {cfg.episodes_described()}")
     out(f"cells in {cfg.runs_path()}/, summaries in {cfg.out_path()}/")
     try:
         check_environments(cfg, [st.cell for st in statuses if st.state != "done"])

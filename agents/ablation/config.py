@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
+from agents.evaluation import EPISODE_SOURCES
 from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError, check_keys, existing_config, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
@@ -148,7 +149,13 @@ _POLICY_KEYS: Final[tuple[str, ...]] = (
 )
 
 
-_EVAL_KEYS: Final[tuple[str, ...]] = ("episodes", "seed")
+_EVAL_KEYS: Final[tuple[str, ...]] = ("episodes", "seed", "episodes_from")
+
+
+#: ``evaluation.episodes_from``: ``test`` (the default), every evaluation cell on the split's held-out scene; ``val``,
+#: on the split's training scenes in their validation period (a pilot: choices are made there, never on a held-out
+#: scene; :data:`agents.evaluation.EPISODE_SOURCES`).
+EPISODES_FROM: Final[tuple[str, ...]] = tuple(EPISODE_SOURCES)
 
 
 _ESTIMATE_KEYS: Final[tuple[str, ...]] = ("train_steps_per_s", "eval_episodes_per_s")
@@ -284,6 +291,11 @@ class AblationConfig:
     """Evaluation episodes per cell (the fixed list of ``agents.rollout.evaluation_seeds``)."""
     eval_seed: int = 0
     """Seed of the fixed evaluation episode list."""
+    episodes_from: str = "test"
+    """Which episodes every evaluation cell replays (:data:`EPISODES_FROM`): ``test``, the split's held-out scene;
+    ``val``, its training scenes' validation period (``part="train"``, ``episode_time="val"``), for pilots whose
+    choices must not see a held-out scene. Part of an evaluation cell's spec only when ``val`` (the specs of every
+    grid before it stay as they were)."""
     env: Mapping[str, Any] = field(default_factory=dict)
     """Environment overrides applied alike in every cell (training and evaluation)."""
     out_dir: str = ""
@@ -305,7 +317,8 @@ class AblationConfig:
     alpha: float = 0.05
     power: float = 0.8
     train_steps_per_s: Mapping[str, float] = field(default_factory=lambda: {"default": 1000.0})
-    """Fallback training throughputs per arm label or source (``default`` for the others), env steps/s."""
+    """Fallback training throughputs per ``<policy name>/<arm label>``, arm label, arm source or policy name, looked up
+    in that order (``default`` for the others), env steps/s."""
     eval_episodes_per_s: Mapping[str, float] = field(default_factory=lambda: {"default": 2.0})
     """Fallback evaluation throughputs per ``<policy name>/<arm label>``, arm label, policy name or policy kind, looked
     up in that order (``default`` for the others), episodes/s."""
@@ -331,6 +344,20 @@ class AblationConfig:
     def reaction(self, policy: PolicySpec) -> str | None:
         """The reaction model of a policy's pedestrians (``None``: the environment's default, the replay)."""
         return (dict(self.env) | dict(policy.env)).get("reaction")
+
+    def episodes_described(self) -> str:
+        """Which episodes the evaluation cells replay, in words (the summary names them, so that no one reads a pilot on
+        validation episodes as a held-out result)."""
+        if self.episodes_from == "test":
+            return f"the held-out scene of each split ({', '.join(self.splits)})"
+        from envs.config import CrowdNavConfig
+
+        fraction = float(self.env.get("val_fraction", CrowdNavConfig.val_fraction))
+        return (
+            f"validation episodes of the training scenes of {', '.join(self.splits)} (part train, episode_time val: the "
+            f"last {fraction:g} of each training recording's duration); no held-out scene is replayed, so these are "
+            "pilot figures for choices, not held-out results"
+        )
 
     def runs_path(self) -> Path:
         return Path(self.runs_dir or f"runs/ablation/{self.name}")
@@ -664,6 +691,29 @@ def _check_training(policies: Sequence[PolicySpec], arms: Sequence[Arm], split: 
                 ) from None
 
 
+def _check_selection_seed(
+    policies: Sequence[PolicySpec], arms: Sequence[Arm], split: str, seed: int, env: Mapping, eval_seed: int
+) -> None:
+    """On validation episodes (``evaluation.episodes_from: val``), refuse an episode list that is a learned policy's own
+    validation list (its agent config's ``eval.seed``): training selects its ``best`` model on those very episodes, so
+    the pilot would score each run on the episodes it was picked on. Raises :class:`ConfigError` naming
+    ``evaluation.seed``."""
+    from agents.training.config import load_train_config
+
+    for policy in (p for p in policies if p.learned):
+        arm = next(a for a in arms if policy.uses(a))
+        selected_on = load_train_config(
+            policy.config, None, training_overrides(policy, arm, split, seed, env)
+        ).eval.seed
+        if selected_on == eval_seed:
+            raise _bad(
+                "evaluation.seed",
+                eval_seed,
+                f"a seed other than {selected_on}: with episodes_from: val it is the validation list policy "
+                f"{policy.name!r} selects its best model on ({policy.config}: eval.seed {selected_on})",
+            )
+
+
 def _variant_arm(src: str) -> Arm | None:
     """The uncertainty, online-region or samples arm ``src`` names; None for a forecast source or a predictor plug-in
     (crowdnav-mesrnn bench's arm). Raises :class:`ConfigError` naming ``arms`` and the arms allowed for anything else."""
@@ -750,10 +800,17 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
     _check_uncertainty_arms(policies, arms)
     evaluation = raw.get("evaluation")
     if not isinstance(evaluation, dict):
-        raise _bad("evaluation", evaluation, "a mapping {episodes: N, seed: S}")
+        raise _bad("evaluation", evaluation, "a mapping {episodes: N, seed: S, episodes_from: test|val}")
     check_keys(evaluation, _EVAL_KEYS, "ablation config 'evaluation'")
     episodes = _positive_int(evaluation.get("episodes"), "evaluation.episodes")
     eval_seed = _positive_int(evaluation.get("seed", 0), "evaluation.seed", minimum=0)
+    episodes_from = evaluation.get("episodes_from", "test")
+    if episodes_from not in EPISODES_FROM:
+        raise _bad(
+            "evaluation.episodes_from",
+            episodes_from,
+            "test (the split's held-out scene) or val (its training scenes' validation period)",
+        )
     env = _env_mapping(raw.get("env") or {}, "env")
     _check_reaction(env, "env")
     for policy in policies:
@@ -789,6 +846,8 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
         if not isinstance(raw.get(key, ""), str):
             raise _bad(key, raw[key], "a string")
     _check_training(policies, arms, splits[0], int(seeds[0]), env)
+    if episodes_from == "val":
+        _check_selection_seed(policies, arms, splits[0], int(seeds[0]), env, eval_seed)
     return AblationConfig(
         name=name,
         splits=splits,
@@ -797,6 +856,7 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
         policies=policies,
         episodes=episodes,
         eval_seed=eval_seed,
+        episodes_from=episodes_from,
         env=dict(env),
         out_dir=raw.get("out_dir", ""),
         runs_dir=raw.get("runs_dir", ""),

@@ -39,6 +39,8 @@ class CellTask:
     episodes: int
     eval_seed: int
     env: Mapping[str, Any]
+    episodes_from: str = "test"
+    """Evaluation: ``test`` (the held-out scene) or ``val`` (the training scenes' validation period)."""
     model: str | None = None
     """Evaluation of a learned policy: the model zip to evaluate."""
     model_sha256: str | None = None
@@ -69,7 +71,8 @@ def _run_train(task: CellTask, folder: Path) -> dict[str, Any]:
 
 
 def _run_eval(task: CellTask, folder: Path) -> dict[str, Any]:
-    """Evaluate a trained model or a planner on the held-out scene; writes episodes.csv and summary.json."""
+    """Evaluate a trained model or a planner on the held-out scene (or, ``episodes_from="val"``, the training scenes'
+    validation period); writes episodes.csv and summary.json."""
     from agents.evaluation.run import evaluate
 
     cell = task.cell
@@ -81,6 +84,7 @@ def _run_eval(task: CellTask, folder: Path) -> dict[str, Any]:
         cell.split,
         task.episodes,
         seed=task.eval_seed,
+        episodes_from=task.episodes_from,
         out_dir=folder,
         env_overrides={**task.env, **cell.arm.env_overrides()} or None,
         **({"planner_kwargs": options} if options else {}),

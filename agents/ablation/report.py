@@ -281,12 +281,20 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
     lines = [f"# Ablation `{summary['name']}`", ""]
     if cfg.description:
         lines += [cfg.description.strip(), ""]
+    pilot = summary.get("evaluation_episodes")  # absent when the cells replay the held-out scenes
+    where = f"Held-out splits {', '.join(summary['splits'])}" if pilot is None else f"Episodes: {pilot['description']}"
     lines += [
         f"Config `{summary['config']}`, code {summary['code_version']}, generated {summary['generated']}. "
-        f"Held-out splits {', '.join(summary['splits'])}; {summary['episodes_per_cell']} evaluation episodes per "
+        f"{where}; {summary['episodes_per_cell']} evaluation episodes per "
         f"cell (episode list seed {summary['evaluation_seed']}, the same list in every cell of a split).",
         "",
     ]
+    if pilot is not None:
+        lines += [
+            "**Validation episodes, not a held-out result:** every cell below replayed the training scenes of its "
+            "split in their validation period (no held-out scene); use these figures for choices only.",
+            "",
+        ]
     if not summary["complete"]:
         lines += [
             f"**Incomplete:** {len(summary['missing_cells'])} cell(s) not finished; tables cover finished cells only.",

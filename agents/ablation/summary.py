@@ -29,6 +29,7 @@ from agents.ablation.stats import (
     paired_tests,
     reaction_tests,
 )
+from agents.evaluation import EPISODE_SOURCES
 from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
 
 
@@ -134,6 +135,15 @@ def summarize(
     if cfg.disturbance_comparisons:
         extra["disturbance_tests"], sizes = disturbance_tests(cfg, pooled)
         families.update(sizes)
+    episodes_from: dict[str, Any] = {}  # a pilot on validation episodes says so; held-out summaries stay as they were
+    if cfg.episodes_from != "test":
+        part, episode_time = EPISODE_SOURCES[cfg.episodes_from]
+        episodes_from["evaluation_episodes"] = {
+            "from": cfg.episodes_from,
+            "part": part,
+            "episode_time": episode_time,
+            "description": cfg.episodes_described(),
+        }
     summary = {
         "name": cfg.name,
         "config": cfg.source,
@@ -143,6 +153,7 @@ def summarize(
         "seeds": list(cfg.seeds),
         "episodes_per_cell": cfg.episodes,
         "evaluation_seed": cfg.eval_seed,
+        **episodes_from,
         "env": dict(cfg.env),
         "complete": not info["missing_cells"],
         "missing_cells": info["missing_cells"],

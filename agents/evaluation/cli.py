@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Final
 
 from agents.entry import module_main, parse_set
+from agents.evaluation import EPISODE_SOURCES
 from agents.planners import PLANNERS
 from agents.runs import RUN_MODELS, check_trust, model_path
 from crowdnav_mesrnn import predictors
@@ -45,6 +46,13 @@ def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data-dir", dest="data_dir_env", metavar="DIR", default=None, help=DATA_DIR_ENV_HELP)
     p.add_argument("--episodes", type=int, default=500, help="number of episodes (default: 500)")
     p.add_argument("--seed", type=int, default=0, help="which seeded list of episodes (default: 0)")
+    p.add_argument(
+        "--episodes-from",
+        default="test",
+        choices=EPISODE_SOURCES,
+        help="test: the split's held-out scene (results); val: its training scenes' validation period, the episodes "
+        "choices are made on (default: test)",
+    )
     p.add_argument(
         "--out",
         default=None,
@@ -103,6 +111,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         ceiling=args.ceiling,
         progress=not (args.no_progress or args.json),
         trust_pickle=args.trust_pickle,
+        episodes_from=args.episodes_from,
     )
     if args.json:
         print(json.dumps(summary))

@@ -8,6 +8,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from agents.evaluation import episode_part
 from agents.evaluation.summary import ceiling_fraction, episodes_csv, read_episodes, summarise
 from agents.planners import PLANNERS
 from agents.policy_file import POLICY_SUFFIX
@@ -24,11 +25,13 @@ def evaluation_env_kwargs(
     split: str,
     env_overrides: Mapping[str, Any] | None = None,
     require_pedestrians: bool = True,
+    episodes_from: str = "test",
 ) -> dict[str, Any]:
     """Keyword arguments of the evaluation environments: the policy's own env settings (see :func:`config_of`),
-    then ``env_overrides``, on the split's held-out scene over its whole duration."""
+    then ``env_overrides``, on the split's held-out scene over its whole duration (``episodes_from="test"``) or on its
+    training scenes' validation period (``"val"``; :data:`agents.evaluation.EPISODE_SOURCES`)."""
     kwargs = {**dict(run_settings(spec).get("env") or {}), **dict(env_overrides or {})}
-    kwargs.update(predictor=predictor, split=split, part="test", episode_time="all")
+    kwargs.update(predictor=predictor, split=split, **episode_part(episodes_from))
     kwargs["require_pedestrians"] = dict(env_overrides or {}).get("require_pedestrians", require_pedestrians)
     return kwargs
 
@@ -48,8 +51,10 @@ def evaluate(
     planner_kwargs: Mapping[str, Any] | None = None,
     ceiling: str | Path | None = None,
     trust_pickle: bool = False,
+    episodes_from: str = "test",
 ) -> dict[str, Any]:
-    """Evaluate a policy on the held-out scene of ``split`` over :func:`evaluation_seeds`.
+    """Evaluate a policy on the held-out scene of ``split`` (or its training scenes' validation period) over
+    :func:`evaluation_seeds`.
 
     Args:
         spec: a planner name (:data:`agents.planners.PLANNERS`: ``straight``, ``planner``, ``search``,
@@ -71,6 +76,9 @@ def evaluate(
             summary then holds ``ceiling`` (:func:`ceiling_fraction`).
         trust_pickle: allow an SB3 ``.zip`` (and its ``_vecnormalize.pkl``), which is unpickled and can run arbitrary
             code (:func:`agents.runs.load_policy`).
+        episodes_from: ``test`` (the held-out scene over its whole duration) or ``val`` (the split's training scenes
+            in their validation period, ``part="train"``, ``episode_time="val"``: for choices, never a held-out
+            result); :data:`agents.evaluation.EPISODE_SOURCES`.
 
     Returns:
         the summary (see :func:`summarise`) plus ``policy``, ``predictor``, ``split``, ``crowd`` (``{"kind",
@@ -87,7 +95,7 @@ def evaluate(
     started = time.perf_counter()
     version = code_version()  # the code that runs (read before: the checkout may move while episodes run)
     ceiling_rows = read_episodes(ceiling) if ceiling is not None else None  # fail before running anything
-    kwargs = evaluation_env_kwargs(spec, predictor, split, env_overrides, require_pedestrians)
+    kwargs = evaluation_env_kwargs(spec, predictor, split, env_overrides, require_pedestrians, episodes_from)
     config = config_from(kwargs, {})
     policy = load_policy(spec, config, which, planner_kwargs, trust_pickle=trust_pickle)
     prepare_forecasts(kwargs, progress=progress)

@@ -149,6 +149,10 @@ class EvalConfig:
 #: Losses of the action fit.
 ACTION_LOSSES: Final[tuple[str, ...]] = ("mse", "nll")
 
+#: ``pretrain.teacher_predictor`` values: None (the teacher plans with the observation's forecasts, the student's arm)
+#: or ``oracle`` (with the true future, whatever the arm).
+TEACHER_PREDICTORS: Final[tuple[str | None, ...]] = (None, "oracle")
+
 
 @dataclass(frozen=True)
 class PretrainConfig:
@@ -163,6 +167,11 @@ class PretrainConfig:
     does) and asked for its action at every step, before the environments move on."""
     teacher_kwargs: dict[str, Any] = field(default_factory=dict)
     """Options of the teacher (e.g. ``headings_deg``, ``margin_m`` of the sampling planner)."""
+    teacher_predictor: str | None = None
+    """The forecasts the teacher plans with: None, the observation's (the student's arm); ``oracle``, the true future
+    of the same pedestrians whatever the student's arm (:class:`agents.training.pretrain.TrueFutureTeacher`, a
+    privileged teacher reading its environments): one teacher labels every arm's states, and the students differ only
+    in their forecast input. Only for teachers that read forecasts (``planner``, ``search``, a class path)."""
     episodes: int = 200
     """Teacher episodes on the training environments (part ``train``, ``episode_time="train"``)."""
     n_envs: int = 4
@@ -192,6 +201,16 @@ class PretrainConfig:
 
     def validate(self) -> PretrainConfig:
         teacher_class(self.teacher)  # a clear error now rather than after the environments are built
+        if self.teacher_predictor not in TEACHER_PREDICTORS:
+            raise ConfigError(
+                f"pretrain key 'teacher_predictor' must be null (the student's arm's forecasts) or "
+                f"{', '.join(repr(p) for p in TEACHER_PREDICTORS if p)}, got {self.teacher_predictor!r}"
+            )
+        if self.teacher_predictor is not None and self.teacher in ("straight", "privileged"):
+            raise ConfigError(
+                f"pretrain key 'teacher_predictor' ({self.teacher_predictor!r}) needs a teacher that plans with "
+                f"forecasts (planner, search or a class path); the {self.teacher!r} teacher reads none"
+            )
         if self.loss not in ACTION_LOSSES:
             raise ConfigError(f"unknown pretrain loss {self.loss!r}; valid: {', '.join(ACTION_LOSSES)}")
         for key in ("dagger_rounds", "dagger_episodes", "dagger_epochs"):

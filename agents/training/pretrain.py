@@ -39,11 +39,50 @@ from envs.config import config_from
 
 
 def make_teacher(cfg: PretrainConfig, env_config: Any) -> Any:
-    """The teacher of a warm start for an environment configuration (see :attr:`PretrainConfig.teacher`)."""
+    """The teacher of a warm start for an environment configuration (see :attr:`PretrainConfig.teacher`), planning
+    with the true future when :attr:`PretrainConfig.teacher_predictor` is ``oracle`` (:class:`TrueFutureTeacher`)."""
     cls = teacher_class(cfg.teacher)
     if cls is None:
-        return make_planner(cfg.teacher, env_config, **dict(cfg.teacher_kwargs))
-    return cls(env_config, **dict(cfg.teacher_kwargs))
+        teacher = make_planner(cfg.teacher, env_config, **dict(cfg.teacher_kwargs))
+    else:
+        teacher = cls(env_config, **dict(cfg.teacher_kwargs))
+    return TrueFutureTeacher(teacher) if cfg.teacher_predictor == "oracle" else teacher
+
+
+class TrueFutureTeacher:
+    """A teacher that plans with the true future whatever the student's forecast arm (PRIVILEGED: it reads its
+    environments; a teacher, never a policy that is evaluated).
+
+    Before each batched ``predict`` the environment of every row is bound (``bind_envs``, as
+    :func:`agents.rollout.run_episodes` and :func:`collect_teacher` do); ``predict`` then gives the wrapped teacher the
+    observations with ``forecasts`` replaced (or, for the ``none`` arm, added) by each environment's
+    :meth:`envs.crowd_nav.CrowdNavEnv.true_future_forecasts`: what the oracle arm would observe in the same state. So
+    one teacher labels every arm's states, and the students differ only in their forecast input (issue 29 §3).
+    """
+
+    privileged = True
+
+    def __init__(self, teacher: Any) -> None:
+        self.teacher = teacher
+        self.envs: list[Any] = []
+
+    def bind_envs(self, envs: Sequence[Any]) -> None:
+        self.envs = list(envs)
+        bind = getattr(self.teacher, "bind_envs", None)
+        if callable(bind):
+            bind(envs)
+
+    def predict(
+        self, obs: Mapping[str, np.ndarray], state: Any = None, episode_start: Any = None, deterministic: bool = True
+    ) -> tuple[np.ndarray, Any]:
+        rows = len(obs["mask"])
+        if len(self.envs) != rows:
+            raise RuntimeError(
+                f"the true-future teacher has {len(self.envs)} bound environment(s) for {rows} observation row(s): "
+                "bind_envs(envs) with one environment per row before every predict"
+            )
+        truth = np.stack([getattr(env, "unwrapped", env).true_future_forecasts() for env in self.envs])
+        return self.teacher.predict({**obs, "forecasts": truth}, state, episode_start, deterministic)
 
 
 class _Labelling:
@@ -126,6 +165,7 @@ def collect_teacher(
     online = callable(getattr(teacher, "bind_envs", None))  # reads the environments: label before they move on
     labelling = _Labelling(teacher if driver is None else driver, teacher) if online else None
     per_episode: dict[int, tuple[list[dict[str, np.ndarray]], list[np.ndarray], list[float]]] = {}
+    name = cfg.teacher + (f" ({cfg.teacher_predictor} forecasts)" if cfg.teacher_predictor else "")
 
     def record(k: int, obs: Mapping[str, np.ndarray], action: np.ndarray, reward: float, *_: bool) -> None:
         obs_list, act_list, rew_list = per_episode.setdefault(k, ([], [], []))
@@ -141,9 +181,9 @@ def collect_teacher(
             teacher_seeds(seed, episodes, round_),
             on_step=record,
             progress=progress,
-            desc=f"warm start: {cfg.teacher} teacher's episodes"
+            desc=f"warm start: {name} teacher's episodes"
             if driver is None
-            else f"DAgger round {round_}/{cfg.dagger_rounds}: student's episodes, labelled by {cfg.teacher}",
+            else f"DAgger round {round_}/{cfg.dagger_rounds}: student's episodes, labelled by {name}",
         )
     finally:
         for env in envs:

@@ -120,6 +120,33 @@ def test_every_arm_gets_the_same_episodes(data_dir: Path) -> None:
     assert episodes["noisy_oracle"] == episodes["none"] == episodes["cv"]
 
 
+@pytest.mark.parametrize(("predictor", "flatten"), [("none", True), ("cv", False), ("oracle", True)])
+def test_the_true_future_a_teacher_reads_is_the_oracle_arms_forecasts(
+    data_dir: Path, predictor: str, flatten: bool
+) -> None:
+    """Any arm's ``true_future_forecasts`` equals, step for step, the ``forecasts`` of an oracle-arm environment in the
+    same episode under the same actions (rows, frame, clipping, layout)."""
+    kw = {"data_dir": str(data_dir), "split": "univ", "part": "test", "flatten_observation": flatten}
+    env, oracle = CrowdNavEnv(predictor=predictor, **kw), CrowdNavEnv(predictor="oracle", **kw)
+    rng = np.random.default_rng(3)
+    compared = 0
+    for seed in (11, 12):
+        obs, _ = env.reset(seed=seed)
+        want, _ = oracle.reset(seed=seed)
+        for _ in range(40):
+            got = env.true_future_forecasts()
+            assert got.dtype == np.float32 and got.shape == want["forecasts"].shape
+            np.testing.assert_array_equal(got, want["forecasts"])
+            np.testing.assert_array_equal(obs["mask"], want["mask"])
+            compared += int(want["mask"].sum())
+            action = rng.uniform(-1, 1, 2).astype(np.float32)
+            obs, _, terminated, truncated, _ = env.step(action)
+            want, *_ = oracle.step(action)
+            if terminated or truncated:
+                break
+    assert compared > 0, "some pedestrian was perceived"
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [

@@ -118,7 +118,7 @@ def test_expansion_counts_and_noisy_sweep(tmp_path: Path) -> None:
         ({"arms": ["noisy_oracle"]}, ["'noisy_oracle_ade_m'", "None"]),
         ({"comparisons": [["oracle", "none"]]}, ["'comparisons'", "'oracle'", "none, mesrnn"]),
         ({"evaluation": {"episodes": 0}}, ["'evaluation.episodes'", "0", ">= 1"]),
-        ({"evaluation": {"episodes": 5, "sed": 1}}, ["'sed'", "episodes, seed"]),
+        ({"evaluation": {"episodes": 5, "sed": 1}}, ["'sed'", "episodes, episodes_from, seed"]),
         ({"density_bins": [3, 1]}, ["'density_bins'", "increasing"]),
         ({"alpha": 5}, ["'alpha'", "(0, 1)"]),
         ({"env": {"predictor": "cv"}}, ["'env'", "predictor"]),
@@ -534,6 +534,29 @@ def test_dry_run_calibrates_from_finished_cells_then_the_results_then_the_config
     table = rows()
     assert "config" in table["train/zara1/ppo/none/seed1"]
     assert "10 cells (4 train, 6 eval) from the config's estimates" in table["totals"]
+
+
+def test_the_configs_training_estimates_are_looked_up_by_policy_and_arm(tmp_path: Path) -> None:
+    """A training run's fallback throughput: ``<policy>/<arm>``, arm label, arm source, policy name, ``default``
+    (e.g. a policy whose slower teacher makes its every arm slower)."""
+    raw = _raw(tmp_path)
+    raw["policies"]["slow"] = {**raw["policies"]["ppo"]}
+    rates = {"default": 256.0, "slow": 128.0, "slow/none": 64.0}
+    cfg = ab.config_from_mapping({**raw, "estimates": {"train_steps_per_s": rates}})
+    seconds = {
+        c.name: ab.estimate_seconds(cfg, c, {}) for c in ab.expand(cfg) if c.kind == "train" and c.seed == 0
+    }  # 256 steps per run
+    assert seconds == {
+        "train/zara1/ppo/none/seed0": (1.0, "config"),
+        "train/zara1/ppo/mesrnn/seed0": (1.0, "config"),
+        "train/zara1/slow/none/seed0": (4.0, "config"),
+        "train/zara1/slow/mesrnn/seed0": (2.0, "config"),
+    }
+    cfg = ab.config_from_mapping({**raw, "estimates": {"train_steps_per_s": {**rates, "mesrnn": 512.0}}})
+    assert ab.estimate_seconds(cfg, ab.Cell("train", "zara1", cfg.policy("slow"), cfg.arm("mesrnn"), 0), {}) == (
+        0.5,
+        "config",
+    ), "an arm's estimate comes before the policy's"
 
 
 # ----------------------------------------------------------------------------- the summary

@@ -59,6 +59,22 @@ def test_command_line_prints_one_json_object(capsys: pytest.CaptureFixture[str],
     assert main(["ppo", "--episodes", "1"]) == 2
 
 
+def test_episodes_from_val_replays_the_training_scenes_validation_period(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    from agents.evaluation import evaluation_env_kwargs
+
+    assert evaluation_env_kwargs("straight", "none", "zara1")["part"] == "test"
+    kwargs = evaluation_env_kwargs("straight", "none", "zara1", episodes_from="val")
+    assert (kwargs["part"], kwargs["episode_time"]) == ("train", "val")
+    with pytest.raises(ValueError, match=r"episodes_from must be one of test, val, got 'train'"):
+        evaluation_env_kwargs("straight", "none", "zara1", episodes_from="train")
+    args = ["straight", "--predictor", "none", "--episodes", "2", "--json", "--set", "crowd=synthetic"]
+    assert main([*args, "--episodes-from", "val", "--out", str(tmp_path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert (out["env"]["part"], out["env"]["episode_time"]) == ("train", "val")
+
+
 def test_without_out_the_episodes_go_to_a_new_folder_under_runs_eval(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

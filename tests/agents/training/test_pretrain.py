@@ -181,3 +181,33 @@ def test_a_teacher_that_reads_the_environments_labels_at_every_step(monkeypatch:
     assert teacher.calls > calls
     assert not np.allclose(data.actions, driver.predict(data.observations)[0])
     assert set(np.round(data.actions[:, 0], 3)) == {0.5, 1.0}
+
+
+@pytest.mark.parametrize("arm", ["none", "cv"])
+def test_a_true_future_teacher_acts_in_any_arm_as_in_the_oracle_arm(arm: str) -> None:
+    """``teacher_predictor: oracle``: in the none or cv arm the teacher gives, step for step, the actions it gives in
+    the oracle arm on the same episodes (the environment's dynamics do not depend on the arm), so one teacher labels
+    every arm's states."""
+    oracle = collect_teacher(PretrainConfig(episodes=3, n_envs=2), {**ENV, "predictor": "oracle"}, seed=4, gamma=0.99)
+    pre = PretrainConfig(episodes=3, n_envs=2, teacher_predictor="oracle")
+    data = collect_teacher(pre, {**ENV, "predictor": arm}, seed=4, gamma=0.99)
+    np.testing.assert_array_equal(data.actions, oracle.actions)
+    assert data.outcomes == oracle.outcomes
+    assert ("forecasts" in data.observations) == (arm != "none"), "the student's observations stay its arm's"
+    own = collect_teacher(PretrainConfig(episodes=3, n_envs=2), {**ENV, "predictor": arm}, seed=4, gamma=0.99)
+    assert not np.array_equal(own.actions, oracle.actions), "with its arm's forecasts the teacher acts otherwise"
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        ({"teacher_predictor": "mesrnn"}, r"'teacher_predictor' must be null .* 'oracle', got 'mesrnn'"),
+        ({"teacher": "straight", "teacher_predictor": "oracle"}, r"the 'straight' teacher reads none"),
+        ({"teacher": "privileged", "teacher_predictor": "oracle"}, r"the 'privileged' teacher reads none"),
+    ],
+)
+def test_a_teacher_predictor_is_checked(settings: dict[str, Any], message: str) -> None:
+    from crowdnav_mesrnn.config import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        PretrainConfig(**settings).validate()
