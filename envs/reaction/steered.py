@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envs.reaction.base import CrowdStep, ReactiveCrowd, StepInputs
+from envs.reaction.base import CrowdPath, CrowdStep, ReactiveCrowd, StepInputs
 
 
 @dataclass(slots=True)
@@ -97,44 +97,78 @@ class SteeredCrowd(ReactiveCrowd):
         return CrowdStep(recorded[-1].copy(), rec_vel, present[-1].copy(), self._reacting.copy(), zeros, zeros, zeros)
 
     def _step(self, inp: StepInputs) -> CrowdStep:
-        dt_s, rec_now, rec_next, pres_next, robot = inp.dt_s, inp.rec_now, inp.rec_next, inp.pres_next, inp.robot
-        prm = self.params
-        moving = inp.pres_now & pres_next
-        pos = self._pos
-        d_robot = self._distance(pos, robot)
-        # the state: reacting pedestrians that leave stop reacting; others are triggered by the robot's distance
-        self._reacting &= moving
-        self._reacting |= moving & (d_robot < prm.trigger_distance_m)
-        rec_vel = self._velocities(rec_now, rec_next, moving, dt_s)
-        if not self._reacting.any():  # everyone as recorded
-            self._vel, self._vel_known = rec_vel, moving
-            zeros = self._zeros()
-            return CrowdStep(rec_next.copy(), rec_vel, pres_next.copy(), self._reacting.copy(), zeros, zeros, zeros)
-
-        idx = np.flatnonzero(self._reacting)
-        p = pos[idx]
-        v0 = np.where(self._vel_known[idx, None], self._vel[idx], rec_vel[idx])
-        pref = _capped(rec_vel[idx] + (rec_now[idx] - p) / prm.lookahead_s, prm.max_speed_mps)
-        hood = self._neighbourhood(idx, p, v0, pref, rec_now, rec_vel, moving, robot, inp.robot_vel, dt_s)
-        speed_cap = np.maximum(prm.max_speed_mps, np.hypot(v0[:, 0], v0[:, 1]))
-        v = _bounded(self._model_velocities(hood), v0, prm.max_accel_mps2 * dt_s, speed_cap)
-        # back to the recording: landing exactly on it is within the bounds and close to the model's velocity
-        v_land = (rec_next[idx] - p) / dt_s
-        land = (
-            (d_robot[idx] > prm.release_distance_m)
-            & (_norm(v_land - v) <= prm.on_track_tolerance_m / dt_s)
-            & (_norm(v_land - v0) <= prm.max_accel_mps2 * dt_s)
-            & (_norm(v_land) <= speed_cap)
+        path = self._steps(
+            inp.dt_s,
+            np.stack([inp.rec_now, inp.rec_next]),
+            np.stack([inp.pres_now, inp.pres_next]),
+            np.stack([inp.robot, inp.robot]),  # the robot at the step's end is not read
+            inp.robot_vel[None],
         )
-        new = rec_next.copy()
-        new[idx] = np.where(land[:, None], rec_next[idx], p + v * dt_s)
-        vel = rec_vel.copy()
-        vel[idx] = np.where(land[:, None], v_land, v)
-        self._reacting[idx[land]] = False
-        self._vel, self._vel_known = vel, moving
-        deviation = np.zeros(self._num)
-        deviation[idx] = _norm(new[idx] - rec_next[idx])
-        return CrowdStep(new, vel, pres_next.copy(), self._reacting.copy(), self._zeros(), deviation, deviation.copy())
+        return path.last
+
+    def _steps(
+        self, dt_s: float, recorded: np.ndarray, present: np.ndarray, robot: np.ndarray, robot_velocities: np.ndarray
+    ) -> CrowdPath:
+        """``S`` steps (:meth:`step` is one): what does not depend on the model is computed for all of them at once,
+        with the same floats element by element; only the reacting pedestrians are stepped one step at a time."""
+        prm = self.params
+        steps = len(recorded) - 1
+        moving = present[:-1] & present[1:]  # (S, N)
+        # triggered at a step's start by the robot's distance. A pedestrian not reacting then is where the state has it
+        # at the first step and at its recorded floats at the others (a step leaves it there, landing included); for
+        # one reacting then the test changes nothing (it stays reacting while present at both ends of the step)
+        d_robot = self._distance(self._starts(recorded, self._pos), robot[:-1, None, :])
+        triggered = moving & (d_robot < prm.trigger_distance_m)
+        rec_vel = self._velocities(recorded[:-1], recorded[1:], moving, dt_s)  # (S, N, 2)
+        positions = recorded.copy()
+        positions[0] = self._pos
+        pres = present.copy()
+        pres[0] = self._present
+        reacting, vel, known = self._reacting, self._vel, self._vel_known
+        idx = np.zeros(0, dtype=np.int64)
+        for k in range(steps):
+            # the state: reacting pedestrians that leave stop reacting; others are triggered by the robot's distance
+            reacting &= moving[k]
+            reacting |= triggered[k]
+            idx = np.flatnonzero(reacting)
+            if not len(idx):  # everyone as recorded
+                vel, known = rec_vel[k], moving[k]
+                continue
+            rec_now, rec_next, rv = recorded[k], recorded[k + 1], rec_vel[k]
+            p = positions[k, idx]
+            v0 = np.where(known[idx, None], vel[idx], rv[idx])
+            pref = _capped(rv[idx] + (rec_now[idx] - p) / prm.lookahead_s, prm.max_speed_mps)
+            hood = self._neighbourhood(idx, p, v0, pref, rec_now, rv, moving[k], robot[k], robot_velocities[k], dt_s)
+            speed_cap = np.maximum(prm.max_speed_mps, np.hypot(v0[:, 0], v0[:, 1]))
+            v = _bounded(self._model_velocities(hood), v0, prm.max_accel_mps2 * dt_s, speed_cap)
+            # back to the recording: landing exactly on it is within the bounds and close to the model's velocity
+            target = rec_next[idx]
+            v_land = (target - p) / dt_s
+            land = (
+                (self._distance(p, robot[k]) > prm.release_distance_m)
+                & (_norm(v_land - v) <= prm.on_track_tolerance_m / dt_s)
+                & (_norm(v_land - v0) <= prm.max_accel_mps2 * dt_s)
+                & (_norm(v_land) <= speed_cap)
+            )
+            positions[k + 1, idx] = np.where(land[:, None], target, p + v * dt_s)
+            vel = rv.copy()
+            vel[idx] = np.where(land[:, None], v_land, v)
+            reacting[idx[land]] = False
+            known = moving[k]
+        self._vel, self._vel_known = vel, known
+        deviation = self._zeros()
+        if len(idx):  # the last step's reacting pedestrians
+            deviation[idx] = _norm(positions[steps, idx] - recorded[steps, idx])
+        last = CrowdStep(
+            positions[steps].copy(),
+            vel,
+            present[steps].copy(),
+            reacting.copy(),
+            self._zeros(),
+            deviation,
+            deviation.copy(),
+        )
+        return CrowdPath(positions, pres, last)
 
     def _neighbourhood(
         self,
