@@ -135,9 +135,9 @@ class SteeredCrowd(ReactiveCrowd):
                 vel, known = rec_vel[k], moving[k]
                 continue
             rec_now, rec_next, rv = recorded[k], recorded[k + 1], rec_vel[k]
-            p = positions[k, idx]
-            v0 = np.where(known[idx, None], vel[idx], rv[idx])
-            pref = _capped(rv[idx] + (rec_now[idx] - p) / prm.lookahead_s, prm.max_speed_mps)
+            p, rv_idx = positions[k, idx], rv[idx]
+            v0 = np.where(known[idx, None], vel[idx], rv_idx)
+            pref = _capped(rv_idx + (rec_now[idx] - p) / prm.lookahead_s, prm.max_speed_mps)
             hood = self._neighbourhood(idx, p, v0, pref, rec_now, rv, moving[k], robot[k], robot_velocities[k], dt_s)
             speed_cap = np.maximum(prm.max_speed_mps, np.hypot(v0[:, 0], v0[:, 1]))
             v = _bounded(self._model_velocities(hood), v0, prm.max_accel_mps2 * dt_s, speed_cap)
@@ -199,8 +199,7 @@ def _norm(v: np.ndarray) -> np.ndarray:
 
 def _capped(v: np.ndarray, cap: float | np.ndarray) -> np.ndarray:
     """``v`` ``(m, 2)`` scaled down where its norm exceeds ``cap`` (a number or ``(m,)``)."""
-    n = _norm(v)
-    scale = np.minimum(1.0, np.asarray(cap) / np.maximum(n, 1e-12))
+    scale = np.minimum(1.0, cap / np.maximum(_norm(v), 1e-12))
     return v * scale[:, None]
 
 
