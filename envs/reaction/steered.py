@@ -97,78 +97,105 @@ class SteeredCrowd(ReactiveCrowd):
         return CrowdStep(recorded[-1].copy(), rec_vel, present[-1].copy(), self._reacting.copy(), zeros, zeros, zeros)
 
     def _step(self, inp: StepInputs) -> CrowdStep:
-        path = self._steps(
-            inp.dt_s,
-            np.stack([inp.rec_now, inp.rec_next]),
-            np.stack([inp.pres_now, inp.pres_next]),
-            np.stack([inp.robot, inp.robot]),  # the robot at the step's end is not read
-            inp.robot_vel[None],
+        moving = inp.pres_now & inp.pres_next
+        triggered = moving & (self._distance(self._pos, inp.robot) < self.params.trigger_distance_m)
+        rec_vel = self._velocities(inp.rec_now, inp.rec_next, moving, inp.dt_s)
+        new = inp.rec_next.copy()
+        idx = self._substep(
+            inp.dt_s, self._pos, new, inp.rec_now, inp.rec_next, rec_vel, moving, triggered, inp.robot, inp.robot_vel
         )
-        return path.last
+        return self._last(new, inp.pres_next, idx, inp.rec_next)
 
     def _steps(
         self, dt_s: float, recorded: np.ndarray, present: np.ndarray, robot: np.ndarray, robot_velocities: np.ndarray
     ) -> CrowdPath:
-        """``S`` steps (:meth:`step` is one): what does not depend on the model is computed for all of them at once,
-        with the same floats element by element; only the reacting pedestrians are stepped one step at a time."""
-        prm = self.params
+        """``S`` steps: what does not depend on the model is computed for all of them at once, with the same floats
+        element by element (as :meth:`_step` computes it for one); only the reacting pedestrians are stepped one step
+        at a time (:meth:`_substep`)."""
         steps = len(recorded) - 1
         moving = present[:-1] & present[1:]  # (S, N)
         # triggered at a step's start by the robot's distance. A pedestrian not reacting then is where the state has it
         # at the first step and at its recorded floats at the others (a step leaves it there, landing included); for
         # one reacting then the test changes nothing (it stays reacting while present at both ends of the step)
         d_robot = self._distance(self._starts(recorded, self._pos), robot[:-1, None, :])
-        triggered = moving & (d_robot < prm.trigger_distance_m)
+        triggered = moving & (d_robot < self.params.trigger_distance_m)
         rec_vel = self._velocities(recorded[:-1], recorded[1:], moving, dt_s)  # (S, N, 2)
         positions = recorded.copy()
         positions[0] = self._pos
         pres = present.copy()
         pres[0] = self._present
-        reacting, vel, known = self._reacting, self._vel, self._vel_known
         idx = np.zeros(0, dtype=np.int64)
         for k in range(steps):
-            # the state: reacting pedestrians that leave stop reacting; others are triggered by the robot's distance
-            reacting &= moving[k]
-            reacting |= triggered[k]
-            idx = np.flatnonzero(reacting)
-            if not len(idx):  # everyone as recorded
-                vel, known = rec_vel[k], moving[k]
-                continue
-            rec_now, rec_next, rv = recorded[k], recorded[k + 1], rec_vel[k]
-            p, rv_idx = positions[k, idx], rv[idx]
-            v0 = np.where(known[idx, None], vel[idx], rv_idx)
-            pref = _capped(rv_idx + (rec_now[idx] - p) / prm.lookahead_s, prm.max_speed_mps)
-            hood = self._neighbourhood(idx, p, v0, pref, rec_now, rv, moving[k], robot[k], robot_velocities[k], dt_s)
-            speed_cap = np.maximum(prm.max_speed_mps, np.hypot(v0[:, 0], v0[:, 1]))
-            v = _bounded(self._model_velocities(hood), v0, prm.max_accel_mps2 * dt_s, speed_cap)
-            # back to the recording: landing exactly on it is within the bounds and close to the model's velocity
-            target = rec_next[idx]
-            v_land = (target - p) / dt_s
-            land = (
-                (self._distance(p, robot[k]) > prm.release_distance_m)
-                & (_norm(v_land - v) <= prm.on_track_tolerance_m / dt_s)
-                & (_norm(v_land - v0) <= prm.max_accel_mps2 * dt_s)
-                & (_norm(v_land) <= speed_cap)
+            idx = self._substep(
+                dt_s,
+                positions[k],
+                positions[k + 1],
+                recorded[k],
+                recorded[k + 1],
+                rec_vel[k],
+                moving[k],
+                triggered[k],
+                robot[k],
+                robot_velocities[k],
             )
-            positions[k + 1, idx] = np.where(land[:, None], target, p + v * dt_s)
-            vel = rv.copy()
-            vel[idx] = np.where(land[:, None], v_land, v)
-            reacting[idx[land]] = False
-            known = moving[k]
-        self._vel, self._vel_known = vel, known
-        deviation = self._zeros()
-        if len(idx):  # the last step's reacting pedestrians
-            deviation[idx] = _norm(positions[steps, idx] - recorded[steps, idx])
-        last = CrowdStep(
-            positions[steps].copy(),
-            vel,
-            present[steps].copy(),
-            reacting.copy(),
-            self._zeros(),
-            deviation,
-            deviation.copy(),
+        return CrowdPath(positions, pres, self._last(positions[steps].copy(), present[steps], idx, recorded[steps]))
+
+    def _substep(
+        self,
+        dt_s: float,
+        pos: np.ndarray,
+        new: np.ndarray,
+        rec_now: np.ndarray,
+        rec_next: np.ndarray,
+        rec_vel: np.ndarray,
+        moving: np.ndarray,
+        triggered: np.ndarray,
+        robot: np.ndarray,
+        robot_vel: np.ndarray,
+    ) -> np.ndarray:
+        """One step from ``pos`` ``(N, 2)``: the state (reacting flags, velocities) moved on, the reacting pedestrians'
+        positions at the step's end written into ``new`` (which holds ``rec_next`` elsewhere). ``triggered``: ``(N,)``
+        present at both ends and within the trigger distance at the step's start (for one not reacting then). Returns
+        the rows that reacted during the step."""
+        prm = self.params
+        # the state: reacting pedestrians that leave stop reacting; others are triggered by the robot's distance
+        reacting = self._reacting
+        reacting &= moving
+        reacting |= triggered
+        idx = np.flatnonzero(reacting)
+        if not len(idx):  # everyone as recorded
+            self._vel, self._vel_known = rec_vel, moving
+            return idx
+        p, rv_idx = pos[idx], rec_vel[idx]
+        v0 = np.where(self._vel_known[idx, None], self._vel[idx], rv_idx)
+        pref = _capped(rv_idx + (rec_now[idx] - p) / prm.lookahead_s, prm.max_speed_mps)
+        hood = self._neighbourhood(idx, p, v0, pref, rec_now, rec_vel, moving, robot, robot_vel, dt_s)
+        speed_cap = np.maximum(prm.max_speed_mps, np.hypot(v0[:, 0], v0[:, 1]))
+        v = _bounded(self._model_velocities(hood), v0, prm.max_accel_mps2 * dt_s, speed_cap)
+        # back to the recording: landing exactly on it is within the bounds and close to the model's velocity
+        target = rec_next[idx]
+        v_land = (target - p) / dt_s
+        land = (
+            (self._distance(p, robot) > prm.release_distance_m)
+            & (_norm(v_land - v) <= prm.on_track_tolerance_m / dt_s)
+            & (_norm(v_land - v0) <= prm.max_accel_mps2 * dt_s)
+            & (_norm(v_land) <= speed_cap)
         )
-        return CrowdPath(positions, pres, last)
+        new[idx] = np.where(land[:, None], target, p + v * dt_s)
+        vel = rec_vel.copy()
+        vel[idx] = np.where(land[:, None], v_land, v)
+        reacting[idx[land]] = False
+        self._vel, self._vel_known = vel, moving
+        return idx
+
+    def _last(self, positions: np.ndarray, present: np.ndarray, idx: np.ndarray, recorded: np.ndarray) -> CrowdStep:
+        """The :class:`CrowdStep` of a step that ended at ``positions`` (kept), ``idx`` reacting during it."""
+        deviation = self._zeros()
+        if len(idx):
+            deviation[idx] = _norm(positions[idx] - recorded[idx])
+        return CrowdStep(
+            positions, self._vel, present.copy(), self._reacting.copy(), self._zeros(), deviation, deviation.copy()
+        )
 
     def _neighbourhood(
         self,
