@@ -31,7 +31,10 @@ against a reference measured the same way (the single environment, the ``none`` 
    against ``reaction="none"`` in one process, for each arm of ``--reaction-arms`` (default ``cv oracle mesrnn``) on
    the held-out scene of ``--reaction-split`` (default univ: the densest crowds), by the process's CPU time (median of
    ``--repeats``), with cached forecasts for the unreacted (a learned arm runs only when its forecasts of the scene
-   are on disk: building them takes minutes, ``crowdnav-mesrnn forecasts build``). Two robots: a random policy (as
+   are on disk: building them takes minutes, ``crowdnav-mesrnn forecasts build``). The rows of an arm and robot are
+   measured in turns (repeat ``k`` of every row, seed ``k``, before repeat ``k + 1`` of any), and ``x none`` is the
+   median over repeats of each repeat's ratio to ``none``'s, so a load that changes while the part runs (a shared
+   machine) moves a row and its reference alike. Two robots: a random policy (as
    part 1) and a robot standing where it starts (people walk up to it: the most reacting). Each row also gives the
    microseconds per step spent in the reaction model and in forecasts, and the frames forecast from observed
    histories (those with a reacted pedestrian in their window: the learned arms' extra cost). The rows ``control
@@ -410,29 +413,33 @@ def reactions(args: argparse.Namespace) -> None:
                 f"(crowdnav-mesrnn forecasts build --predictor {arm} --split {args.reaction_split} --part test)"
             )
             continue
+        envs = []
+        for _, reaction, stepping in REACTION_ROWS:
+            env = CrowdNavEnv(predictor=arm, split=args.reaction_split, part="test", reaction=reaction)
+            if stepping is not None:
+                env._reactive.stepping = stepping  # a benchmark of the alternative: not a configuration key
+            env.precompute_forecasts()
+            envs.append(env)
         for standing in (False, True):
-            base = None
-            for label, reaction, stepping in REACTION_ROWS:
-                env = CrowdNavEnv(predictor=arm, split=args.reaction_split, part="test", reaction=reaction)
-                if stepping is not None:
-                    env._reactive.stepping = stepping  # a benchmark of the alternative: not a configuration key
-                env.precompute_forecasts()
-                runs = [
-                    run(env, args.reaction_steps, seed, time.process_time, standing) for seed in range(args.repeats)
-                ]
-                rate = statistics.median(r[0] for r in runs)
-                parts = {k: statistics.median(r[1][k] for r in runs) for k in ("reaction", "forecasts")}
-                online = statistics.median(r[2] for r in runs)
-                collided, ended = (sum(r[3][i] for r in runs) for i in (0, 1))
-                base = rate if base is None else base
+            runs: list[list[Any]] = [[] for _ in REACTION_ROWS]
+            for seed in range(args.repeats):  # in turns: repeat k of every row, then repeat k + 1
+                for row, env in zip(runs, envs, strict=True):
+                    row.append(run(env, args.reaction_steps, seed, time.process_time, standing))
+            for (label, _, _), row in zip(REACTION_ROWS, runs, strict=True):
+                rate = statistics.median(r[0] for r in row)
+                ratio = statistics.median(b[0] / r[0] for b, r in zip(runs[0], row, strict=True))
+                parts = {k: statistics.median(r[1][k] for r in row) for k in ("reaction", "forecasts")}
+                online = statistics.median(r[2] for r in row)
+                collided, ended = (sum(r[3][i] for r in row) for i in (0, 1))
                 print(
-                    f"{arm:<8}{'standing' if standing else 'random':<10}{label:<28}{rate:>9.0f}{base / rate:>8.2f}"
+                    f"{arm:<8}{'standing' if standing else 'random':<10}{label:<28}{rate:>9.0f}{ratio:>8.2f}"
                     f"{1e6 * parts['reaction']:>13.0f}{1e6 * parts['forecasts']:>14.0f}{online:>15.0f}"
                     f"{f'{collided}/{ended}':>12}",
                     flush=True,
                 )
     print(
-        "x none: CPU time per step relative to reaction none (same arm and robot); reaction/forecasts us: wall "
+        "x none: CPU time per step relative to reaction none (same arm and robot; median over repeats of the ratio "
+        "within each repeat); reaction/forecasts us: wall "
         "microseconds per step in the model and in forecasts; online frames: frames forecast from observed histories "
         "per run (cv: per pedestrian, cheap; a learned arm: the whole scene, one predictor call each); collisions: "
         "episodes ended by a collision / episodes ended, over the repeats"

@@ -994,13 +994,23 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         ran = len(departures)
         made = np.rint((made_s - self._time(0)) / cfg.dt_s).astype(np.int64)
         step = made[:, None] + np.arange(1, cfg.horizon_steps + 1)[None, :]  # (F, H) the world's step
-        for k, h in zip(*np.nonzero(step <= ran), strict=True):
-            rows, where, here = departures[step[k, h] - 1]
-            pos[k, h, rows], present[k, h, rows] = where, here
+        k, h = np.nonzero(step <= ran)
+        if len(k) and ran:  # every (forecast, horizon) gets the departures of its world step, in one assignment
+            lengths = np.array([len(rows) for rows, _, _ in departures])
+            first = np.cumsum(lengths) - lengths  # where each step's departures start in the concatenation
+            met = step[k, h] - 1
+            counts = lengths[met]
+            pair = np.repeat(np.arange(len(k)), counts)
+            src = np.repeat(first[met], counts) + np.arange(len(pair)) - np.repeat(np.cumsum(counts) - counts, counts)
+            rows = np.concatenate([rows for rows, _, _ in departures])[src]
+            pos[k[pair], h[pair], rows] = np.concatenate([where for _, where, _ in departures])[src]
+            present[k[pair], h[pair], rows] = np.concatenate([here for _, _, here in departures])[src]
         rows, where, here = self._reactive.future_departures
         if len(rows):
-            for k, h in zip(*np.nonzero(step > ran), strict=True):
-                pos[k, h, rows], present[k, h, rows] = where[step[k, h] - ran - 1], here[step[k, h] - ran - 1]
+            k, h = np.nonzero(step > ran)
+            after = step[k, h] - ran - 1
+            pos[k[:, None], h[:, None], rows[None, :]] = where[after]
+            present[k[:, None], h[:, None], rows[None, :]] = here[after]
 
     # ------------------------------------------------------------------ rendering
 

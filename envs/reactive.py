@@ -93,20 +93,24 @@ class ObservedReplay(Replay):
         """Derived arrays around annotation ``i`` (the intervals ending and starting there, the velocities at
         ``i - 1 .. i + 1``), with :class:`~envs.replay.Replay`'s formulas."""
         f = len(self.times)
-        for j in (i - 1, i):  # the interval from annotation j to j + 1
-            if 0 <= j < f - 1:
-                self.valid[j] = self.present[j] & self.present[j + 1]
-                slope = (self.positions[j + 1] - self.positions[j]) / (self.times[j + 1] - self.times[j])
-                self.slopes[j] = np.where(self.valid[j][:, None], slope, 0.0)
-                self._presence[j, 1] = self.valid[j]
+        a, b = max(i - 1, 0), min(i + 1, f - 1)  # the intervals from annotation j to j + 1, j in [a, b)
+        if a < b:
+            valid = self.present[a:b] & self.present[a + 1 : b + 1]
+            slope = (self.positions[a + 1 : b + 1] - self.positions[a:b]) / (
+                self.times[a + 1 : b + 1] - self.times[a:b]
+            )[:, None, None]
+            self.valid[a:b] = valid
+            self.slopes[a:b] = np.where(valid[..., None], slope, 0.0)
+            self._presence[a:b, 1] = valid
         self._presence[i, 0] = self.present[i]
-        for j in range(max(i - 1, 0), min(i + 2, f)):
-            if j > 0:
-                arrival = np.where(self.valid[j - 1][:, None], self.slopes[j - 1], 0.0)
-            else:
-                arrival = np.zeros_like(self.slopes[0])
-            self.arrival_velocity[j] = arrival
-            self.annotation_velocity[j] = np.where(self.valid[j][:, None], self.slopes[j], arrival)
+        c, d = max(i - 1, 1), min(i + 2, f)  # the velocities at annotations j in [c, d) (none arrives at 0)
+        if c < d:
+            arrival = np.where(self.valid[c - 1 : d - 1, :, None], self.slopes[c - 1 : d - 1], 0.0)
+            self.arrival_velocity[c:d] = arrival
+            self.annotation_velocity[c:d] = np.where(self.valid[c:d, :, None], self.slopes[c:d], arrival)
+        if i <= 1:  # annotation 0: no arrival
+            self.arrival_velocity[0] = 0.0
+            self.annotation_velocity[0] = np.where(self.valid[0][:, None], self.slopes[0], 0.0)
 
     def deviated_between(self, t_from_s: float, t_to_s: float) -> bool:
         """Some annotation in ``[t_from_s, t_to_s]`` (seconds, inclusive up to :data:`~envs.replay.TIME_TOL_S`) was

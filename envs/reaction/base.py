@@ -251,8 +251,9 @@ class ReactiveCrowd(ABC):
             last step.
 
         When the model would leave everyone on the recording over all ``S`` steps (:meth:`_quiet`, checked at once over
-        the steps: nobody reacting, nobody triggered), the recording is returned without stepping: the same result and
-        state as stepping, bit for bit (``tests/envs/reaction/test_quiet.py``).
+        the steps: nobody reacting, nobody triggered), the recording is returned without stepping; otherwise a model
+        may take the ``S`` steps in one call (:meth:`_steps`, sparing the per-step work :meth:`step` repeats). Both give
+        the same result and state as stepping, bit for bit (``tests/envs/reaction/test_quiet.py``).
         """
         steps = len(recorded) - 1
         if steps < 1:
@@ -271,6 +272,12 @@ class ReactiveCrowd(ABC):
                 last_quiet = self._quiet(dt_s, rec, pres_in, robot)
                 if last_quiet is not None:
                     return self._replayed(t_s, dt_s, rec, pres_in, last_quiet)
+                seen = np.asarray(robot_velocities, dtype=np.float64)
+                if seen.shape == (steps, 2) and dt_s > 0.0:
+                    path = self._steps(dt_s, rec, pres_in, robot, seen)
+                    if path is not None:
+                        self._moved(t_s, dt_s, steps, path.last)
+                        return path
         positions = np.empty((steps + 1, self._num, 2))
         pres = np.empty((steps + 1, self._num), dtype=bool)
         positions[0], pres[0] = self._pos, self._present
@@ -290,13 +297,22 @@ class ReactiveCrowd(ABC):
         assert last is not None
         return CrowdPath(positions, pres, last)
 
-    #: :meth:`advance` skips the steps in which the model would leave everyone on the recording (False: always steps).
+    #: :meth:`advance` skips the steps in which the model would leave everyone on the recording and takes the others in
+    #: one call where the model can (False: always :meth:`step` ``S`` times, the reference).
     quiet_advance: ClassVar[bool] = True
 
     def _quiet(self, dt_s: float, recorded: np.ndarray, present: np.ndarray, robot: np.ndarray) -> CrowdStep | None:
         """The last :class:`CrowdStep` of ``S`` steps in which the model leaves everyone on the recording, with the
         model's own state set as after them, or None (the steps must be taken). Arguments as :meth:`advance` (checked
         arrays). Default: never quiet."""
+        return None
+
+    def _steps(
+        self, dt_s: float, recorded: np.ndarray, present: np.ndarray, robot: np.ndarray, robot_velocities: np.ndarray
+    ) -> CrowdPath | None:
+        """``S`` steps in one call, as :meth:`step` ``S`` times gives them (bit for bit), with the model's own state set
+        as after them (:attr:`_t`, :attr:`_pos`, :attr:`_present` are set by :meth:`advance`), or None (step one by
+        one). Arguments as :meth:`advance` (checked arrays). Default: None."""
         return None
 
     def _replayed(
@@ -307,10 +323,15 @@ class ReactiveCrowd(ABC):
         positions = recorded.copy()
         pres = present.copy()
         positions[0], pres[0] = self._pos, self._present
-        self._t = (t_s + (steps - 1) * dt_s) + dt_s  # as the last of the steps leaves it
+        self._moved(t_s, dt_s, steps, last)
+        return CrowdPath(positions, pres, last)
+
+    def _moved(self, t_s: float, dt_s: float, steps: int, last: CrowdStep) -> None:
+        """The state after ``steps`` steps from ``t_s`` ending with ``last``: the time as the last of the steps leaves
+        it (:meth:`step`), the positions and presence at its end."""
+        self._t = (t_s + (steps - 1) * dt_s) + dt_s
         self._pos = last.positions
         self._present = last.present
-        return CrowdPath(positions, pres, last)
 
     @staticmethod
     def _starts(recorded: np.ndarray, now: np.ndarray) -> np.ndarray:
@@ -327,8 +348,8 @@ class ReactiveCrowd(ABC):
 
     @staticmethod
     def _velocities(before: np.ndarray, after: np.ndarray, moving: np.ndarray, dt_s: float) -> np.ndarray:
-        """``(after - before) / dt`` where ``moving``, else 0."""
-        return np.where(moving[:, None], (after - before) / dt_s, 0.0)
+        """``(after - before) / dt`` where ``moving``, else 0 (``(..., N, 2)`` and ``(..., N)``)."""
+        return np.where(moving[..., None], (after - before) / dt_s, 0.0)
 
     @staticmethod
     def _distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:

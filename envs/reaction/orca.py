@@ -24,7 +24,6 @@ reacting pedestrian's velocity is exact to about 1e-7 relative.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -64,34 +63,23 @@ class OrcaCrowd(SteeredCrowd):
         # (about a microsecond)
         sim = self._rvo.RVOSimulator()
         sim.set_time_step(hood.dt_s)
-        nd, nn, th = prm.neighbor_distance_m, prm.orca_max_neighbors, prm.orca_time_horizon_s
-        add, prefer = sim.add_agent, sim.set_agent_pref_velocity
-        # agents that move as they do: the robot and the non-reacting neighbours. They look at nobody (no neighbours:
-        # RVO2 would compute velocities for them that are discarded), keep their velocity (max speed = its norm) and
-        # are seen by the reacting pedestrians.
-        rx, ry = hood.robot.tolist()
-        rv = tuple(hood.robot_velocity.tolist())
-        prefer(add((rx, ry), 0.0, 0, th, th, self._robot_radius, _speed(rv), rv), rv)
+        nd, nn, th, r = prm.neighbor_distance_m, prm.orca_max_neighbors, prm.orca_time_horizon_s, self._ped_radius
+        add = sim.add_agent
+        # agents that move as they do: the robot and the non-reacting neighbours, seen by the reacting pedestrians. Of
+        # another agent RVO2 reads only its position, velocity and radius (Agent::computeNewVelocity); these look at
+        # nobody (no neighbours) and the velocity RVO2 computes for them is discarded, so their preferred velocity and
+        # max speed are never read (left at 0).
+        add(hood.robot.tolist(), 0.0, 0, th, th, self._robot_radius, 0.0, hood.robot_velocity.tolist())
         for pos, vel in zip(hood.other_positions.tolist(), hood.other_velocities.tolist(), strict=True):
-            v = (vel[0], vel[1])
-            prefer(add((pos[0], pos[1]), 0.0, 0, th, th, self._ped_radius, _speed(v), v), v)
-        ids = []
+            add(pos, 0.0, 0, th, th, r, 0.0, vel)
         vmax = prm.max_speed_mps
-        for pos, vel, pv in zip(
-            hood.positions.tolist(), hood.velocities.tolist(), hood.preferred.tolist(), strict=True
-        ):
-            aid = add((pos[0], pos[1]), nd, nn, th, th, self._ped_radius, vmax, (vel[0], vel[1]))
-            prefer(aid, (pv[0], pv[1]))
-            ids.append(aid)
+        ids = [
+            add(pos, nd, nn, th, th, r, vmax, vel)
+            for pos, vel in zip(hood.positions.tolist(), hood.velocities.tolist(), strict=True)
+        ]
+        prefer = sim.set_agent_pref_velocity
+        for aid, pv in zip(ids, hood.preferred.tolist(), strict=True):
+            prefer(aid, pv)
         sim.do_step()
         get = sim.get_agent_velocity
-        out = []
-        for aid in ids:
-            v = get(aid)
-            out.append((v.x, v.y))
-        return np.array(out, dtype=np.float64).reshape(-1, 2)
-
-
-def _speed(v: tuple[float, float]) -> float:
-    """An agent's max speed for a velocity it keeps (a hair above its norm, so RVO2 does not shorten it)."""
-    return math.hypot(v[0], v[1]) * (1.0 + 1e-6) + 1e-9
+        return np.array([get(aid).to_tuple() for aid in ids], dtype=np.float64).reshape(-1, 2)

@@ -44,8 +44,8 @@ def repulsion(diff: np.ndarray, directions: np.ndarray, contact_m: float, a: flo
     """The anisotropic exponential repulsion ``A exp((d_c - d) / B) w(phi) n`` on pedestrians, summed over sources.
 
     Args:
-        diff: ``(m, k, 2)`` each pedestrian's position minus each source's, metres (a zero row, a source on the
-            pedestrian itself, exerts nothing).
+        diff: ``(..., m, k, 2)`` each pedestrian's position minus each source's, metres (a zero row, a source on the
+            pedestrian itself, exerts nothing); leading axes: several configurations at once.
         directions: ``(m, 2)`` the pedestrians' unit walking directions.
         contact_m: distance at which the force is ``a`` (times the weight), metres.
         a: strength A, m/s².
@@ -53,13 +53,15 @@ def repulsion(diff: np.ndarray, directions: np.ndarray, contact_m: float, a: flo
         lam: anisotropy λ.
 
     Returns:
-        ``(m, 2)`` accelerations, m/s².
+        ``(..., m, 2)`` accelerations, m/s² (each configuration's the floats it has alone: the arithmetic is element by
+        element and each pedestrian's sum runs along the last, contiguous axis).
     """
-    d = np.hypot(diff[..., 0], diff[..., 1])
+    dx, dy = diff[..., 0], diff[..., 1]
+    d = np.hypot(dx, dy)
     inv = np.where(d > 1e-9, 1.0 / np.maximum(d, 1e-9), 0.0)
-    cos_phi = -(diff[..., 0] * directions[:, None, 0] + diff[..., 1] * directions[:, None, 1]) * inv
+    cos_phi = -(dx * directions[:, None, 0] + dy * directions[:, None, 1]) * inv
     mag = a * np.exp((contact_m - d) / b) * (lam + (1.0 - lam) * (1.0 + cos_phi) / 2.0) * inv
-    return np.stack([(mag * diff[..., 0]).sum(axis=1), (mag * diff[..., 1]).sum(axis=1)], axis=1)
+    return np.stack([(mag * dx).sum(axis=-1), (mag * dy).sum(axis=-1)], axis=-1)
 
 
 def robot_repulsion(
@@ -91,12 +93,12 @@ def robot_repulsion(
     a = np.hypot(d[:, 0], d[:, 1])
     ds = d - step[None, :]
     c = np.hypot(ds[:, 0], ds[:, 1])
-    b = 0.5 * np.sqrt(np.maximum((a + c) ** 2 - float(step @ step), 0.0))
+    ac = a + c
+    b = 0.5 * np.sqrt(np.maximum(ac**2 - float(step @ step), 0.0))
     # grad b = (a + c) (d / a + (d - s) / c) / (4 b); the force is (V / R) grad b
-    unit_sum = d / np.maximum(a, 1e-9)[:, None] + ds / np.maximum(c, 1e-9)[:, None]
-    grad_b = ((a + c) / np.maximum(4.0 * b, 1e-9))[:, None] * unit_sum
-    mag = u0 / r0 * np.exp(-(b - radius_m) / r0)
     n = d / np.maximum(a, 1e-9)[:, None]
+    grad_b = (ac / np.maximum(4.0 * b, 1e-9))[:, None] * (n + ds / np.maximum(c, 1e-9)[:, None])
+    mag = u0 / r0 * np.exp(-(b - radius_m) / r0)
     weight = lam + (1.0 - lam) * (1.0 - np.einsum("mc,mc->m", n, directions)) / 2.0
     return (mag * weight)[:, None] * grad_b
 
@@ -126,8 +128,10 @@ class SocialForceCrowd(SteeredCrowd):
         # between pedestrians, the change from the recorded configuration: sources are the reacting pedestrians
         # (themselves excluded: a zero difference) and their non-reacting neighbours, actual minus recorded
         actual = np.concatenate([p, hood.other_positions])
-        if len(actual) > 1:
+        if len(actual) > 1:  # both configurations in one call
             recorded = np.concatenate([hood.recorded, hood.other_positions])
-            force += repulsion(p[:, None, :] - actual[None], e, pair, a, b, lam)
-            force -= repulsion(hood.recorded[:, None, :] - recorded[None], e, pair, a, b, lam)
+            sources = np.stack([actual, recorded])[:, None, :, :]
+            push = repulsion(np.stack([p, hood.recorded])[:, :, None, :] - sources, e, pair, a, b, lam)
+            force += push[0]
+            force -= push[1]
         return v + force * hood.dt_s

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envs.reaction.base import CrowdStep, ReactiveCrowd, StepInputs
+from envs.reaction.base import CrowdPath, CrowdStep, ReactiveCrowd, StepInputs
 
 
 @dataclass(slots=True)
@@ -97,44 +97,105 @@ class SteeredCrowd(ReactiveCrowd):
         return CrowdStep(recorded[-1].copy(), rec_vel, present[-1].copy(), self._reacting.copy(), zeros, zeros, zeros)
 
     def _step(self, inp: StepInputs) -> CrowdStep:
-        dt_s, rec_now, rec_next, pres_next, robot = inp.dt_s, inp.rec_now, inp.rec_next, inp.pres_next, inp.robot
-        prm = self.params
-        moving = inp.pres_now & pres_next
-        pos = self._pos
-        d_robot = self._distance(pos, robot)
-        # the state: reacting pedestrians that leave stop reacting; others are triggered by the robot's distance
-        self._reacting &= moving
-        self._reacting |= moving & (d_robot < prm.trigger_distance_m)
-        rec_vel = self._velocities(rec_now, rec_next, moving, dt_s)
-        if not self._reacting.any():  # everyone as recorded
-            self._vel, self._vel_known = rec_vel, moving
-            zeros = self._zeros()
-            return CrowdStep(rec_next.copy(), rec_vel, pres_next.copy(), self._reacting.copy(), zeros, zeros, zeros)
+        moving = inp.pres_now & inp.pres_next
+        triggered = moving & (self._distance(self._pos, inp.robot) < self.params.trigger_distance_m)
+        rec_vel = self._velocities(inp.rec_now, inp.rec_next, moving, inp.dt_s)
+        new = inp.rec_next.copy()
+        idx = self._substep(
+            inp.dt_s, self._pos, new, inp.rec_now, inp.rec_next, rec_vel, moving, triggered, inp.robot, inp.robot_vel
+        )
+        return self._last(new, inp.pres_next, idx, inp.rec_next)
 
-        idx = np.flatnonzero(self._reacting)
-        p = pos[idx]
-        v0 = np.where(self._vel_known[idx, None], self._vel[idx], rec_vel[idx])
-        pref = _capped(rec_vel[idx] + (rec_now[idx] - p) / prm.lookahead_s, prm.max_speed_mps)
-        hood = self._neighbourhood(idx, p, v0, pref, rec_now, rec_vel, moving, robot, inp.robot_vel, dt_s)
+    def _steps(
+        self, dt_s: float, recorded: np.ndarray, present: np.ndarray, robot: np.ndarray, robot_velocities: np.ndarray
+    ) -> CrowdPath:
+        """``S`` steps: what does not depend on the model is computed for all of them at once, with the same floats
+        element by element (as :meth:`_step` computes it for one); only the reacting pedestrians are stepped one step
+        at a time (:meth:`_substep`)."""
+        steps = len(recorded) - 1
+        moving = present[:-1] & present[1:]  # (S, N)
+        # triggered at a step's start by the robot's distance. A pedestrian not reacting then is where the state has it
+        # at the first step and at its recorded floats at the others (a step leaves it there, landing included); for
+        # one reacting then the test changes nothing (it stays reacting while present at both ends of the step)
+        d_robot = self._distance(self._starts(recorded, self._pos), robot[:-1, None, :])
+        triggered = moving & (d_robot < self.params.trigger_distance_m)
+        rec_vel = self._velocities(recorded[:-1], recorded[1:], moving, dt_s)  # (S, N, 2)
+        positions = recorded.copy()
+        positions[0] = self._pos
+        pres = present.copy()
+        pres[0] = self._present
+        idx = np.zeros(0, dtype=np.int64)
+        for k in range(steps):
+            idx = self._substep(
+                dt_s,
+                positions[k],
+                positions[k + 1],
+                recorded[k],
+                recorded[k + 1],
+                rec_vel[k],
+                moving[k],
+                triggered[k],
+                robot[k],
+                robot_velocities[k],
+            )
+        return CrowdPath(positions, pres, self._last(positions[steps].copy(), present[steps], idx, recorded[steps]))
+
+    def _substep(
+        self,
+        dt_s: float,
+        pos: np.ndarray,
+        new: np.ndarray,
+        rec_now: np.ndarray,
+        rec_next: np.ndarray,
+        rec_vel: np.ndarray,
+        moving: np.ndarray,
+        triggered: np.ndarray,
+        robot: np.ndarray,
+        robot_vel: np.ndarray,
+    ) -> np.ndarray:
+        """One step from ``pos`` ``(N, 2)``: the state (reacting flags, velocities) moved on, the reacting pedestrians'
+        positions at the step's end written into ``new`` (which holds ``rec_next`` elsewhere). ``triggered``: ``(N,)``
+        present at both ends and within the trigger distance at the step's start (for one not reacting then). Returns
+        the rows that reacted during the step."""
+        prm = self.params
+        # the state: reacting pedestrians that leave stop reacting; others are triggered by the robot's distance
+        reacting = self._reacting
+        reacting &= moving
+        reacting |= triggered
+        idx = np.flatnonzero(reacting)
+        if not len(idx):  # everyone as recorded
+            self._vel, self._vel_known = rec_vel, moving
+            return idx
+        p, rv_idx = pos[idx], rec_vel[idx]
+        v0 = np.where(self._vel_known[idx, None], self._vel[idx], rv_idx)
+        pref = _capped(rv_idx + (rec_now[idx] - p) / prm.lookahead_s, prm.max_speed_mps)
+        hood = self._neighbourhood(idx, p, v0, pref, rec_now, rec_vel, moving, robot, robot_vel, dt_s)
         speed_cap = np.maximum(prm.max_speed_mps, np.hypot(v0[:, 0], v0[:, 1]))
         v = _bounded(self._model_velocities(hood), v0, prm.max_accel_mps2 * dt_s, speed_cap)
         # back to the recording: landing exactly on it is within the bounds and close to the model's velocity
-        v_land = (rec_next[idx] - p) / dt_s
+        target = rec_next[idx]
+        v_land = (target - p) / dt_s
         land = (
-            (d_robot[idx] > prm.release_distance_m)
+            (self._distance(p, robot) > prm.release_distance_m)
             & (_norm(v_land - v) <= prm.on_track_tolerance_m / dt_s)
             & (_norm(v_land - v0) <= prm.max_accel_mps2 * dt_s)
             & (_norm(v_land) <= speed_cap)
         )
-        new = rec_next.copy()
-        new[idx] = np.where(land[:, None], rec_next[idx], p + v * dt_s)
+        new[idx] = np.where(land[:, None], target, p + v * dt_s)
         vel = rec_vel.copy()
         vel[idx] = np.where(land[:, None], v_land, v)
-        self._reacting[idx[land]] = False
+        reacting[idx[land]] = False
         self._vel, self._vel_known = vel, moving
-        deviation = np.zeros(self._num)
-        deviation[idx] = _norm(new[idx] - rec_next[idx])
-        return CrowdStep(new, vel, pres_next.copy(), self._reacting.copy(), self._zeros(), deviation, deviation.copy())
+        return idx
+
+    def _last(self, positions: np.ndarray, present: np.ndarray, idx: np.ndarray, recorded: np.ndarray) -> CrowdStep:
+        """The :class:`CrowdStep` of a step that ended at ``positions`` (kept), ``idx`` reacting during it."""
+        deviation = self._zeros()
+        if len(idx):
+            deviation[idx] = _norm(positions[idx] - recorded[idx])
+        return CrowdStep(
+            positions, self._vel, present.copy(), self._reacting.copy(), self._zeros(), deviation, deviation.copy()
+        )
 
     def _neighbourhood(
         self,
@@ -165,8 +226,7 @@ def _norm(v: np.ndarray) -> np.ndarray:
 
 def _capped(v: np.ndarray, cap: float | np.ndarray) -> np.ndarray:
     """``v`` ``(m, 2)`` scaled down where its norm exceeds ``cap`` (a number or ``(m,)``)."""
-    n = _norm(v)
-    scale = np.minimum(1.0, np.asarray(cap) / np.maximum(n, 1e-12))
+    scale = np.minimum(1.0, cap / np.maximum(_norm(v), 1e-12))
     return v * scale[:, None]
 
 
