@@ -39,6 +39,7 @@ from envs.forecasting.uncertainty import UncertaintySource, make_uncertainty_sou
 from envs.forecasting.window import PredictorForecast
 from envs.observation import ObservationBuilder, nearest_visible, observation_space
 from envs.popin import POPIN_MARGIN_M, PopInRule
+from envs.reaction import revision_rules
 from envs.reactive import ReactionSnapshot, ReactiveWorld
 from envs.recordings import empty_recording, overlay_recording, synthetic_recording
 from envs.rendering import HUMAN_NEEDS_PYGAME
@@ -69,7 +70,8 @@ UNDISTURBED: Final[dict[str, Any]] = {
 def env_rules(config: CrowdNavConfig | Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The identity of the rules an environment runs under, for every result's spec: ``{"env_revision":
     ENV_REVISION}`` under ``reaction="none"`` (so results of revision 1 stay valid as they are), plus ``reaction``
-    and ``reaction_params`` (every constant, :meth:`envs.reaction.ReactionParams.to_dict`) under a reaction model.
+    and ``reaction_params`` (every constant, :meth:`envs.reaction.ReactionParams.to_dict`) under a reaction model,
+    and ``reaction_revision`` for a model past its first revision (:data:`envs.reaction.MODEL_REVISIONS`).
 
     Args:
         config: the environment's configuration (a :class:`~envs.config.CrowdNavConfig`, or a mapping of settings
@@ -78,7 +80,7 @@ def env_rules(config: CrowdNavConfig | Mapping[str, Any] | None = None) -> dict[
     cfg = config if isinstance(config, CrowdNavConfig) else config_from(config or {}, {})
     rules: dict[str, Any] = {"env_revision": ENV_REVISION}
     if cfg.reaction != "none":
-        rules.update(reaction=cfg.reaction, reaction_params=dict(cfg.reaction_params))
+        rules.update(reaction=cfg.reaction, reaction_params=dict(cfg.reaction_params), **revision_rules(cfg.reaction))
     return rules
 
 
@@ -172,6 +174,7 @@ def reset_info(
         "env_revision": ENV_REVISION,
         "reaction": reaction,
         "reaction_params": dict(reaction_params),
+        **revision_rules(reaction),
     }
 
 
@@ -332,6 +335,11 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     * v0, ``env_revision`` 1 (unchanged): ``forecast_uncertainty_method`` (``online`` thresholds) and
       ``forecast_samples`` (the optional ``forecast_samples`` key). Their defaults, ``split`` and 0, give the
       observations of revision 1 bit for bit (tested).
+    * v0, ``env_revision`` 1 (unchanged), ``reaction_revision`` 2 of ``social_force``: a reacting pedestrian's
+      relaxation acts on its deviation from the recording, so one on its track with no force walks as recorded
+      (revision 1 lagged each recorded change of velocity and drifted off). ``social_force`` episodes change; the
+      reset ``info`` and :func:`env_rules` name ``reaction_revision`` (:data:`envs.reaction.MODEL_REVISIONS`);
+      ``none``, ``pause`` and ``orca`` are unchanged.
     """
 
     metadata: dict[str, Any] = {"render_modes": ["human", "rgb_array"], "render_fps": 2.5}  # noqa: RUF012

@@ -140,6 +140,11 @@ def cell_spec(cfg: AblationConfig, cell: Cell) -> dict[str, Any]:
         "env": dict(sorted(cfg.env_for(cell.policy).items())),
         "env_revision": _env_revision(),
     }
+    reaction = spec["env"].get("reaction")
+    if reaction is not None:  # a model past its first revision (results of the others' first revisions stay done)
+        from envs.reaction import revision_rules
+
+        spec.update(revision_rules(reaction))
     spec.update(cell.arm.spec())  # only for a variant: the specs of every other arm stay as they were (cells stay done)
     if cell.kind == "train":
         spec.update(

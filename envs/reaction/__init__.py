@@ -12,9 +12,10 @@ from __future__ import annotations
 
 from envs.reaction.base import CrowdPath, CrowdStep, ReactiveCrowd, RecordedTracks, ReplayedCrowd
 from envs.reaction.metrics import DisturbanceMetrics
-from envs.reaction.params import REACTION_MODELS, ReactionParams, check_model
+from envs.reaction.params import MODEL_REVISIONS, REACTION_MODELS, ReactionParams, check_model, revision_rules
 
 __all__ = [
+    "MODEL_REVISIONS",
     "REACTION_MODELS",
     "CrowdPath",
     "CrowdStep",
@@ -25,6 +26,7 @@ __all__ = [
     "ReplayedCrowd",
     "check_model",
     "make_reactive_crowd",
+    "revision_rules",
 ]
 
 

@@ -19,6 +19,18 @@ from crowdnav_mesrnn.config import ConfigError, replace_checked
 #: Names of the reaction models, ``reaction=`` in the environment's configuration.
 REACTION_MODELS: Final[tuple[str, ...]] = ("none", "pause", "orca", "social_force")
 
+#: Revision of each model's dynamics, bumped whenever the same episode and parameters can move someone otherwise;
+#: named in the rules' identity (``envs.crowd_nav.env_rules``, every cell's spec, the reset ``info``) from 2 on, so
+#: results of revision 1 of the other models stay valid. ``social_force`` 2: the relaxation acts on the deviation from
+#: the recording (``envs.reaction.social_force``); revision 1 lagged every recorded change of velocity.
+MODEL_REVISIONS: Final[dict[str, int]] = {"none": 1, "pause": 1, "orca": 1, "social_force": 2}
+
+
+def revision_rules(model: str) -> dict[str, int]:
+    """``{"reaction_revision": n}`` for a model at revision ``n >= 2`` (:data:`MODEL_REVISIONS`), else ``{}``."""
+    revision = MODEL_REVISIONS[model]
+    return {"reaction_revision": revision} if revision != 1 else {}
+
 
 @dataclass(frozen=True)
 class ReactionParams:

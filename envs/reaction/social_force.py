@@ -18,7 +18,12 @@ pedestrians' own constants (A = 2 m/s², B = 0.3 m, circular) they reach 0.34 m 
 circular border potential they keep 0.70 m from a standing robot, but a robot driving at them at 1 m/s reaches
 0.39 m; the ellipse keeps both (0.70 m and 1.16 m).
 
-Integrated with one explicit Euler step per model step, then bounded (:mod:`envs.reaction.steered`).
+Integrated with one explicit Euler step per model step, then bounded (:mod:`envs.reaction.steered`). The step
+starts from the pedestrian's velocity plus the change of its recorded velocity over the step (``v + Δv_rec``): the
+relaxation then acts on the deviation from the recording only, so a reacting pedestrian on its track with no force on
+it walks exactly as recorded (as under ``orca``). Without that term (revision 1 of the model) the relaxation lagged
+each recorded change of velocity by ``tau``, and a triggered pedestrian drifted off its track with no force at all
+(``benchmarks/disturbance_sources.py``; docs/reaction.md).
 
 **Pedestrians among pedestrians.** The recording already holds how these people kept their distances; a static
 repulsion from every neighbour would push recorded groups apart as soon as one member reacts. So between
@@ -111,7 +116,8 @@ class SocialForceCrowd(SteeredCrowd):
     def _model_velocities(self, hood: Neighbourhood) -> np.ndarray:
         prm = self.params
         a, b, lam, pair = prm.sf_repulsion_mps2, prm.sf_range_m, prm.sf_anisotropy, prm.pair_distance_m
-        p, v = hood.positions, hood.velocities
+        p = hood.positions
+        v = hood.velocities + hood.recorded_change  # carried along with the recording's own change of velocity
         speed = np.hypot(hood.preferred[:, 0], hood.preferred[:, 1])
         e = hood.preferred / np.maximum(speed, 1e-9)[:, None]
         force = (hood.preferred - v) / prm.sf_relaxation_time_s

@@ -46,6 +46,8 @@ class Neighbourhood:
             not present then, its recorded velocity over this step).
         preferred: ``(m, 2)`` their preferred velocities, m/s.
         recorded: ``(m, 2)`` their recorded positions now, metres.
+        recorded_change: ``(m, 2)`` the change of their recorded velocity from the step before to this one, m/s (0
+            for one not present at both ends of the step before).
         others: ``(k,)`` rows of the non-reacting pedestrians within ``neighbor_distance_m`` of a reacting one.
         other_positions: ``(k, 2)`` metres (recorded).
         other_velocities: ``(k, 2)`` m/s (recorded, over the step).
@@ -59,6 +61,7 @@ class Neighbourhood:
     velocities: np.ndarray
     preferred: np.ndarray
     recorded: np.ndarray
+    recorded_change: np.ndarray
     others: np.ndarray
     other_positions: np.ndarray
     other_velocities: np.ndarray
@@ -74,6 +77,7 @@ class SteeredCrowd(ReactiveCrowd):
         self._reacting = np.zeros(self._num, dtype=bool)
         self._vel = np.zeros((self._num, 2))
         self._vel_known = np.zeros(self._num, dtype=bool)  # present at both ends of the previous step
+        self._rec_vel = np.zeros((self._num, 2))  # recorded velocities over the previous step (where _vel_known)
 
     @property
     def reacting(self) -> np.ndarray:
@@ -92,7 +96,7 @@ class SteeredCrowd(ReactiveCrowd):
         if (moving & (d_robot < self.params.trigger_distance_m)).any():
             return None
         rec_vel = self._velocities(recorded[-2], recorded[-1], moving[-1], dt_s)
-        self._vel, self._vel_known = rec_vel, moving[-1]
+        self._vel, self._vel_known, self._rec_vel = rec_vel, moving[-1], rec_vel
         zeros = self._zeros()
         return CrowdStep(recorded[-1].copy(), rec_vel, present[-1].copy(), self._reacting.copy(), zeros, zeros, zeros)
 
@@ -164,12 +168,14 @@ class SteeredCrowd(ReactiveCrowd):
         reacting |= triggered
         idx = np.flatnonzero(reacting)
         if not len(idx):  # everyone as recorded
-            self._vel, self._vel_known = rec_vel, moving
+            self._vel, self._vel_known, self._rec_vel = rec_vel, moving, rec_vel
             return idx
         p, rv_idx = pos[idx], rec_vel[idx]
-        v0 = np.where(self._vel_known[idx, None], self._vel[idx], rv_idx)
+        known = self._vel_known[idx, None]
+        v0 = np.where(known, self._vel[idx], rv_idx)
+        change = np.where(known, rv_idx - self._rec_vel[idx], 0.0)
         pref = _capped(rv_idx + (rec_now[idx] - p) / prm.lookahead_s, prm.max_speed_mps)
-        hood = self._neighbourhood(idx, p, v0, pref, rec_now, rec_vel, moving, robot, robot_vel, dt_s)
+        hood = self._neighbourhood(idx, p, v0, pref, change, rec_now, rec_vel, moving, robot, robot_vel, dt_s)
         speed_cap = np.maximum(prm.max_speed_mps, np.hypot(v0[:, 0], v0[:, 1]))
         v = _bounded(self._model_velocities(hood), v0, prm.max_accel_mps2 * dt_s, speed_cap)
         # back to the recording: landing exactly on it is within the bounds and close to the model's velocity
@@ -185,7 +191,7 @@ class SteeredCrowd(ReactiveCrowd):
         vel = rec_vel.copy()
         vel[idx] = np.where(land[:, None], v_land, v)
         reacting[idx[land]] = False
-        self._vel, self._vel_known = vel, moving
+        self._vel, self._vel_known, self._rec_vel = vel, moving, rec_vel
         return idx
 
     def _last(self, positions: np.ndarray, present: np.ndarray, idx: np.ndarray, recorded: np.ndarray) -> CrowdStep:
@@ -203,6 +209,7 @@ class SteeredCrowd(ReactiveCrowd):
         p: np.ndarray,
         v0: np.ndarray,
         pref: np.ndarray,
+        change: np.ndarray,
         rec_now: np.ndarray,
         rec_vel: np.ndarray,
         moving: np.ndarray,
@@ -217,7 +224,7 @@ class SteeredCrowd(ReactiveCrowd):
             diff = q[:, None, :] - p[None, :, :]
             near = np.einsum("kmc,kmc->km", diff, diff).min(axis=1) < self.params.neighbor_distance_m**2
             others, q = others[near], q[near]
-        return Neighbourhood(idx, p, v0, pref, rec_now[idx], others, q, rec_vel[others], robot, robot_vel, dt_s)
+        return Neighbourhood(idx, p, v0, pref, rec_now[idx], change, others, q, rec_vel[others], robot, robot_vel, dt_s)
 
 
 def _norm(v: np.ndarray) -> np.ndarray:

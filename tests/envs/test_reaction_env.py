@@ -25,7 +25,7 @@ from envs.replay import Replay
 
 MODELS = tuple(m for m in REACTION_MODELS if m != "none")
 #: Keys the reaction adds to what an episode reports (absent before; zero or "none" without a reaction).
-ADDED = {"reaction", "reaction_params", *UNDISTURBED}
+ADDED = {"reaction", "reaction_params", "reaction_revision", *UNDISTURBED}
 DISTURBANCE = tuple(UNDISTURBED)
 
 

@@ -19,7 +19,7 @@ import agents.ablation as ab
 from agents.ablation.stats import percentile_mean_ci, sign_flip_exact
 from agents.rollout import DISTURBANCE_METRICS, EPISODE_COLUMNS, episode_row
 from crowdnav_mesrnn.config import ConfigError
-from envs.reaction import ReactionParams
+from envs.reaction import MODEL_REVISIONS, ReactionParams
 
 REPO = Path(__file__).resolve().parents[3]
 REACTIVE = REPO / "configs/ablation/reactive.yaml"
@@ -97,6 +97,10 @@ def test_a_cells_spec_names_its_reaction_and_every_parameter(tmp_path: Path) -> 
     other = ab.cell_spec(cfg, replay)
     assert {k for k in spec if spec[k] != other[k]} == {"policy", "env"}
     assert other["env"]["reaction"] == "none"
+    # a model past its first revision is named (its earlier cells are stale); the others' specs stay as they were
+    sf = next(c for c in ab.expand(cfg) if c.name == "eval/univ/search@social_force/mesrnn")
+    assert ab.cell_spec(cfg, sf)["reaction_revision"] == MODEL_REVISIONS["social_force"] == 2
+    assert "reaction_revision" not in spec and "reaction_revision" not in other
     # an overridden parameter is in the spec (the rest are the defaults), so the cell's identity changes with it
     raw = _raw(tmp_path)
     raw["policies"]["planner@orca"]["env"]["reaction_params"] = {"trigger_distance_m": 2.0}
