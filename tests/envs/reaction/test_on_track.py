@@ -41,5 +41,7 @@ def test_the_check_catches_a_lagging_relaxation(kit, monkeypatch: pytest.MonkeyP
         return relax(self, hood)
 
     monkeypatch.setattr(SocialForceCrowd, "_model_velocities", lagging)
-    trace = kit.simulate("social_force", kit.scripted_recording([circling()], [0], name="c"), np.zeros(2), params=NO_PUSH)
+    trace = kit.simulate(
+        "social_force", kit.scripted_recording([circling()], [0], name="c"), np.zeros(2), params=NO_PUSH
+    )
     assert np.hypot(*(trace.positions[:, 0] - trace.recorded[:, 0]).T).max() > 0.01
