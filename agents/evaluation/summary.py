@@ -200,7 +200,13 @@ def format_summary(summary: Mapping[str, Any]) -> str:
         rows.append((metric, num(summary.get(f"{metric}_mean")), ci(f"{metric}_ci"), summary.get(f"{metric}_n"), label))
     width = max(len(r[0]) for r in rows) + 2
     crowd = summary.get("crowd") or {}
-    if crowd.get("kind") == "replay":
+    validation = (summary.get("env") or {}).get("part") == "train"  # episodes_from="val": no held-out scene
+    if crowd.get("kind") == "replay" and validation:
+        where = (
+            f"{summary.get('split')}'s training scenes in their validation period (NOT a held-out result; ETH/UCY "
+            f"replay from {crowd.get('data_dir')})"
+        )
+    elif crowd.get("kind") == "replay":
         where = f"{summary.get('split')} (held-out scene, ETH/UCY replay from {crowd.get('data_dir')})"
     elif crowd:
         where = f"the {crowd.get('kind')} crowd (not an ETH/UCY scene; split {summary.get('split')})"

@@ -123,3 +123,14 @@ def test_summary_counts_popin_episodes_and_events() -> None:
     s = summarise(rows)
     assert s["popin_episodes"] == 2 and s["popin_events"] == 3
     assert "popin_events" in EPISODE_COLUMNS
+
+
+def test_a_summary_on_validation_episodes_does_not_call_them_held_out() -> None:
+    """``--episodes-from val`` replays the training scenes' validation period: the printed summary must not read
+    "held-out scene" (the text a reader takes for a result)."""
+    base = {**summarise([]), "policy": "planner", "predictor": "cv", "split": "univ", "episodes": 0, "seconds": 0.0}
+    base["crowd"] = {"kind": "replay", "data_dir": "/data"}
+    test = format_summary({**base, "env": {"part": "test", "episode_time": "all"}}).splitlines()[0]
+    val = format_summary({**base, "env": {"part": "train", "episode_time": "val"}}).splitlines()[0]
+    assert "held-out scene" in test
+    assert "held-out scene" not in val and "validation period" in val and "NOT a held-out result" in val
