@@ -88,6 +88,7 @@ def evaluate(
         :data:`envs.crowd_nav.ENV_REVISION`), ``code_version``, ``seconds`` and ``out_dir``.
     """
     from envs.crowd_nav import ENV_REVISION, CrowdNavEnv
+    from envs.reaction import revision_rules
 
     predictors.check(predictor)
     if n_envs < 1:
@@ -121,6 +122,7 @@ def evaluate(
         planner=dict(planner_kwargs or {}) if str(spec) in PLANNERS else None,
         privileged=bool(getattr(policy, "privileged", False)),
         env_revision=ENV_REVISION,
+        **revision_rules(config.reaction),
         code_version=version,
         seconds=round(time.perf_counter() - started, 3),
         out_dir=None if out_dir is None else str(out_dir),

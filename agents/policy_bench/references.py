@@ -131,6 +131,7 @@ def reference_rows(
     """
     from agents.evaluation import evaluate, read_episodes
     from envs.crowd_nav import ENV_REVISION
+    from envs.reaction import revision_rules
 
     grid_name, kind = REFERENCES[reference]
     cfg, cells = grid
@@ -159,6 +160,8 @@ def reference_rows(
         and done.get("episodes") == episodes
         and done.get("seed") == seed
         and done.get("env_revision") == ENV_REVISION
+        and done.get("reaction_revision")
+        == revision_rules(env_overrides.get("reaction", "none")).get("reaction_revision")
         and dict(done.get("env_overrides") or {}) == dict(env_overrides)
     ):
         cached = read_episodes(folder)

@@ -127,6 +127,7 @@ def run_policy_bench(
     from agents.stats import holm, mcnemar_exact, paired_verdict
     from crowdnav_mesrnn.utils import atomic_write_text, code_version
     from envs.crowd_nav import ENV_REVISION
+    from envs.reaction import revision_rules
 
     started = time.perf_counter()
     out = Path(out_dir)
@@ -174,6 +175,7 @@ def run_policy_bench(
         "command": command or f"crowdnav-mesrnn bench-policy {cfg.policy}",
         "code_version": version,
         "env_revision": ENV_REVISION,
+        **revision_rules(dict(cfg.env).get("reaction", "none")),
         "grid": str(grid[0].source) if grid[0] is not None else None,
         "scenes": scenes,
         "tests": tests,

@@ -216,3 +216,38 @@ def test_references_run_here_equal_the_committed_ones(data_dir: Path, tmp_path: 
         committed = cells[(grid_name, arm, "zara1")][:2]
         assert [r["outcome"] for r in here] == [r["outcome"] for r in committed]
         assert same_episodes(here, committed)
+
+
+def test_a_cached_reference_of_another_reaction_revision_is_run_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An earlier bench's reference under ``social_force`` is reused only if it ran at the model's current revision
+    (``reaction_revision`` in its summary): one from revision 1 is evaluated again, not served as cached."""
+    import json
+
+    import agents.evaluation
+    from agents.policy_bench.references import reference_rows
+    from envs.crowd_nav import ENV_REVISION
+    from envs.reaction import MODEL_REVISIONS
+
+    rows = [{"episode": str(i), "crowd_density": str(0.5 + i)} for i in range(2)]
+    folder = tmp_path / "zara1" / "sampling" / "cv"
+    folder.mkdir(parents=True)
+    (folder / "episodes.csv").write_text("episode,seed,crowd_density,outcome\n0,7,0.5,success\n1,8,1.5,collision\n")
+    overrides = {"reaction": "social_force"}
+    base = {"episodes": 2, "seed": 0, "env_revision": ENV_REVISION, "env_overrides": overrides}
+
+    class Ran(Exception):
+        pass
+
+    def evaluate(*args, **kwargs):
+        raise Ran
+
+    monkeypatch.setattr(agents.evaluation, "evaluate", evaluate)
+    current = {**base, "reaction_revision": MODEL_REVISIONS["social_force"]}
+    (folder / "summary.json").write_text(json.dumps(current))
+    got = reference_rows("sampling", "cv", "zara1", 2, 0, overrides, rows, tmp_path, (None, {}))
+    assert got[1] == "cached" and len(got[0]) == 2
+    (folder / "summary.json").write_text(json.dumps(base))  # written before revision 2 named itself
+    with pytest.raises(Ran):
+        reference_rows("sampling", "cv", "zara1", 2, 0, overrides, rows, tmp_path, (None, {}))
