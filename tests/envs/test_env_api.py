@@ -120,16 +120,21 @@ def test_every_arm_gets_the_same_episodes(data_dir: Path) -> None:
     assert episodes["noisy_oracle"] == episodes["none"] == episodes["cv"]
 
 
-@pytest.mark.parametrize(("predictor", "flatten"), [("none", True), ("cv", False), ("oracle", True)])
+@pytest.mark.parametrize(
+    ("predictor", "flatten", "reaction"),
+    [("none", True, "none"), ("cv", False, "none"), ("oracle", True, "none"), ("cv", False, "orca")],
+)
 def test_the_true_future_a_teacher_reads_is_the_oracle_arms_forecasts(
-    data_dir: Path, predictor: str, flatten: bool
+    data_dir: Path, predictor: str, flatten: bool, reaction: str
 ) -> None:
     """Any arm's ``true_future_forecasts`` equals, step for step, the ``forecasts`` of an oracle-arm environment in the
-    same episode under the same actions (rows, frame, clipping, layout)."""
+    same episode under the same actions (rows, frame, clipping, layout); among reacting pedestrians too, where both
+    are the recorded (counterfactual) future of the people perceived where they actually are."""
     kw = {"data_dir": str(data_dir), "split": "univ", "part": "test", "flatten_observation": flatten}
+    kw["reaction"] = reaction
     env, oracle = CrowdNavEnv(predictor=predictor, **kw), CrowdNavEnv(predictor="oracle", **kw)
     rng = np.random.default_rng(3)
-    compared = 0
+    compared = reacted = 0
     for seed in (11, 12):
         obs, _ = env.reset(seed=seed)
         want, _ = oracle.reset(seed=seed)
@@ -142,9 +147,11 @@ def test_the_true_future_a_teacher_reads_is_the_oracle_arms_forecasts(
             action = rng.uniform(-1, 1, 2).astype(np.float32)
             obs, _, terminated, truncated, _ = env.step(action)
             want, *_ = oracle.step(action)
+            reacted += reaction != "none" and bool(env._reactive.crowd.reacting.any())
             if terminated or truncated:
                 break
     assert compared > 0, "some pedestrian was perceived"
+    assert (reacted > 0) == (reaction != "none"), "among reacting pedestrians someone reacted"
 
 
 @pytest.mark.parametrize(
