@@ -113,6 +113,47 @@ def _ceiling_lines(summary: Mapping[str, Any]) -> list[str]:
     return lines
 
 
+def _avoidable_lines(summary: Mapping[str, Any]) -> list[str]:
+    """Each policy's failures classed by its environment's privileged ceiling (grids with a ceiling per reaction)."""
+    entries = summary.get("avoidable_failures") or []
+    if not entries:
+        return []
+    lines = [
+        "## Failures the ceiling avoided",
+        "",
+        "A policy's failure (collision or timeout) in an episode its environment's PRIVILEGED ceiling succeeded in was "
+        "avoidable (under the reaction model, a clear way existed); one the ceiling failed too is not shown avoidable "
+        "(the ceiling's beam search is not complete: not proven unavoidable). Counts over the episodes of every split; "
+        "per split: avoidable / failures.",
+        "",
+    ]
+    for entry in entries:
+        splits = [sp for sp in summary["splits"] if sp in entry["ceiling_failures"]]
+        fails = ", ".join(f"{sp} {entry['ceiling_failures'][sp]}" for sp in splits)
+        lines += [
+            f"`{entry['policy']}` failed in: {fails} episode(s).",
+            "",
+            "| policy | arm | failures | avoidable | not shown avoidable | " + " | ".join(splits) + " |",
+            "|---|---|---:|---:|---:" + "|---" * len(splits) + "|",
+        ]
+        for name, arms in entry["classes"].items():
+            for arm, c in arms.items():
+                share = f" ({100 * c['avoidable'] / c['failures']:.0f} %)" if c["failures"] else ""
+                per = [
+                    f"{c['by_split'][sp]['avoidable']} / {c['by_split'][sp]['failures']}"
+                    if sp in c["by_split"]
+                    else "-"
+                    for sp in splits
+                ]
+                unmatched = f" (+{c['unmatched']} unmatched)" if c["unmatched"] else ""
+                lines.append(
+                    f"| {name} | {arm} | {c['failures']}{unmatched} | {c['avoidable']}{share} | "
+                    f"{c['not_shown_avoidable']} | " + " | ".join(per) + " |"
+                )
+        lines.append("")
+    return lines
+
+
 def _points(value: Any, ci: Any = None) -> str:
     """A difference of rates in percentage points, signed, with its interval."""
     if value is None:
@@ -345,6 +386,7 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
             if per:
                 lines += [f"{name} on `{split}`:", "", *_rate_table(per, False), ""]
     lines += _ceiling_lines(summary)
+    lines += _avoidable_lines(summary)
     lines += _reaction_lines(summary)
     edges = summary["density_bins"]
     if edges:

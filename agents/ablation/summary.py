@@ -70,6 +70,61 @@ def ceiling_fractions(cfg: AblationConfig, policies: dict[str, Any], which: int 
     return out
 
 
+def avoidable_failures(cfg: AblationConfig, pooled: dict[tuple[str, str], _Episodes]) -> list[dict[str, Any]]:
+    """Each policy's failures classed by the privileged ceiling of its environment (the same reaction): a failure in
+    an episode the ceiling succeeded in was **avoidable** (under this model of reaction: the ceiling's success proves
+    a clear way existed); one the ceiling failed too is **not shown avoidable** (the ceiling's beam search is not
+    complete, so this does not prove it unavoidable). Episodes are matched by split and episode index (the same
+    seeded list; a learned policy's seeds each against the ceiling's one episode).
+
+    Returns one entry per ceiling: ``{"policy": CEILING, "ceiling_failures": {split: n}, "classes": {policy: {arm:
+    {"failures", "avoidable", "not_shown_avoidable", "unmatched", "by_split": {split: {...}}}}}}``; a failure in an
+    episode with no ceiling episode of that index is counted in ``unmatched``.
+    """
+    from agents.ablation.config import PRIVILEGED_KIND
+
+    out: list[dict[str, Any]] = []
+    for ceiling in (p for p in cfg.policies if p.kind == PRIVILEGED_KIND):
+        ceps = next((e for (name, _), e in pooled.items() if name == ceiling.name), None)
+        if ceps is None:
+            continue
+        won = {(k[0], k[2]): o == "success" for k, o in zip(ceps.keys, ceps.outcome(), strict=True)}
+        env = cfg.env_for(ceiling)
+        classes: dict[str, Any] = {}
+        for policy in cfg.policies:
+            if policy.kind == PRIVILEGED_KIND or cfg.env_for(policy) != env:
+                continue
+            for arm in cfg.arm_labels:
+                eps = pooled.get((policy.name, arm))
+                if eps is None:
+                    continue
+                by_split: dict[str, dict[str, int]] = {}
+                for key, outcome in zip(eps.keys, eps.outcome(), strict=True):
+                    row = by_split.setdefault(
+                        key[0], {"failures": 0, "avoidable": 0, "not_shown_avoidable": 0, "unmatched": 0}
+                    )
+                    if outcome == "success":
+                        continue
+                    row["failures"] += 1
+                    ceiling_won = won.get((key[0], key[2]))
+                    row[
+                        "unmatched" if ceiling_won is None else "avoidable" if ceiling_won else "not_shown_avoidable"
+                    ] += 1
+                total = {
+                    k: sum(r[k] for r in by_split.values())
+                    for k in ("failures", "avoidable", "not_shown_avoidable", "unmatched")
+                }
+                classes.setdefault(policy.name, {})[arm] = {
+                    **total,
+                    "by_split": dict(sorted(by_split.items(), key=lambda kv: cfg.splits.index(kv[0]))),
+                }
+        fails: dict[str, int] = {}
+        for key, ok in won.items():
+            fails[key[0]] = fails.get(key[0], 0) + (not ok)
+        out.append({"policy": ceiling.name, "ceiling_failures": fails, "classes": classes})
+    return out
+
+
 def summarize(
     cfg: AblationConfig, out: Callable[[str], None] = print, plots: bool = True, force: bool = False
 ) -> dict[str, Any]:
@@ -130,6 +185,8 @@ def summarize(
     extra: dict[str, Any] = {}  # only for grids that declare them: the summaries of the others stay as they were
     if ceilings:
         extra["ceilings"] = ceilings
+        # a ceiling per reaction: each policy's failures classed as avoidable or not (grids with one ceiling: absent)
+        extra["avoidable_failures"] = avoidable_failures(cfg, pooled)
     if cfg.reaction_comparisons:
         extra["reaction_tests"], families["success_gain_change"] = reaction_tests(cfg, pooled)
     if cfg.disturbance_comparisons:

@@ -391,6 +391,22 @@ def test_each_reaction_is_divided_by_its_own_ceiling_and_the_reactive_one_says_w
     text = (cfg.out_path() / "summary.md").read_text(encoding="utf-8")
     assert "`privileged@orca` is PRIVILEGED: it rolls the reaction model forward" in text
     assert "`privileged@none` is PRIVILEGED: it reads the replay's true future" in text
+    # each failure classed by its own environment's ceiling: planner@orca fails episodes 45-59 of each split, the ORCA
+    # ceiling succeeds in 0-49: 45-49 avoidable, 50-59 not shown avoidable; the replay ceiling succeeds everywhere
+    replay_cls, orca_cls = summary["avoidable_failures"]
+    assert replay_cls["policy"] == "privileged@none" and orca_cls["policy"] == "privileged@orca"
+    n = len(cfg.splits)
+    assert orca_cls["ceiling_failures"] == {sp: 10 for sp in cfg.splits} and set(orca_cls["classes"]) == {
+        "planner@orca"
+    }
+    c = orca_cls["classes"]["planner@orca"]["oracle"]
+    assert (c["failures"], c["avoidable"], c["not_shown_avoidable"], c["unmatched"]) == (15 * n, 5 * n, 10 * n, 0)
+    assert c["by_split"][cfg.splits[0]] == {"failures": 15, "avoidable": 5, "not_shown_avoidable": 10, "unmatched": 0}
+    r = replay_cls["classes"]["planner@none"]["none"]
+    assert (r["failures"], r["avoidable"], r["not_shown_avoidable"]) == (15 * n, 15 * n, 0)
+    assert (
+        "## Failures the ceiling avoided" in text and f"| planner@orca | oracle | {15 * n} | {5 * n} (33 %) |" in text
+    )
 
 
 def test_disturbance_means_intervals_and_tests(tmp_path: Path, no_weights: None) -> None:
@@ -452,6 +468,7 @@ def test_archives_without_disturbance_metrics_read_them_as_absent(tmp_path: Path
     entry = summary["policies"]["planner"]
     assert "reaction" not in entry and not any(k.startswith("ped_") for k in entry["arms"]["none"])
     assert "reaction_tests" not in summary and "disturbance_tests" not in summary and "ceilings" not in summary
+    assert "avoidable_failures" not in summary
     assert set(summary["multiple_comparisons"]["family_sizes"]) == {
         "success",
         "navigation_time_s",
