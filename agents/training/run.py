@@ -203,12 +203,15 @@ def _config_differences(a: Mapping[str, Any], b: Mapping[str, Any], prefix: str 
 
 def resolved_yaml(cfg: TrainConfig, extra_run: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """What ``config.yaml`` holds: :meth:`TrainConfig.to_yaml` plus the ``run`` section (with ``crowd``, the crowd the
-    environments replay: ``{"kind": "replay", "data_dir": ...}`` or ``{"kind": "synthetic", ...}``).
+    environments replay: ``{"kind": "replay", "data_dir": ...}`` or ``{"kind": "synthetic", ...}``, and ``env_rules``,
+    the rules the environments run under: :func:`envs.crowd_nav.env_rules`).
 
     Raises:
         DataNotFoundError: the run replays ETH/UCY scenes (``env.crowd`` ``auto`` or ``replay``) and the data is not
             found.
     """
+    from envs.crowd_nav import env_rules
+
     doc = cfg.to_yaml()
     env_cfg = config_from(cfg.env_kwargs("train"), {})
     env_resolved = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(env_cfg).items()}
@@ -219,6 +222,9 @@ def resolved_yaml(cfg: TrainConfig, extra_run: Mapping[str, Any] | None = None) 
         "env_id": cfg.env_id,
         "source": cfg.source,
         "env_resolved": env_resolved,
+        # the environment's rules (revision, reaction model and its revision): a run trained under other rules is
+        # told apart from its config.yaml alone
+        "env_rules": env_rules(env_cfg),
         "crowd": crowd_source(env_cfg, scene_named=True).as_dict(),
         "predictor_weights_sha256": predictor_weights(cfg),
         "code_version": code_version(),

@@ -14,8 +14,10 @@ import yaml
 from agents.policy_file import read_policy_file
 from agents.runs import PROJECT_KEY
 from agents.training.config import load_train_config
-from agents.training.run import steps_trained, train
+from agents.training.run import resolved_yaml, steps_trained, train
 from crowdnav_mesrnn.config import ConfigError
+from envs.crowd_nav import ENV_REVISION
+from envs.reaction import MODEL_REVISIONS
 
 ARMS = ("none", "cv", "mesrnn", "oracle")
 REPO = Path(__file__).resolve().parents[3]
@@ -48,6 +50,7 @@ def _check_run_folder(run: Path, steps: int, predictor: str) -> None:
     saved = yaml.safe_load((run / "config.yaml").read_text())
     assert saved[PROJECT_KEY]["run"]["predictor"] == predictor
     assert saved[PROJECT_KEY]["run"]["env_resolved"]["episode_time"] == "train"
+    assert saved[PROJECT_KEY]["run"]["env_rules"] == {"env_revision": ENV_REVISION}
     if predictor == "mesrnn":
         weights = saved[PROJECT_KEY]["run"]["predictor_weights_sha256"]
         assert weights and all(len(v) == 64 for v in weights.values())
@@ -57,6 +60,20 @@ def _check_run_folder(run: Path, steps: int, predictor: str) -> None:
     assert logged == sorted(logged) and logged[-1] <= steps
     latest = json.loads((run / "checkpoints" / "latest.json").read_text())
     assert latest["steps"] == steps
+
+
+def test_the_run_records_the_rules_its_environments_run_under() -> None:
+    """config.yaml's run section names the environment's revision and, under a reaction model, the model, its
+    parameters and its revision: a run trained under other rules is told apart without its grid."""
+    cfg = load_train_config(SMOKE_YAML, overrides={"predictor": "cv", "split": "zara1", "env.crowd": "synthetic"})
+    assert resolved_yaml(cfg)[PROJECT_KEY]["run"]["env_rules"] == {"env_revision": ENV_REVISION}
+    cfg = load_train_config(
+        SMOKE_YAML,
+        overrides={"predictor": "cv", "split": "zara1", "env.crowd": "synthetic", "env.reaction": "social_force"},
+    )
+    rules = resolved_yaml(cfg)[PROJECT_KEY]["run"]["env_rules"]
+    assert rules["reaction"] == "social_force" and rules["reaction_revision"] == MODEL_REVISIONS["social_force"] >= 2
+    assert rules["env_revision"] == ENV_REVISION and rules["reaction_params"]
 
 
 @pytest.mark.slow
