@@ -1008,3 +1008,30 @@ def test_result_files_are_all_rendered_before_any_is_replaced(
         ab.summarize(cfg, out=lambda s: None, plots=False)
     assert _results(cfg) == shipped  # all or nothing: the summary, cells and archive still agree
     assert not [p for p in cfg.out_path().iterdir() if p.name.startswith(".")]  # no temporary file left
+
+
+@pytest.mark.parametrize(
+    ("reuse", "words"),
+    [
+        ("results/ablation/planners", ["'reuse'", "'results/ablation/planners'", "a list of other grids'"]),
+        ([3], ["'reuse'", "[3]", "a list of other grids'"]),
+        (["nowhere"], ["'reuse'", "'nowhere'", "there is no folder 'nowhere'"]),
+        (["empty"], ["'reuse'", "'empty'", "cells.json is missing"]),
+        (["no_archive"], ["'reuse'", "episodes.csv.gz is missing"]),
+        (["no_archive", "no_archive"], ["'reuse'", "without repeats"]),
+        (["results"], ["'reuse'", "own out_dir"]),
+    ],
+)
+def test_bad_reuse_names_key_value_and_allowed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, reuse: Any, words: list[str]
+) -> None:
+    monkeypatch.chdir(tmp_path)  # folders are relative to the working directory
+    for folder in ("empty", "no_archive", "results"):
+        (tmp_path / folder).mkdir()
+    (tmp_path / "no_archive" / "cells.json").write_text("[]")
+    with pytest.raises(ConfigError) as err:
+        ab.config_from_mapping(_raw(tmp_path, out_dir="results", reuse=reuse))
+    for word in words:
+        assert word in str(err.value), (word, str(err.value))
+    (tmp_path / "no_archive" / "episodes.csv.gz").write_bytes(gzip.compress(b""))
+    assert ab.config_from_mapping(_raw(tmp_path, reuse=["no_archive"])).reuse == ("no_archive",)
