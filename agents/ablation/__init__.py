@@ -14,7 +14,8 @@ The grid
     carry environment settings of its own on top of the grid's ``env`` (``policies.search@orca: {kind: search, env:
     {reaction: orca}}``): a policy that sets the pedestrians' ``reaction`` is keyed ``<planner>@<reaction>``, and the
     reaction's every parameter is resolved into its cells' specs (``configs/ablation/reactive.yaml``). A policy's
-    ``priority`` orders the running of cells.
+    ``priority`` orders the running of cells. ``reuse`` lists other grids' committed results folders whose cells this
+    grid shares (below); it is not part of any cell's spec.
     It expands into *cells*:
 
     - ``train/<split>/<policy>/<arm>/seed<k>``: one training run (:func:`agents.training.run.train`) of a learned
@@ -31,14 +32,19 @@ Cells and their state
     last, ``DONE``. A cell is ``done`` (DONE present, spec and weights as now), ``stale`` (DONE present but its
     spec, the sha256 of the shipped predictor weights it used, or the model it evaluated changed: redone),
     ``partial`` (a folder without DONE: an interrupted run; a training cell resumes with
-    ``train(..., resume=True)``, an evaluation cell is redone) or ``todo``. Re-running the grid skips done
-    cells. ``--dry-run`` lists every cell with its state and an estimated time from the throughput of
-    finished cells -- the grid's own (``cell.json``), else those the committed results record
+    ``train(..., resume=True)``, an evaluation cell is redone) or ``todo``. A cell without a folder is ``done``
+    when committed results hold it (:func:`agents.ablation.results.from_results`): the grid's own (``out_dir``),
+    else the folders of ``reuse`` in order, with a done record of the same cell name, an identical spec, the same
+    predictor weights and its episodes (a training cell only with its evaluation: its model is not committed).
+    Re-running the grid skips done cells, so a fresh clone re-runs no committed cell. ``--dry-run`` lists every
+    cell with its state (and the results a cell done from them comes from) and an estimated time from the
+    throughput of finished cells -- the grid's own (``cell.json``), else those the committed results record
     (``cells.json``) --, falling back to the config's ``estimates``; it says which it used.
     ``--replicate DIR --only PATTERN`` runs the selected cells afresh in the scratch folder ``DIR`` and
     compares each replicated evaluation with the grid's, episode by episode (:func:`replicate`): cells are
     seeded, so a difference means nondeterminism or a change of behaviour since the grid's cell ran (only grid
-    cells that are ``done`` are compared; the folder must be new or empty).
+    cells that are ``done`` in a run folder are compared; the folder must be new or empty). It runs the cells even
+    where committed results hold them: the way to run a committed cell again.
 
 Backends
     ``local`` (default): a process pool (forkserver) of ``--workers`` processes (default: cores // the
@@ -70,10 +76,10 @@ The answer
     sign-flip test of the per-episode difference of paired differences, Holm) and the declared disturbance comparisons
     (``disturbance_comparisons``: Wilcoxon, Holm per metric). It also writes ``cells.json`` (every cell's state,
     timings and spec) and ``episodes.csv.gz`` (every evaluated episode, values as written); the statistics are computed
-    from that archive, and a cell without a run folder is read from it, so the committed results alone render the
-    same summary again. A summary never replaces one holding more (missing cells: refused, named; ``--force``
-    overrides), and files whose content would not change are left untouched
-    (:mod:`agents.ablation.results`).
+    from that archive, and a cell without a run folder is read from it (or from the ``reuse`` results that hold it: its
+    record says ``"from": <folder>``), so the committed results alone render the same summary again. A summary never
+    replaces one holding more (missing cells: refused, named; ``--force`` overrides), and files whose content would not
+    change are left untouched (:mod:`agents.ablation.results`).
 """
 
 from __future__ import annotations

@@ -232,7 +232,12 @@ def run_grid(
     workers = workers or default_workers(cells)
     statuses = plan(cfg, cells)
     todo = [s for s in statuses if s.state != "done"]
-    out(f"grid {cfg.name}: {len(cells)} cells, {len(cells) - len(todo)} done, {len(todo)} to run ({backend} backend)")
+    committed = sum(bool(s.source) for s in statuses)
+    out(
+        f"grid {cfg.name}: {len(cells)} cells, {len(cells) - len(todo)} done"
+        + (f" ({committed} of them from committed results)" if committed else "")
+        + f", {len(todo)} to run ({backend} backend)"
+    )
     check_environments(cfg, [s.cell for s in todo])
     for policy in {s.cell.policy.name: s.cell.policy for s in todo if s.cell.policy.learned}.values():
         if not Path(policy.config or "").is_file():
@@ -360,7 +365,8 @@ def replicate(
             f"--replicate {str(into)!r} is not empty; give a new or empty folder (a replicate starts afresh)"
         )
     states = {st.cell.name: st for st in plan(cfg, evals)}
-    scratch = dataclasses.replace(cfg, runs_dir=str(into / "runs"), out_dir=str(into / "results"))
+    # afresh: no committed results (the grid's own nor other grids') stand in for a cell there
+    scratch = dataclasses.replace(cfg, runs_dir=str(into / "runs"), out_dir=str(into / "results"), reuse=())
     result = run_grid(scratch, workers=workers, only=",".join(c.name for c in cells), summarize_after=False, out=out)
     for name, error in result["failed"].items():
         out(f"failed: {name}\n{error}")
@@ -371,6 +377,8 @@ def replicate(
         theirs = {(r.get("seed"), r["episode"]): r for r in read_episodes(cell_dir(cfg, cell) / "episodes.csv")}
         if grid.state != "done" or not theirs or not ours:
             why = f"the grid's cell is {grid.state}" + (f" ({grid.reason})" if grid.reason else "")
+            if grid.source:  # no episodes.csv to compare with, only the results' archive
+                why = f"the grid's cell has no run folder (it is done {grid.reason})"
             out(
                 f"{cell.name}: not compared: " + (why if grid.state != "done" or not theirs else "the replicate failed")
             )

@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
 from agents.ablation.config import (
     CELL_JSON,
@@ -26,6 +26,9 @@ from agents.ablation.config import (
 from agents.evaluation import episode_part
 from crowdnav_mesrnn.config import ConfigError, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
+
+if TYPE_CHECKING:
+    from agents.ablation.results import Committed
 
 
 @dataclass(frozen=True)
@@ -243,6 +246,12 @@ class CellStatus:
     state: str
     reason: str = ""
     meta: dict[str, Any] | None = None
+    """The cell's ``cell.json`` (``None`` without a run folder)."""
+    source: str = ""
+    """For a cell without a run folder that is done from committed results: the results folder it is read from (the
+    grid's ``out_dir`` or one of its ``reuse`` folders, as the config names it); ``""`` otherwise."""
+    record: dict[str, Any] | None = None
+    """The cell's record in :attr:`source`'s ``cells.json`` (``None`` unless :attr:`source`)."""
 
 
 def cell_status(cfg: AblationConfig, cell: Cell, train_states: Mapping[str, CellStatus] | None = None) -> CellStatus:
@@ -275,14 +284,24 @@ def cell_status(cfg: AblationConfig, cell: Cell, train_states: Mapping[str, Cell
     return CellStatus(cell, "done", "", meta)
 
 
-def plan(cfg: AblationConfig, cells: Sequence[Cell] | None = None) -> list[CellStatus]:
-    """States of ``cells`` (default: the whole grid), training cells resolved before their evaluations."""
+def plan(
+    cfg: AblationConfig, cells: Sequence[Cell] | None = None, committed: Sequence[Committed] | None = None
+) -> list[CellStatus]:
+    """States of ``cells`` (default: the whole grid), training cells resolved before their evaluations.
+
+    A cell without a run folder (``todo``) is ``done`` when the committed results hold it: the grid's own, else its
+    ``reuse`` folders in order (:func:`agents.ablation.results.from_results`; its :attr:`CellStatus.source` says
+    which). ``committed``: those results read already (:func:`agents.ablation.results.committed`), else read here.
+    """
+    from agents.ablation.results import from_results
+
     cells = list(expand(cfg) if cells is None else cells)
     train_states: dict[str, CellStatus] = {}
     for cell in expand(cfg):
         if cell.kind == "train":
             train_states[cell.name] = cell_status(cfg, cell)
-    return [train_states[c.name] if c.kind == "train" else cell_status(cfg, c, train_states) for c in cells]
+    statuses = [train_states[c.name] if c.kind == "train" else cell_status(cfg, c, train_states) for c in cells]
+    return from_results(cfg, statuses, train_states, committed)
 
 
 def select(cells: Sequence[Cell], patterns: str | None) -> list[Cell]:
@@ -444,6 +463,7 @@ def dry_run(cfg: AblationConfig, cells: Sequence[Cell], workers: int, out: Calla
     out(
         f"{len(cells)} cells ({n_train} train, {len(cells) - n_train} eval): "
         + ", ".join(f"{k} {v}" for k, v in counts.items())
+        + _from_results(statuses)
     )
     where = {
         "runs": f"the throughput of finished cells in {cfg.runs_path()}/",
@@ -460,6 +480,15 @@ def dry_run(cfg: AblationConfig, cells: Sequence[Cell], workers: int, out: Calla
         f"estimated compute left {_hms(total)}; with {workers} worker(s) at a time, wall time >= {_hms(total / workers)} "
         "(evaluations wait for their training runs)"
     )
+
+
+def _from_results(statuses: Sequence[CellStatus]) -> str:
+    """``"; done from committed results: 20 in results/ablation/planners, ..."`` ("" when no cell is)."""
+    per: dict[str, int] = {}
+    for st in statuses:
+        if st.source:
+            per[st.source] = per.get(st.source, 0) + 1
+    return "; done from committed results: " + ", ".join(f"{n} in {f}" for f, n in per.items()) if per else ""
 
 
 def _now() -> str:

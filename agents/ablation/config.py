@@ -111,6 +111,12 @@ AGENT_CONFIG: Final[str] = "agent_config.yaml"
 CELL_STATES: Final[tuple[str, ...]] = ("done", "partial", "stale", "todo")
 
 
+#: A grid's committed results (``out_dir``): every cell's record (``cells.json``) and every evaluated episode, values as
+#: written (``episodes.csv.gz``); :mod:`agents.ablation.results`.
+RESULTS_CELLS: Final[str] = "cells.json"
+RESULTS_ARCHIVE: Final[str] = "episodes.csv.gz"
+
+
 _TOP_KEYS: Final[tuple[str, ...]] = (
     "name",
     "description",
@@ -131,6 +137,7 @@ _TOP_KEYS: Final[tuple[str, ...]] = (
     "alpha",
     "power",
     "estimates",
+    "reuse",
 )
 
 
@@ -300,6 +307,11 @@ class AblationConfig:
     """Environment overrides applied alike in every cell (training and evaluation)."""
     out_dir: str = ""
     runs_dir: str = ""
+    reuse: tuple[str, ...] = ()
+    """Other grids' committed results folders (``results/ablation/planners``; relative to the working directory, like
+    ``out_dir``), in the order they are tried: a cell without a run folder whose done record there has this grid's
+    spec and predictor weights is done, read from there (:mod:`agents.ablation.results`). Not part of any cell's
+    spec."""
     comparisons: tuple[tuple[str, str], ...] = ()
     """Arm pairs tested within every policy and split, declared before any result exists."""
     policy_comparisons: tuple[tuple[str, str], ...] = ()
@@ -368,6 +380,34 @@ class AblationConfig:
 
 def _bad(key: str, value: Any, allowed: str) -> ConfigError:
     return ConfigError(f"ablation config key {key!r}: got {value!r}; allowed: {allowed}")
+
+
+def _reuse(value: Any, out_dir: Path) -> tuple[str, ...]:
+    """``reuse``: a list of other grids' results folders, each existing and holding :data:`RESULTS_CELLS` and
+    :data:`RESULTS_ARCHIVE`, none the grid's own ``out_dir``. Raises :class:`ConfigError` naming the key, the value and
+    what is allowed (or the missing file)."""
+    if value is None:
+        return ()
+    allowed = (
+        "a list of other grids' committed results folders, relative to the working directory (e.g. "
+        f"[results/ablation/planners]), each holding {RESULTS_CELLS} and {RESULTS_ARCHIVE}"
+    )
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise _bad("reuse", value, allowed)
+    if len(set(value)) != len(value):
+        raise _bad("reuse", value, "a list without repeats")
+    for folder in value:
+        path = Path(folder)
+        if not path.is_dir():
+            raise _bad("reuse", folder, f"{allowed}; there is no folder {folder!r}")
+        if path.resolve() == out_dir.resolve():
+            raise _bad(
+                "reuse", folder, f"folders other than the grid's own out_dir ({out_dir}: it is read first anyway)"
+            )
+        for name in (RESULTS_CELLS, RESULTS_ARCHIVE):
+            if not (path / name).is_file():
+                raise _bad("reuse", folder, f"{allowed}; {path / name} is missing")
+    return tuple(value)
 
 
 def _str_list(raw: Mapping[str, Any], key: str, allowed: Sequence[str] | None = None) -> tuple[str, ...]:
@@ -845,6 +885,7 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
     for key in ("out_dir", "runs_dir", "description"):
         if not isinstance(raw.get(key, ""), str):
             raise _bad(key, raw[key], "a string")
+    reuse = _reuse(raw.get("reuse"), Path(raw.get("out_dir") or f"results/ablation/{name}"))
     _check_training(policies, arms, splits[0], int(seeds[0]), env)
     if episodes_from == "val":
         _check_selection_seed(policies, arms, splits[0], int(seeds[0]), env, eval_seed)
@@ -860,6 +901,7 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
         env=dict(env),
         out_dir=raw.get("out_dir", ""),
         runs_dir=raw.get("runs_dir", ""),
+        reuse=reuse,
         comparisons=comparisons,
         policy_comparisons=policy_comparisons,
         reaction_comparisons=reaction_comparisons,

@@ -1,7 +1,8 @@
 """:func:`summarize`: finished evaluation cells into summary.json, summary.md, cells.json, the episode archive, plots.
 
-The cells come from the run folders, or from the committed results for cells without a folder; what may be
-replaced, and when files are left alone, is :mod:`agents.ablation.results`' rule.
+The cells come from the run folders, or from the committed results for cells without a folder (the grid's own, then
+the other grids' its config lists under ``reuse``); what may be replaced, and when files are left alone, is
+:mod:`agents.ablation.results`' rule.
 """
 
 from __future__ import annotations
@@ -236,6 +237,11 @@ def summarize(
     dest = cfg.out_path()
     where = (
         f"{sources['runs']} cell(s) from run folders, {sources['archive']} cell(s) from the archive {dest / ARCHIVE}"
+        + (
+            f", {sources['reused']} cell(s) from other grids' results ({', '.join(cfg.reuse)})"
+            if sources["reused"]
+            else ""
+        )
     )
     cells_text = json.dumps(_clean(records), indent=2) + "\n"
     dest.mkdir(parents=True, exist_ok=True)

@@ -70,7 +70,11 @@ def committed_grid(root: Path | None = None) -> tuple[Any, dict[tuple[str, str, 
         return None, {}
     cfg = load_config(path)
     cfg = dataclasses.replace(
-        cfg, out_dir=str(root / cfg.out_path()), runs_dir=str(root / cfg.runs_path()), source=str(path)
+        cfg,
+        out_dir=str(root / cfg.out_path()),
+        runs_dir=str(root / cfg.runs_path()),
+        reuse=tuple(str(root / r) for r in cfg.reuse),
+        source=str(path),
     )
     if not (cfg.out_path() / "episodes.csv.gz").is_file():
         return cfg, {}

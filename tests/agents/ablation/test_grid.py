@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import gzip
 import json
 import math
@@ -239,7 +240,7 @@ def fakes(monkeypatch: pytest.MonkeyPatch) -> Fakes:
     monkeypatch.setattr(ab.execute, "_run_train", f.train)
     monkeypatch.setattr(ab.execute, "_run_eval", f.evaluate)
     # the package, and where cell states, the grid's tasks and the cell runner look it up
-    for module in (ab, ab.cells, ab.backends, ab.execute):
+    for module in (ab, ab.cells, ab.backends, ab.execute, ab.results):
         monkeypatch.setattr(module, "weights_fingerprint", lambda p: {"mesrnn_zara1.pt": "v1"} if p == "mesrnn" else {})
     monkeypatch.setattr(ab.backends, "build_forecast_caches", lambda *a, **k: [])
     return f
@@ -507,6 +508,8 @@ def test_dry_run_calibrates_from_finished_cells_then_the_results_then_the_config
         _set_wall(cfg, f"train/zara1/ppo/{name}", wall)  # none: 256 steps in 400 s and in 200 s, 300 s per run
     ab.summarize(cfg, out=lambda s: None, plots=False)  # the committed record of the finished cells
     shutil.rmtree(cfg.runs_path())  # a fresh clone
+    # of a grid on another episode list: its committed cells are not its cells (each evaluation and so its training run)
+    cfg = dataclasses.replace(cfg, eval_seed=1)
 
     def rows() -> dict[str, str]:
         lines: list[str] = []
@@ -1008,3 +1011,238 @@ def test_result_files_are_all_rendered_before_any_is_replaced(
         ab.summarize(cfg, out=lambda s: None, plots=False)
     assert _results(cfg) == shipped  # all or nothing: the summary, cells and archive still agree
     assert not [p for p in cfg.out_path().iterdir() if p.name.startswith(".")]  # no temporary file left
+
+
+# ----------------------------------------------------------------------------- cells taken from committed results
+
+
+def test_a_fresh_clone_runs_none_of_the_cells_its_committed_results_hold(tmp_path: Path, fakes: Fakes) -> None:
+    import shutil
+
+    cfg, _ = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    shipped = _results(cfg)
+    shutil.rmtree(cfg.runs_path())  # a fresh clone: the results are committed, the run folders are not
+    states = ab.plan(cfg)
+    assert [(st.state, st.source) for st in states] == [("done", str(cfg.out_path()))] * 2
+    lines: list[str] = []
+    result = ab.run_grid(cfg, workers=1, out=lines.append)
+    assert result["ran"] == [] and fakes.eval_calls == [] and not cfg.runs_path().exists()
+    assert "2 cells, 2 done (2 of them from committed results), 0 to run" in lines[0]
+    assert _results(cfg) == shipped  # and the summary is the committed one
+    lines.clear()
+    ab.dry_run(cfg, ab.expand(cfg), workers=1, out=lines.append)
+    assert any(
+        line.startswith("done") and line.endswith(f"eval/zara1/planner/cv  (from {cfg.out_path()})") for line in lines
+    )
+    assert f"todo 0; done from committed results: 2 in {cfg.out_path()}" in "\n".join(lines)
+
+
+def test_a_learned_evaluation_is_taken_from_the_results_only_with_its_training(tmp_path: Path, fakes: Fakes) -> None:
+    import shutil
+
+    raw = _raw(tmp_path)
+    cfg = ab.config_from_mapping(raw)
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    model = (ab.cell_dir(cfg, "train/zara1/ppo/none/seed0") / ab.TRAIN_RUN / "best_model.zip").read_bytes()
+    shutil.rmtree(cfg.runs_path())
+    fakes.train_calls.clear()
+    fakes.eval_calls.clear()
+    # a training cell's model is not committed: it is done only as the training of its evaluation, taken with it
+    states = {st.cell.name: st for st in ab.plan(cfg)}
+    assert {st.state for st in states.values()} == {"done"}
+    assert "with its evaluation" in states["train/zara1/ppo/none/seed0"].reason
+    assert ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)["ran"] == []
+    assert fakes.train_calls == [] and fakes.eval_calls == []
+    # a training run here (its model not the one the record names): its evaluation runs again
+    elsewhere = dataclasses.replace(cfg, out_dir=str(tmp_path / "elsewhere"))
+    ab.run_grid(elsewhere, workers=1, only="train/zara1/ppo/none/seed0", summarize_after=False, out=lambda s: None)
+    assert not ab.cell_dir(cfg, "eval/zara1/ppo/none/seed0").exists()
+    (ab.cell_dir(cfg, "train/zara1/ppo/none/seed0") / ab.TRAIN_RUN / "best_model.zip").write_bytes(b"another model")
+    states = {st.cell.name: st.state for st in ab.plan(cfg)}
+    assert states["train/zara1/ppo/none/seed0"] == "done" and states["eval/zara1/ppo/none/seed0"] == "todo"
+    (ab.cell_dir(cfg, "train/zara1/ppo/none/seed0") / ab.TRAIN_RUN / "best_model.zip").write_bytes(model)
+    assert {st.cell.name: st.state for st in ab.plan(cfg)}["eval/zara1/ppo/none/seed0"] == "done"  # the model it names
+    # a changed training (its spec; the evaluation's own spec is the same): neither is taken from the results
+    shutil.rmtree(cfg.runs_path())
+    longer = ab.config_from_mapping(
+        {**raw, "policies": {**raw["policies"], "ppo": {**raw["policies"]["ppo"], "timesteps": 512}}}
+    )
+    states = {st.cell.name: st.state for st in ab.plan(longer)}
+    assert {n: s for n, s in states.items() if "/ppo/" in n} == dict.fromkeys(
+        [n for n in states if "/ppo/" in n], "todo"
+    )
+    assert states["eval/zara1/planner/mesrnn"] == "done"
+    records = {r["cell"]: r for r in ab.results.gather(longer)[0]}
+    assert records["eval/zara1/ppo/none/seed0"]["state"] == "stale"  # recorded done, but its training changed
+
+
+def _other_grid(tmp_path: Path, source: Path, **changes: Any) -> ab.AblationConfig:
+    """A second planner grid (own run folders and results) whose config reuses the results in ``source``."""
+    (tmp_path / "b").mkdir(exist_ok=True)
+    raw = _raw(tmp_path / "b", arms=["none", "cv", "oracle"], comparisons=[["cv", "none"]], reuse=[str(source)])
+    raw["policies"] = {"planner": {"kind": "planner"}}
+    del raw["policy_comparisons"]
+    raw.update(changes)
+    return ab.config_from_mapping(raw)
+
+
+def test_a_cell_done_in_a_reused_grids_results_is_done_here_and_read_from_there(tmp_path: Path, fakes: Fakes) -> None:
+    first, _ = _planner_grid(tmp_path)
+    ab.summarize(first, out=lambda s: None, plots=False)
+    cfg = _other_grid(tmp_path, first.out_path())
+    for cell in ab.expand(cfg):  # not part of any cell's spec
+        assert ab.cell_spec(cfg, cell) == ab.cell_spec(dataclasses.replace(cfg, reuse=()), cell)
+    states = {st.cell.name: st for st in ab.plan(cfg)}
+    assert {n: (st.state, st.source) for n, st in states.items()} == {
+        "eval/zara1/planner/none": ("done", str(first.out_path())),
+        "eval/zara1/planner/cv": ("done", str(first.out_path())),
+        "eval/zara1/planner/oracle": ("todo", ""),
+    }
+    lines: list[str] = []
+    ab.dry_run(cfg, ab.expand(cfg), workers=1, out=lines.append)
+    assert any(line.startswith("done") and f"planner/cv  (from {first.out_path()})" in line for line in lines)
+    assert f"todo 1; done from committed results: 2 in {first.out_path()}" in "\n".join(lines)
+    # running the grid runs only the cell no results hold; the summary reads the others' episodes from there
+    assert ab.run_grid(cfg, workers=1, summarize_after=False, out=lines.append)["ran"] == ["eval/zara1/planner/oracle"]
+    assert fakes.eval_calls == ["eval/zara1/planner/oracle"]
+    ab.summarize(cfg, out=lines.append, plots=False)
+    theirs = {r["cell"]: r for r in json.loads((first.out_path() / "cells.json").read_text())}
+    ours = {r["cell"]: r for r in json.loads((cfg.out_path() / "cells.json").read_text())}
+    for name in ("eval/zara1/planner/none", "eval/zara1/planner/cv"):
+        assert ours[name] == {**theirs[name], "from": str(first.out_path())}
+        assert (
+            ab.episodes.archive_rows((cfg.out_path() / "episodes.csv.gz").read_bytes())[name]
+            == ab.episodes.archive_rows((first.out_path() / "episodes.csv.gz").read_bytes())[name]
+        )
+    assert "from" not in ours["eval/zara1/planner/oracle"]
+    summary = json.loads((cfg.out_path() / "summary.json").read_text())
+    assert summary["complete"] and summary["policies"]["planner"]["arms"]["cv"]["episodes"] == 4
+    # its own results come first from then on: a fresh clone renders them again, byte for byte
+    shipped = _results(cfg)
+    import shutil
+
+    shutil.rmtree(cfg.runs_path())
+    assert all(st.source == str(cfg.out_path()) for st in ab.plan(cfg))
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    assert _results(cfg) == shipped
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "kind",
+        "split",
+        "policy",
+        "policy_kind",
+        "arm",
+        "predictor",
+        "noisy_oracle_ade_m",
+        "seed",
+        "env",
+        "env_revision",
+        "episodes",
+        "eval_seed",
+        "added",
+        "removed",
+        "no spec",
+        "weights",
+    ],
+)
+def test_a_cell_whose_spec_or_weights_differ_in_the_reused_results_runs(tmp_path: Path, fakes: Fakes, key: str) -> None:
+    first, _ = _planner_grid(tmp_path)
+    ab.summarize(first, out=lambda s: None, plots=False)
+    records = json.loads((first.out_path() / "cells.json").read_text())
+    rec = next(r for r in records if r["cell"] == "eval/zara1/planner/cv")
+    if key == "added":
+        rec["spec"]["options"] = {"candidates": "dense"}
+    elif key == "removed":
+        del rec["spec"]["env_revision"]
+    elif key == "no spec":  # a record from before specs were recorded
+        del rec["spec"]
+    elif key == "weights":
+        rec["weights_sha256"] = {"cv.pt": "0123456789ab"}
+    else:
+        assert key in rec["spec"]
+        rec["spec"][key] = "something else"
+    (first.out_path() / "cells.json").write_text(json.dumps(records))
+    cfg = _other_grid(tmp_path, first.out_path())
+    states = {st.cell.name: st.state for st in ab.plan(cfg)}
+    assert states == {
+        "eval/zara1/planner/none": "done",
+        "eval/zara1/planner/cv": "todo",
+        "eval/zara1/planner/oracle": "todo",
+    }
+    assert ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)["ran"] == [
+        "eval/zara1/planner/cv",
+        "eval/zara1/planner/oracle",
+    ]
+
+
+def test_reused_results_are_tried_in_order_and_a_cell_without_episodes_there_is_stale(
+    tmp_path: Path, fakes: Fakes
+) -> None:
+    for name in ("first", "second"):
+        (tmp_path / name).mkdir()
+    first, _ = _planner_grid(tmp_path / "first")
+    second, _ = _planner_grid(tmp_path / "second", arms=("none", "cv", "oracle"))
+    for grid in (first, second):
+        ab.summarize(grid, out=lambda s: None, plots=False)
+    cfg = _other_grid(tmp_path, first.out_path(), reuse=[str(first.out_path()), str(second.out_path())])
+    assert {st.cell.name: st.source for st in ab.plan(cfg)} == {
+        "eval/zara1/planner/none": str(first.out_path()),
+        "eval/zara1/planner/cv": str(first.out_path()),  # the first listed
+        "eval/zara1/planner/oracle": str(second.out_path()),
+    }
+    # the first results lose cv's episodes: cv comes from the second; without them there too it is stale, not done
+    for grid in (first, second):
+        with gzip.open(grid.out_path() / "episodes.csv.gz", "rt") as fh:
+            rows = [r for r in csv.DictReader(fh) if r["arm"] != "cv"]
+        with gzip.open(grid.out_path() / "episodes.csv.gz", "wt", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        if grid is first:
+            assert {st.cell.name: st.source for st in ab.plan(cfg)}["eval/zara1/planner/cv"] == str(second.out_path())
+    assert {st.cell.name: st.state for st in ab.plan(cfg)}["eval/zara1/planner/cv"] == "todo"
+    records = {r["cell"]: r for r in ab.results.gather(cfg)[0]}
+    assert records["eval/zara1/planner/cv"]["state"] == "stale"
+    assert records["eval/zara1/planner/cv"]["from"] == str(first.out_path())
+
+
+def test_replicate_runs_a_reused_cell_afresh(tmp_path: Path, fakes: Fakes) -> None:
+    first, _ = _planner_grid(tmp_path)
+    ab.summarize(first, out=lambda s: None, plots=False)
+    cfg = _other_grid(tmp_path, first.out_path())
+    lines: list[str] = []
+    assert ab.replicate(cfg, "eval/zara1/planner/cv", tmp_path / "replica", workers=1, out=lines.append) == 1
+    assert fakes.eval_calls == ["eval/zara1/planner/cv"]
+    assert f"not compared: the grid's cell has no run folder (it is done from {first.out_path()})" in "\n".join(lines)
+
+
+@pytest.mark.parametrize(
+    ("reuse", "words"),
+    [
+        ("results/ablation/planners", ["'reuse'", "'results/ablation/planners'", "a list of other grids'"]),
+        ([3], ["'reuse'", "[3]", "a list of other grids'"]),
+        (["nowhere"], ["'reuse'", "'nowhere'", "there is no folder 'nowhere'"]),
+        (["empty"], ["'reuse'", "'empty'", "cells.json is missing"]),
+        (["no_archive"], ["'reuse'", "episodes.csv.gz is missing"]),
+        (["no_archive", "no_archive"], ["'reuse'", "without repeats"]),
+        (["results"], ["'reuse'", "own out_dir"]),
+    ],
+)
+def test_bad_reuse_names_key_value_and_allowed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, reuse: Any, words: list[str]
+) -> None:
+    monkeypatch.chdir(tmp_path)  # folders are relative to the working directory
+    for folder in ("empty", "no_archive", "results"):
+        (tmp_path / folder).mkdir()
+    (tmp_path / "no_archive" / "cells.json").write_text("[]")
+    with pytest.raises(ConfigError) as err:
+        ab.config_from_mapping(_raw(tmp_path, out_dir="results", reuse=reuse))
+    for word in words:
+        assert word in str(err.value), (word, str(err.value))
+    (tmp_path / "no_archive" / "episodes.csv.gz").write_bytes(gzip.compress(b""))
+    assert ab.config_from_mapping(_raw(tmp_path, reuse=["no_archive"])).reuse == ("no_archive",)

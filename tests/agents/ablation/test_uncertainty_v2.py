@@ -4,6 +4,7 @@ they give the environment and the planner, cell specs (every other arm's unchang
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -83,7 +84,8 @@ def test_samples_arms_run_on_the_search_planner_only(tmp_path: Path) -> None:
         ab.config_from_mapping(raw)
 
 
-def test_the_declared_v2_grid_loads_with_its_arms_and_comparisons() -> None:
+def test_the_declared_v2_grid_loads_with_its_arms_and_comparisons(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(REPO)  # its reuse folders are relative to the working directory
     cfg = ab.load_config(REPO / "configs/ablation/uncertainty_v2.yaml")
     assert sorted(cfg.splits) == ["eth", "hotel", "univ", "zara1", "zara2"]
     assert {"mesrnn", "cv_gaussian", "cv", "mesrnn_samples", "cv_gaussian_samples"} <= set(cfg.arm_labels)
@@ -100,3 +102,20 @@ def test_the_declared_v2_grid_loads_with_its_arms_and_comparisons() -> None:
         assert ab.cell_spec(cfg, cell) == theirs[cell.name], cell.name
     samples = next(c for c in ab.expand(cfg) if c.name == "eval/univ/search/mesrnn_samples")
     assert ab.estimate_seconds(cfg, samples, {}) == (500 / 0.75, "config")  # its own rate, not the point arm's
+
+
+def test_a_fresh_clone_of_the_v2_grid_takes_its_shared_cells_from_the_other_grids_results(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(REPO)
+    cfg = ab.load_config("configs/ablation/uncertainty_v2.yaml")
+    assert cfg.reuse == ("results/ablation/planners", "results/ablation/uncertainty")
+    fresh = dataclasses.replace(cfg, runs_dir=str(tmp_path / "runs"), out_dir=str(tmp_path / "results"))
+    states = ab.plan(fresh)
+    taken = {st.cell.name: st.source for st in states if st.state == "done"}
+    pairs = [(split, policy) for split in cfg.splits for policy in ("search", "planner")]
+    assert taken == {
+        **{f"eval/{sp}/{p}/{arm}": "results/ablation/planners" for sp, p in pairs for arm in ("cv", "mesrnn")},
+        **{f"eval/{sp}/{p}/mesrnn_unc": "results/ablation/uncertainty" for sp, p in pairs},
+    }
+    assert {st.state for st in states if st.cell.name not in taken} == {"todo"}
