@@ -93,11 +93,10 @@ from agents.ablation.cells import (
     cell_status,
     check_environments,
     default_workers,
-    dry_run,
     estimate_seconds,
     expand,
     measured_rates,
-    plan,
+    plan_on_disk,
     select,
     trained_model,
     weights_fingerprint,
@@ -134,12 +133,13 @@ from agents.ablation.config import (
     load_config,
     resolve_env,
 )
+from agents.ablation.dryrun import dry_run
 from agents.ablation.episodes import ARCHIVE_KEYS, aggregate, cell_record, episodes_archive, read_archive, read_episodes
 from agents.ablation.execute import CellTask, execute_cell, train_overrides
 from agents.ablation.plots import write_plots
 from agents.ablation.ray_backend import CONNECT_TIMEOUT_S, RayBackend, check_address, execute_shipped
 from agents.ablation.report import summary_markdown
-from agents.ablation.results import ResultsKept
+from agents.ablation.results import ResultsKept, plan
 from agents.ablation.stats import (
     by_density,
     density_edges,
@@ -213,6 +213,7 @@ __all__ = [
     "paired_tests",
     "percentile_mean_ci",
     "plan",
+    "plan_on_disk",
     "reaction_tests",
     "read_archive",
     "read_episodes",

@@ -26,7 +26,6 @@ from agents.ablation.cells import (
     check_environments,
     default_workers,
     expand,
-    plan,
     select,
     trained_model,
     weights_fingerprint,
@@ -38,7 +37,7 @@ from agents.ablation.config import (
 )
 from agents.ablation.episodes import read_episodes
 from agents.ablation.execute import STOP_TIMEOUT_S, CellTask, _Backend, _single_thread, execute_cell
-from agents.ablation.results import ResultsKept
+from agents.ablation.results import ResultsKept, plan
 from agents.ablation.summary import summarize
 from crowdnav_mesrnn.config import ConfigError
 

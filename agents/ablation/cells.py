@@ -11,11 +11,10 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Final
+from typing import Any, Final
 
 from agents.ablation.config import (
     CELL_JSON,
-    CELL_STATES,
     DONE,
     LEARNED_SOURCES,
     TRAIN_RUN,
@@ -26,9 +25,6 @@ from agents.ablation.config import (
 from agents.evaluation import episode_part
 from crowdnav_mesrnn.config import ConfigError, load_yaml
 from crowdnav_mesrnn.data.constants import SPLITS
-
-if TYPE_CHECKING:
-    from agents.ablation.results import Committed
 
 
 @dataclass(frozen=True)
@@ -284,24 +280,20 @@ def cell_status(cfg: AblationConfig, cell: Cell, train_states: Mapping[str, Cell
     return CellStatus(cell, "done", "", meta)
 
 
-def plan(
-    cfg: AblationConfig, cells: Sequence[Cell] | None = None, committed: Sequence[Committed] | None = None
-) -> list[CellStatus]:
-    """States of ``cells`` (default: the whole grid), training cells resolved before their evaluations.
-
-    A cell without a run folder (``todo``) is ``done`` when the committed results hold it: the grid's own, else its
-    ``reuse`` folders in order (:func:`agents.ablation.results.from_results`; its :attr:`CellStatus.source` says
-    which). ``committed``: those results read already (:func:`agents.ablation.results.committed`), else read here.
-    """
-    from agents.ablation.results import from_results
-
+def plan_on_disk(
+    cfg: AblationConfig, cells: Sequence[Cell] | None = None
+) -> tuple[list[CellStatus], dict[str, CellStatus]]:
+    """States of ``cells`` (default: the whole grid) from their run folders alone, training cells resolved before their
+    evaluations; and the states of every training cell of the grid (by name). :func:`agents.ablation.results.plan`
+    adds the cells the committed results hold."""
     cells = list(expand(cfg) if cells is None else cells)
     train_states: dict[str, CellStatus] = {}
     for cell in expand(cfg):
         if cell.kind == "train":
             train_states[cell.name] = cell_status(cfg, cell)
-    statuses = [train_states[c.name] if c.kind == "train" else cell_status(cfg, c, train_states) for c in cells]
-    return from_results(cfg, statuses, train_states, committed)
+    return [
+        train_states[c.name] if c.kind == "train" else cell_status(cfg, c, train_states) for c in cells
+    ], train_states
 
 
 def select(cells: Sequence[Cell], patterns: str | None) -> list[Cell]:
@@ -422,73 +414,6 @@ def default_workers(cells: Iterable[Cell]) -> int:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     widest = max((c.cpus for c in cells), default=1)
     return max(1, cores // widest)
-
-
-def dry_run(cfg: AblationConfig, cells: Sequence[Cell], workers: int, out: Callable[[str], None] = print) -> None:
-    """Print every cell with its state and estimated time, and the totals."""
-    statuses = plan(cfg, cells)
-    rates, recorded = measured_rates(cfg), recorded_rates(cfg)
-
-    def describe(p: PolicySpec) -> str:
-        arms = f"arms {'/'.join(p.arms)}" if p.arms else "all arms"
-        budget = f", {p.timesteps:,} steps x {p.n_envs} envs" if p.learned else ""
-        return f"{p.name} ({p.kind}, {arms}{budget})"
-
-    pol = "; ".join(describe(p) for p in cfg.policies)
-    out(
-        f"grid {cfg.name}: splits {', '.join(cfg.splits)}; arms {', '.join(cfg.arm_labels)}; "
-        f"seeds {', '.join(map(str, cfg.seeds))}; policies {pol}; {cfg.episodes} evaluation episodes per cell"
-    )
-    if cfg.episodes_from != "test":
-        out(f"evaluation episodes: {cfg.episodes_described()}")
-    out(f"cells in {cfg.runs_path()}/, summaries in {cfg.out_path()}/")
-    try:
-        check_environments(cfg, [st.cell for st in statuses if st.state != "done"])
-    except ConfigError as exc:  # the dry run lists the cells anyway; running them is refused (run_grid)
-        out(f"WARNING: the grid would not run: {exc}")
-    out(f"{'state':<8} {'estimate':>9}  {'from':<8} cell")
-    total = 0.0
-    counts = dict.fromkeys(CELL_STATES, 0)
-    used: dict[str, dict[str, int]] = {s: {"train": 0, "eval": 0} for s in RATE_SOURCES}
-    for st in statuses:
-        counts[st.state] += 1
-        secs, src = estimate_seconds(cfg, st.cell, rates, recorded)
-        if st.state != "done":
-            total += secs
-            used[src][st.cell.kind] += 1
-        est = "-" if st.state == "done" else _hms(secs)
-        reason = f"  ({st.reason})" if st.reason else ""
-        out(f"{st.state:<8} {est:>9}  {src if st.state != 'done' else '':<8} {st.cell.name}{reason}")
-    n_train = sum(c.kind == "train" for c in cells)
-    out(
-        f"{len(cells)} cells ({n_train} train, {len(cells) - n_train} eval): "
-        + ", ".join(f"{k} {v}" for k, v in counts.items())
-        + _from_results(statuses)
-    )
-    where = {
-        "runs": f"the throughput of finished cells in {cfg.runs_path()}/",
-        "results": f"the finished cells recorded in {cfg.out_path() / 'cells.json'}",
-        "config": f"the config's estimates (no finished cell of that kind, policy and forecast source; {cfg.source or 'config'})",
-    }
-    parts = [
-        f"{n['train'] + n['eval']} cells ({n['train']} train, {n['eval']} eval) from {where[s]}"
-        for s, n in used.items()
-        if n["train"] + n["eval"]
-    ]
-    out("time estimates: " + ("; ".join(parts) if parts else "none (every cell is done)"))
-    out(
-        f"estimated compute left {_hms(total)}; with {workers} worker(s) at a time, wall time >= {_hms(total / workers)} "
-        "(evaluations wait for their training runs)"
-    )
-
-
-def _from_results(statuses: Sequence[CellStatus]) -> str:
-    """``"; done from committed results: 20 in results/ablation/planners, ..."`` ("" when no cell is)."""
-    per: dict[str, int] = {}
-    for st in statuses:
-        if st.source:
-            per[st.source] = per.get(st.source, 0) + 1
-    return "; done from committed results: " + ", ".join(f"{n} in {f}" for f, n in per.items()) if per else ""
 
 
 def _now() -> str:

@@ -8,8 +8,9 @@ import textwrap
 from collections.abc import Sequence
 
 from agents.ablation.backends import replicate, run_grid
-from agents.ablation.cells import default_workers, dry_run, expand, select
+from agents.ablation.cells import default_workers, expand, select
 from agents.ablation.config import BACKENDS, load_config
+from agents.ablation.dryrun import dry_run
 from agents.ablation.ray_backend import CONNECT_TIMEOUT_S
 from agents.ablation.results import ResultsKept
 from agents.ablation.summary import summarize

@@ -33,7 +33,7 @@ from agents.ablation.cells import (
     _file_sha256,
     cell_dir,
     cell_spec,
-    plan,
+    plan_on_disk,
     trained_model,
     weights_fingerprint,
 )
@@ -157,13 +157,26 @@ def _source_of(
     return None
 
 
+def plan(
+    cfg: AblationConfig, cells: Sequence[Cell] | None = None, committed: Sequence[Committed] | None = None
+) -> list[CellStatus]:
+    """States of ``cells`` (default: the whole grid), training cells resolved before their evaluations.
+
+    A cell without a run folder (``todo``) is ``done`` when the committed results hold it: the grid's own, else its
+    ``reuse`` folders in order (:func:`from_results`; its :attr:`~agents.ablation.cells.CellStatus.source` says
+    which). ``committed``: those results read already (:func:`committed`), else read here.
+    """
+    statuses, train_states = plan_on_disk(cfg, cells)
+    return from_results(cfg, statuses, train_states, committed)
+
+
 def from_results(
     cfg: AblationConfig,
     statuses: Sequence[CellStatus],
     train_states: Mapping[str, CellStatus],
     sources: Sequence[Committed] | None = None,
 ) -> list[CellStatus]:
-    """``statuses`` (states on disk, :func:`agents.ablation.cells.plan`) with every cell without a run folder that the
+    """``statuses`` (states on disk, :func:`agents.ablation.cells.plan_on_disk`) with every cell without a run folder that the
     committed results hold (:func:`_source_of`) made ``done`` from there: ``source`` the folder, ``record`` its record,
     ``reason`` "from <folder>". ``sources``: :func:`committed` (read here if ``None``).
 
