@@ -327,11 +327,21 @@ def _rate_arm(arm: Arm) -> str:
     return arm.label if arm.variant else arm.predictor
 
 
+def _rate(meta: Mapping[str, Any], kind: str) -> Any:
+    """A finished cell's throughput from its ``cell.json`` or ``cells.json`` record: per CPU second where the cell
+    recorded its CPU time (``steps_per_cpu_s`` / ``episodes_per_cpu_s``: its cost whatever shared the machine), else
+    per wall second (cells from before CPU time was recorded; slower where other work shared the cores)."""
+    if kind == "train":
+        return meta.get("steps_per_cpu_s") or meta.get("steps_per_s")
+    return meta.get("episodes_per_cpu_s") or meta.get("episodes_per_s")
+
+
 def measured_rates(cfg: AblationConfig) -> dict[_RateKey, float]:
     """Throughput of the finished cells in the grid's run folders: ``(kind, policy kind, arm source) -> rate``
-    (training: env steps/s, evaluation: episodes/s; each cell's own ``cell.json``, wall time of the whole cell
-    -- warm start, validation, every attempt -- included), pooled as total work over total time. Uncertainty and
-    samples arms are kept per arm label (:func:`_rate_arm`)."""
+    (training: env steps, evaluation: episodes, per CPU second of the cell where recorded, else per wall second
+    (:func:`_rate`); each cell's own ``cell.json``, the whole cell -- warm start, validation, every attempt --
+    included), pooled as total work over total time. Uncertainty and samples arms are kept per arm label
+    (:func:`_rate_arm`)."""
     samples: dict[_RateKey, list[float]] = {}
     root = cfg.runs_path()
     if not root.is_dir():
@@ -341,7 +351,7 @@ def measured_rates(cfg: AblationConfig) -> dict[_RateKey, float]:
         if not meta or not (path.parent / DONE).is_file():
             continue
         spec = meta.get("spec") or {}
-        rate = meta.get("steps_per_s") if spec.get("kind") == "train" else meta.get("episodes_per_s")
+        rate = _rate(meta, "train" if spec.get("kind") == "train" else "eval")
         if isinstance(rate, int | float) and rate > 0:
             variant = "uncertainty" in spec or "samples" in spec
             arm = spec.get("arm") if variant else spec.get("predictor")
@@ -358,7 +368,7 @@ def recorded_rates(cfg: AblationConfig) -> dict[_RateKey, float]:
     samples: dict[_RateKey, list[float]] = {}
     for rec in records:
         cell = cells.get(str(rec.get("cell")))
-        rate = rec.get("steps_per_s" if cell is not None and cell.kind == "train" else "episodes_per_s")
+        rate = _rate(rec, "train" if cell is not None and cell.kind == "train" else "eval")
         if cell is None or rec.get("state") != "done" or not isinstance(rate, int | float) or rate <= 0:
             continue
         samples.setdefault((cell.kind, cell.policy.kind, _rate_arm(cell.arm)), []).append(float(rate))

@@ -106,6 +106,8 @@ def cell_record(st: CellStatus) -> dict[str, Any]:
         "state": st.state,
         "wall_s": meta.get("wall_s"),
         "steps_per_s" if st.cell.kind == "train" else "episodes_per_s": None if rate is None else round(rate, 3),
+        # cells that recorded their CPU time (absent in older records, so their cells.json stays as it was)
+        **{k: round(meta[k], 3) for k in ("cpu_s", "steps_per_cpu_s", "episodes_per_cpu_s") if meta.get(k) is not None},
         "code_version": meta.get("code_version"),
         "finished": (meta.get("attempts") or [{}])[-1].get("finished"),
         "weights_sha256": {k: v[:12] for k, v in (meta.get("weights") or {}).items()},

@@ -124,7 +124,7 @@ def execute_cell(task: CellTask) -> dict[str, Any]:
     atomic_write_json(folder / CELL_JSON, meta)
     if task.agent_config is not None:
         atomic_write_text(folder / AGENT_CONFIG, task.agent_config)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _cpu_seconds()
     try:
         counts = _run_train(task, folder) if task.cell.kind == "train" else _run_eval(task, folder)
         ok, error = True, None
@@ -132,29 +132,44 @@ def execute_cell(task: CellTask) -> dict[str, Any]:
         counts, ok = {}, False
         error = f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"
     except KeyboardInterrupt:  # stopped (a second Ctrl-C, SIGTERM, ray.cancel): record the attempt, then stop
-        _finish_attempt(meta, time.perf_counter() - t0, False, "interrupted")
+        _finish_attempt(meta, time.perf_counter() - t0, False, "interrupted", _cpu_seconds() - c0)
         atomic_write_json(folder / CELL_JSON, meta)
         raise
     wall = time.perf_counter() - t0
-    _finish_attempt(meta, wall, ok, "done" if ok else "failed")
+    _finish_attempt(meta, wall, ok, "done" if ok else "failed", _cpu_seconds() - c0)
     meta.update(counts)
     meta["error"] = error
     if ok:
+        cpu = meta.get("cpu_s")
         if task.cell.kind == "train" and meta.get("steps"):
             meta["steps_per_s"] = meta["steps"] / max(meta["wall_s"], 1e-9)
+            if cpu:
+                meta["steps_per_cpu_s"] = meta["steps"] / max(cpu, 1e-9)
         if task.cell.kind == "eval":
             meta["episodes_per_s"] = meta.get("episodes", task.episodes) / max(wall, 1e-9)
+            meta["episodes_per_cpu_s"] = meta.get("episodes", task.episodes) / max(meta["attempts"][-1]["cpu_s"], 1e-9)
     atomic_write_json(folder / CELL_JSON, meta)
     if ok:
         atomic_write_text(folder / DONE, _now() + "\n")
     return {"name": task.cell.name, "ok": ok, "error": error, "wall_s": wall}
 
 
-def _finish_attempt(meta: dict[str, Any], wall: float, ok: bool, status: str) -> None:
-    """Close the last attempt of a cell's ``cell.json`` content: its end, wall time and status."""
-    meta["attempts"][-1].update(finished=_now(), wall_s=round(wall, 3), ok=ok)
+def _finish_attempt(meta: dict[str, Any], wall: float, ok: bool, status: str, cpu: float) -> None:
+    """Close the last attempt of a cell's ``cell.json`` content: its end, wall time, CPU time and status. The cell's
+    ``cpu_s`` is the sum over its attempts when every attempt recorded one (attempts before CPU time was recorded:
+    none)."""
+    meta["attempts"][-1].update(finished=_now(), wall_s=round(wall, 3), cpu_s=round(cpu, 3), ok=ok)
     meta["wall_s"] = round(sum(a.get("wall_s", 0.0) for a in meta["attempts"]), 3)
+    cpus = [a.get("cpu_s") for a in meta["attempts"]]
+    meta["cpu_s"] = round(sum(cpus), 3) if all(isinstance(c, int | float) for c in cpus) else None
     meta["status"] = status
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process and of the child processes it has waited for (a training run's
+    subprocess environments): a cell's cost whatever else shares the machine, unlike its wall time."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
 
 
 def _single_thread() -> None:

@@ -268,6 +268,8 @@ def test_run_skips_done_cells_and_redoes_interrupted_ones(tmp_path: Path, fakes:
     assert all(not resumed for _, resumed in fakes.train_calls)
     meta = json.loads((ab.cell_dir(cfg, "eval/zara1/ppo/mesrnn/seed0") / ab.CELL_JSON).read_text())
     assert meta["weights"] == {"mesrnn_zara1.pt": "v1"} and meta["model_sha256"] and meta["episodes_per_s"] > 0
+    # its cost in CPU seconds too (what the dry run's estimates use: wall time stretches when others share the cores)
+    assert meta["cpu_s"] == meta["attempts"][-1]["cpu_s"] >= 0 and meta["episodes_per_cpu_s"] > 0
 
     # nothing to do on a second run
     fakes.train_calls.clear()
@@ -492,10 +494,10 @@ def test_dry_run_lists_states_and_uses_measured_rates(tmp_path: Path, fakes: Fak
 
 
 def _set_wall(cfg: ab.AblationConfig, name: str, wall_s: float) -> None:
-    """Make a finished training cell look as if it took ``wall_s`` seconds."""
+    """Make a finished training cell look as if it took ``wall_s`` seconds (of wall and of CPU time)."""
     path = ab.cell_dir(cfg, name) / ab.CELL_JSON
     meta = json.loads(path.read_text())
-    meta.update(wall_s=wall_s, steps_per_s=meta["steps"] / wall_s)
+    meta.update(wall_s=wall_s, steps_per_s=meta["steps"] / wall_s, cpu_s=wall_s, steps_per_cpu_s=meta["steps"] / wall_s)
     path.write_text(json.dumps(meta))
 
 
@@ -537,6 +539,31 @@ def test_dry_run_calibrates_from_finished_cells_then_the_results_then_the_config
     table = rows()
     assert "config" in table["train/zara1/ppo/none/seed1"]
     assert "10 cells (4 train, 6 eval) from the config's estimates" in table["totals"]
+
+
+def test_a_cells_rate_is_per_cpu_second_where_it_recorded_one(tmp_path: Path, fakes: Fakes) -> None:
+    """A cell that waited for the cores (wall 400 s) but computed for 100 s is estimated at its CPU rate; a record from
+    before CPU time was recorded falls back to its wall rate; both in run folders and in the committed record."""
+    cfg = ab.config_from_mapping(_raw(tmp_path))
+    ab.run_grid(cfg, workers=1, summarize_after=False, out=lambda s: None)
+    for name in ("none/seed0", "none/seed1"):
+        path = ab.cell_dir(cfg, f"train/zara1/ppo/{name}") / ab.CELL_JSON
+        meta = json.loads(path.read_text())
+        meta.update(wall_s=400.0, steps_per_s=meta["steps"] / 400.0, cpu_s=100.0, steps_per_cpu_s=meta["steps"] / 100.0)
+        path.write_text(json.dumps(meta))
+        steps = meta["steps"]
+    assert ab.measured_rates(cfg)[("train", "ppo", "none")] == pytest.approx(steps / 100.0)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    records = {r["cell"]: r for r in json.loads((cfg.out_path() / "cells.json").read_text())}
+    assert records["train/zara1/ppo/none/seed0"]["steps_per_cpu_s"] == pytest.approx(steps / 100.0)
+    assert ab.recorded_rates(cfg)[("train", "ppo", "none")] == pytest.approx(steps / 100.0)
+    for name in ("none/seed0", "none/seed1"):  # an older cell.json: no CPU time
+        path = ab.cell_dir(cfg, f"train/zara1/ppo/{name}") / ab.CELL_JSON
+        meta = json.loads(path.read_text())
+        for key in ("cpu_s", "steps_per_cpu_s"):
+            meta.pop(key)
+        path.write_text(json.dumps(meta))
+    assert ab.measured_rates(cfg)[("train", "ppo", "none")] == pytest.approx(steps / 400.0)
 
 
 def test_the_configs_training_estimates_are_looked_up_by_policy_and_arm(tmp_path: Path) -> None:
