@@ -350,8 +350,16 @@ class PredictorForecast(ForecastSource):
 
     # ------------------------------------------------------------------ env times
 
-    def all_forecasts(self, replay: Replay, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def all_forecasts(
+        self, replay: Replay, t_s: float, shared: dict[Any, tuple[np.ndarray, np.ndarray]] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Forecasts of every pedestrian perceived at ``t_s``.
+
+        Args:
+            shared: a table of resampled forecasts kept by the caller for several copies of this source (the batched
+                environment's worlds, each with memo tables of its own): a copy that misses its own memo takes the
+                forecasts another copy resampled from the same inputs (recording, annotation frame, and resampling
+                weights equal bit for bit), so every copy gets what it would compute alone. Only with the cache on.
 
         Returns:
             ``(columns (M,), positions (M, H, 2))``: recording columns (ascending) and world
@@ -362,7 +370,7 @@ class PredictorForecast(ForecastSource):
             hit = self._cache.get(key)
             if hit is not None:
                 return hit
-        out = self._resampled(replay.recording, t_s)
+        out = self._resampled(replay.recording, t_s, shared if self.use_cache else None)
         if self.use_cache:
             self._cache[key] = out
         return out
@@ -391,7 +399,9 @@ class PredictorForecast(ForecastSource):
             weights = self._weights[wkey] = resample_matrix(float(step_s), self.dt_s, self.horizon, pred_len, offset_s)
         return weights
 
-    def _resampled(self, rec: Recording, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def _resampled(
+        self, rec: Recording, t_s: float, shared: dict[Any, tuple[np.ndarray, np.ndarray]] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         empty = (np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2)))
         at = self.frame_at(rec, t_s)
         if at is None:
@@ -401,9 +411,15 @@ class PredictorForecast(ForecastSource):
         if len(cols) == 0:
             return empty
         weights = self.resample_weights(rec.step_s, fc.shape[1], offset)
+        key = (rec.name, i, weights.tobytes()) if shared is not None else None
+        hit = shared.get(key) if shared is not None else None
+        if hit is not None:
+            return hit
         out = weights[:, 1:] @ fc.astype(np.float64)  # (H, P) @ (n, P, 2) -> (n, H, 2)
         if weights[:, 0].any():  # the first env steps fall before the first forecast step: the annotated position
             out += weights[None, :, 0, None] * rec.positions[i, cols][:, None, :]
+        if shared is not None:
+            shared[key] = (cols, out)
         return cols, out
 
     def forecast(

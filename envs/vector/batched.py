@@ -152,6 +152,9 @@ class BatchedCrowdNavEnv(VectorEnv):
         # environment computes for itself (its own first request).
         self._world_sources = [_own_memos(env.forecaster) for _ in range(n)]
         self._world_uncertainty = [_own_memos(env.uncertainty) for _ in range(n)]
+        # what a world's source resampled, for the others to take when their inputs are equal bit for bit
+        # (PredictorForecast.all_forecasts' ``shared``)
+        self._shared_forecasts: dict[Any, tuple[np.ndarray, np.ndarray]] = {}
         self._timer = PhaseTimer(TIMING_KEYS)
         self._phys = BatchedWorld(n, cfg.robot_radius_m, cfg.pedestrian_radius_m)
         self._replay = BatchedReplay(n)
@@ -741,8 +744,9 @@ class BatchedCrowdNavEnv(VectorEnv):
         js = np.flatnonzero(counts)
         if len(js) == 0:
             return
+        shared = self._shared_forecasts
         tables = [
-            self._world_sources[w].all_forecasts(self._worlds[w]._replay, times[j])  # type: ignore[union-attr]
+            self._world_sources[w].all_forecasts(self._worlds[w]._replay, times[j], shared)  # type: ignore[union-attr]
             for j, w in zip(js.tolist(), worlds[js].tolist(), strict=True)
         ]  # type: ignore[arg-type]
         sizes = np.array([len(c) for c, _ in tables])

@@ -126,11 +126,15 @@ class BatchedReplay:
         idx = self.frame_index(worlds, times_s)
         np.maximum(idx, 0, out=idx)
         wcol = worlds[:, None]
-        tau = times_s - self.times[wcol, idx]
+        shape = (*times_s.shape, self.width)
+        flat = (wcol * self._frames + idx).reshape(-1)  # (world, frame) as one index: a take, not fancy indexing
+        tau = times_s - self.times.reshape(-1).take(flat).reshape(times_s.shape)
         inner = tau > TIME_TOL_S
         tau *= inner
-        pos = self.positions[wcol, idx] + self.slopes[wcol, idx] * tau[:, :, None, None]
-        present = self.presence[wcol, idx, inner.astype(np.intp)]
+        pos = self.slopes.reshape(-1, self.width, 2).take(flat, axis=0).reshape(*shape, 2)
+        pos *= tau[:, :, None, None]
+        pos += self.positions.reshape(-1, self.width, 2).take(flat, axis=0).reshape(*shape, 2)
+        present = self.presence.reshape(-1, self.width).take(2 * flat + inner.reshape(-1), axis=0).reshape(shape)
         outside = (times_s < self._t_lo[wcol]) | (times_s > self._t_hi[wcol])
         if outside.any():
             present[outside] = False
