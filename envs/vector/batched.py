@@ -660,15 +660,15 @@ class BatchedCrowdNavEnv(VectorEnv):
         Args:
             robot: ``(n, 2)`` robot positions; p_now: ``(n, P, 2)`` pedestrians, metres; pres_now: ``(n, P)``.
         """
-        width = p_now.shape[1]
-        before, was = self._last_pos[worlds, :width], self._last_present[worlds, :width]
-        both = (pres_now & was)[..., None]
-        velocities = np.where(both, (p_now - np.where(both, before, p_now)) / self.config.dt_s, 0.0)
         out = np.full(len(worlds), math.inf)
         j, col = np.nonzero(pres_now)
         if len(j):
-            rel_p = p_now[j, col] - robot[j]
-            rel_v = velocities[j, col] - self._velocity[worlds[j]]
+            w = worlds[j]
+            p = p_now[j, col]
+            both = self._last_present[w, col][:, None]  # (present now, by the nonzero)
+            velocity = np.where(both, (p - np.where(both, self._last_pos[w, col], p)) / self.config.dt_s, 0.0)
+            rel_p = p - robot[j]
+            rel_v = velocity - self._velocity[w]
             np.minimum.at(out, j, time_to_collision(rel_p, rel_v, self._r_sum))
         return out
 
