@@ -981,7 +981,7 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         present = present.reshape(steps, cfg.horizon_steps, -1)
         if self._reactive is not None:
             self._world_departures(times[:, 0] - cfg.dt_s, pos, present)
-        step_of = np.concatenate([np.full(len(r), k) for k, (_, r, _) in enumerate(self._forecast_log)])
+        step_of = np.repeat(np.arange(steps), [len(r) for _, r, _ in self._forecast_log])
         rows = np.concatenate([r for _, r, _ in self._forecast_log])
         fc = np.concatenate([f for _, _, f in self._forecast_log])
         truth, valid = pos[step_of, :, rows], present[step_of, :, rows]

@@ -65,10 +65,13 @@ def crowd_near_path(
     seg = np.asarray(goal, dtype=np.float64) - np.asarray(start, dtype=np.float64)
     length2 = float(seg @ seg)
     rel = recording.positions[i0:i1] - np.asarray(start, dtype=np.float64)
-    along = np.clip((rel @ seg) / length2, 0.0, 1.0) if length2 > 0 else np.zeros(present.shape)
-    dist = np.linalg.norm(rel - along[..., None] * seg, axis=-1)
-    near = present & (dist <= range_m)
-    return float(near.sum()) / slots, int(near.any(axis=0).sum())
+    along = (rel @ seg) / length2 if length2 > 0 else np.zeros(present.shape)
+    # the distances of the annotated positions only (element by element, so as over the whole window)
+    frame, col = np.nonzero(present)
+    along = np.clip(along[frame, col], 0.0, 1.0)
+    dist = np.linalg.norm(rel[frame, col] - along[:, None] * seg, axis=-1)
+    near = dist <= range_m
+    return float(near.sum()) / slots, len(np.unique(col[near]))
 
 
 def recording_extent(recording: Recording, margin_m: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
