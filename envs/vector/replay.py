@@ -140,6 +140,24 @@ class BatchedReplay:
             present[outside] = False
         return pos, present
 
+    def rows_at(self, worlds: np.ndarray, rows: np.ndarray, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions ``(m, T, 2)`` metres and presence ``(m, T)`` of row ``rows[i]`` of world ``worlds[i]`` (both
+        ``(m,)``) at ``times_s[i]`` ``(m, T)`` seconds: :meth:`positions_at` of those rows only (the same arithmetic
+        element by element)."""
+        idx = self.frame_index(worlds, times_s)
+        np.maximum(idx, 0, out=idx)
+        wcol, rcol = worlds[:, None], rows[:, None]
+        tau = times_s - self.times[wcol, idx]
+        inner = tau > TIME_TOL_S
+        tau *= inner
+        pos = self.slopes[wcol, idx, rcol] * tau[:, :, None]
+        pos += self.positions[wcol, idx, rcol]
+        present = self.presence[wcol, idx, inner.astype(np.intp), rcol]
+        outside = (times_s < self._t_lo[wcol]) | (times_s > self._t_hi[wcol])
+        if outside.any():
+            present[outside] = False
+        return pos, present
+
     def perceived_at(
         self, worlds: np.ndarray, times_s: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
