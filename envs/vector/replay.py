@@ -146,13 +146,16 @@ class BatchedReplay:
         element by element)."""
         idx = self.frame_index(worlds, times_s)
         np.maximum(idx, 0, out=idx)
-        wcol, rcol = worlds[:, None], rows[:, None]
-        tau = times_s - self.times[wcol, idx]
+        wcol = worlds[:, None]
+        frame = wcol * self._frames + idx  # (world, frame) and (world, frame, row) as one index each: takes
+        tau = times_s - self.times.reshape(-1).take(frame)
         inner = tau > TIME_TOL_S
         tau *= inner
-        pos = self.slopes[wcol, idx, rcol] * tau[:, :, None]
-        pos += self.positions[wcol, idx, rcol]
-        present = self.presence[wcol, idx, inner.astype(np.intp), rcol]
+        cell = frame * self.width + rows[:, None]
+        pos = self.slopes.reshape(-1, 2).take(cell, axis=0)
+        pos *= tau[:, :, None]
+        pos += self.positions.reshape(-1, 2).take(cell, axis=0)
+        present = self.presence.reshape(-1).take(cell + (frame + inner) * self.width)
         outside = (times_s < self._t_lo[wcol]) | (times_s > self._t_hi[wcol])
         if outside.any():
             present[outside] = False
