@@ -599,7 +599,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         self._last_present[worlds, :width] = pres_now
         future_s = t_s[:, None] + self._obs_offsets[None, 1:]
         j, col = np.nonzero(pres_now)
-        f_pos, f_present = self._rows_positions(worlds[j], col, future_s[j])  # (m, H, 2), (m, H)
+        f_pos, f_present = self._rows_positions(worlds, future_s, j, col)  # (m, H, 2), (m, H)
         fx = f_pos[..., 0] - robot[j, None, 0]
         fy = f_pos[..., 1] - robot[j, None, 1]
         r = self._r_sum
@@ -675,9 +675,9 @@ class BatchedCrowdNavEnv(VectorEnv):
 
     @timed("replay")
     def _rows_positions(
-        self, worlds: np.ndarray, rows: np.ndarray, times_s: np.ndarray
+        self, worlds: np.ndarray, times_s: np.ndarray, which: np.ndarray, rows: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        return self._replay.rows_at(worlds, rows, times_s)
+        return self._replay.rows_at(worlds, times_s, which, rows)
 
     @timed("forecasts")
     def _forecasts(

@@ -140,10 +140,13 @@ class BatchedReplay:
             present[outside] = False
         return pos, present
 
-    def rows_at(self, worlds: np.ndarray, rows: np.ndarray, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Positions ``(m, T, 2)`` metres and presence ``(m, T)`` of row ``rows[i]`` of world ``worlds[i]`` (both
-        ``(m,)``) at ``times_s[i]`` ``(m, T)`` seconds: :meth:`positions_at` of those rows only (the same arithmetic
-        element by element)."""
+    def rows_at(
+        self, worlds: np.ndarray, times_s: np.ndarray, which: np.ndarray, rows: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Positions ``(m, T, 2)`` metres and presence ``(m, T)`` of row ``rows[i]`` of world ``worlds[which[i]]`` at
+        its times ``times_s[which[i]]`` (``times_s`` ``(n, T)`` seconds, one row per world of ``worlds`` ``(n,)``;
+        ``which``, ``rows`` ``(m,)``): :meth:`positions_at` of those rows only, the same arithmetic element by
+        element (the frame search once per world)."""
         idx = self.frame_index(worlds, times_s)
         np.maximum(idx, 0, out=idx)
         wcol = worlds[:, None]
@@ -151,12 +154,13 @@ class BatchedReplay:
         tau = times_s - self.times.reshape(-1).take(frame)
         inner = tau > TIME_TOL_S
         tau *= inner
+        outside = ((times_s < self._t_lo[wcol]) | (times_s > self._t_hi[wcol]))[which]
+        frame, tau, inner = frame[which], tau[which], inner[which]
         cell = frame * self.width + rows[:, None]
         pos = self.slopes.reshape(-1, 2).take(cell, axis=0)
         pos *= tau[:, :, None]
         pos += self.positions.reshape(-1, 2).take(cell, axis=0)
         present = self.presence.reshape(-1).take(cell + (frame + inner) * self.width)
-        outside = (times_s < self._t_lo[wcol]) | (times_s > self._t_hi[wcol])
         if outside.any():
             present[outside] = False
         return pos, present
