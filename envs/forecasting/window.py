@@ -351,7 +351,7 @@ class PredictorForecast(ForecastSource):
     # ------------------------------------------------------------------ env times
 
     def all_forecasts(
-        self, replay: Replay, t_s: float, shared: dict[Any, tuple[np.ndarray, np.ndarray]] | None = None
+        self, replay: Replay, t_s: float, shared: dict[Any, Any] | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """Forecasts of every pedestrian perceived at ``t_s``.
 
@@ -400,26 +400,29 @@ class PredictorForecast(ForecastSource):
         return weights
 
     def _resampled(
-        self, rec: Recording, t_s: float, shared: dict[Any, tuple[np.ndarray, np.ndarray]] | None = None
+        self, rec: Recording, t_s: float, shared: dict[Any, Any] | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        empty = (np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2)))
         at = self.frame_at(rec, t_s)
         if at is None:
-            return empty
+            return np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2))
         i, offset = at
+        # another copy's forecasts of the frame when its weights equal this copy's (a frame with forecasts has its
+        # forecast length under (name, i) once a copy resampled it, so this copy's weights are the ones used below)
+        pred_len = shared.get((rec.name, i)) if shared is not None else None
+        if shared is not None and pred_len is not None:
+            hit = shared.get((rec.name, i, self.resample_weights(rec.step_s, pred_len, offset).tobytes()))
+            if hit is not None:
+                return hit
         cols, fc = self.frame_forecasts(rec, i)
         if len(cols) == 0:
-            return empty
+            return np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2))
         weights = self.resample_weights(rec.step_s, fc.shape[1], offset)
-        key = (rec.name, i, weights.tobytes()) if shared is not None else None
-        hit = shared.get(key) if shared is not None else None
-        if hit is not None:
-            return hit
         out = weights[:, 1:] @ fc.astype(np.float64)  # (H, P) @ (n, P, 2) -> (n, H, 2)
         if weights[:, 0].any():  # the first env steps fall before the first forecast step: the annotated position
             out += weights[None, :, 0, None] * rec.positions[i, cols][:, None, :]
         if shared is not None:
-            shared[key] = (cols, out)
+            shared[(rec.name, i)] = fc.shape[1]
+            shared[(rec.name, i, weights.tobytes())] = (cols, out)
         return cols, out
 
     def forecast(

@@ -154,7 +154,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         self._world_uncertainty = [_own_memos(env.uncertainty) for _ in range(n)]
         # what a world's source resampled, for the others to take when their inputs are equal bit for bit
         # (PredictorForecast.all_forecasts' ``shared``)
-        self._shared_forecasts: dict[Any, tuple[np.ndarray, np.ndarray]] = {}
+        self._shared_forecasts: dict[Any, Any] = {}
         self._timer = PhaseTimer(TIMING_KEYS)
         self._phys = BatchedWorld(n, cfg.robot_radius_m, cfg.pedestrian_radius_m)
         self._replay = BatchedReplay(n)
