@@ -976,15 +976,17 @@ class CrowdNavEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             1, cfg.horizon_steps + 1
         )
         steps = len(self._forecast_log)
-        pos, present = self._replay.positions_at(times.reshape(-1))
-        pos = pos.reshape(steps, cfg.horizon_steps, -1, 2)
-        present = present.reshape(steps, cfg.horizon_steps, -1)
-        if self._reactive is not None:
-            self._world_departures(times[:, 0] - cfg.dt_s, pos, present)
-        step_of = np.concatenate([np.full(len(r), k) for k, (_, r, _) in enumerate(self._forecast_log)])
+        step_of = np.repeat(np.arange(steps), [len(r) for _, r, _ in self._forecast_log])
         rows = np.concatenate([r for _, r, _ in self._forecast_log])
         fc = np.concatenate([f for _, _, f in self._forecast_log])
-        truth, valid = pos[step_of, :, rows], present[step_of, :, rows]
+        if self._reactive is None:  # the replay at the forecasts' rows only
+            truth, valid = self._replay.rows_at(times[step_of], rows)
+        else:
+            pos, present = self._replay.positions_at(times.reshape(-1))
+            pos = pos.reshape(steps, cfg.horizon_steps, -1, 2)
+            present = present.reshape(steps, cfg.horizon_steps, -1)
+            self._world_departures(times[:, 0] - cfg.dt_s, pos, present)
+            truth, valid = pos[step_of, :, rows], present[step_of, :, rows]
         self._metrics.add_forecast_errors(np.hypot(*(fc - truth).transpose(2, 0, 1)), valid)
         self._forecast_log = []
 

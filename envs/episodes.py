@@ -65,10 +65,21 @@ def crowd_near_path(
     seg = np.asarray(goal, dtype=np.float64) - np.asarray(start, dtype=np.float64)
     length2 = float(seg @ seg)
     rel = recording.positions[i0:i1] - np.asarray(start, dtype=np.float64)
-    along = np.clip((rel @ seg) / length2, 0.0, 1.0) if length2 > 0 else np.zeros(present.shape)
-    dist = np.linalg.norm(rel - along[..., None] * seg, axis=-1)
-    near = present & (dist <= range_m)
-    return float(near.sum()) / slots, int(near.any(axis=0).sum())
+    along = (rel @ seg) / length2 if length2 > 0 else np.zeros(present.shape)
+    # the distances of the annotated positions only (element by element, so as over the whole window)
+    frame, col = np.nonzero(present)
+    along = np.clip(along[frame, col], 0.0, 1.0)
+    dist = np.linalg.norm(rel[frame, col] - along[:, None] * seg, axis=-1)
+    near = dist <= range_m
+    return float(near.sum()) / slots, len(np.unique(col[near]))
+
+
+def _annotated_cells(present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(cells, first)``: the flat indices of ``present`` ``(F, P)``'s True cells in row-major order, and ``(F + 1,)``
+    where each frame's cells start among them (``first[F]``: their number)."""
+    first = np.zeros(len(present) + 1, dtype=np.int64)
+    np.cumsum(present.sum(axis=1), out=first[1:])
+    return np.flatnonzero(present), first
 
 
 def recording_extent(recording: Recording, margin_m: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
@@ -136,6 +147,8 @@ class EpisodeSampler:
         self.speed_mps = speed_mps
         self.time_limit_factor = time_limit_factor
         self.extents = {r.name: recording_extent(r) for r in self.recordings}
+        # every annotated (frame, column) of each recording in row-major order, and where each frame's start in it
+        self._annotated = {r.name: _annotated_cells(r.present) for r in self.recordings}
         durations = np.array([r.times_s()[-1] for r in self.recordings], dtype=np.float64)
         self.weights = np.maximum(durations, 1e-9) / np.maximum(durations, 1e-9).sum()
 
@@ -280,11 +293,13 @@ class EpisodeSampler:
     ) -> np.ndarray:
         i0 = int(np.searchsorted(times, t0 - TIME_TOL_S, "left"))
         i1 = int(np.searchsorted(times, t0 + limit_s + TIME_TOL_S, "right"))
-        frame, col = np.nonzero(rec.present[i0:i1])
-        if len(frame) == 0:
+        cells, first = self._annotated[rec.name]  # the window's cells: np.nonzero(rec.present[i0:i1]), in order
+        count = max(int(first[i1] - first[i0]), 0)
+        if count == 0:
             return rng.uniform(lo, hi)
-        k = int(rng.integers(len(frame)))
-        return rec.positions[i0 + frame[k], col[k]].astype(np.float64)
+        k = int(rng.integers(count))
+        frame, col = divmod(int(cells[first[i0] + k]), rec.present.shape[1])
+        return rec.positions[frame, col].astype(np.float64)
 
     def _clear(self, rec: Recording, times: np.ndarray, t0: float, start: np.ndarray) -> bool:
         """Nobody within the clearance of ``start`` at the annotations around ``t0`` nor, between them, at ``t0``

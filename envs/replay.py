@@ -144,6 +144,22 @@ class Replay:
             present[(ts < self._t_lo) | (ts > self._t_hi)] = False
         return pos, present
 
+    def rows_at(self, times_s: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions ``(m, T, 2)`` metres and presence ``(m, T)`` of row ``rows[i]`` at ``times_s[i]`` (``times_s``
+        ``(m, T)`` seconds, ``rows`` ``(m,)``): :meth:`positions_at` of those rows only (the same arithmetic element by
+        element)."""
+        ts = np.asarray(times_s, dtype=np.float64)
+        idx = np.searchsorted(self.times, ts + TIME_TOL_S, "right") - 1
+        np.maximum(idx, 0, out=idx)
+        tau = ts - self.times[idx]
+        inner = tau > TIME_TOL_S
+        tau *= inner
+        r = np.asarray(rows)[:, None]
+        pos = self.positions[idx, r] + self.slopes[idx, r] * tau[..., None]
+        present = self._presence[idx, inner.astype(np.intp), r]
+        present[(ts < self._t_lo) | (ts > self._t_hi)] = False
+        return pos, present
+
     def velocity_at(self, t_s: float) -> np.ndarray:
         """``(N, 2)`` velocities at one time, m/s (0 where not present)."""
         i = max(bisect.bisect_right(self._times_list, t_s + TIME_TOL_S) - 1, 0)

@@ -350,8 +350,16 @@ class PredictorForecast(ForecastSource):
 
     # ------------------------------------------------------------------ env times
 
-    def all_forecasts(self, replay: Replay, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def all_forecasts(
+        self, replay: Replay, t_s: float, shared: dict[Any, Any] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Forecasts of every pedestrian perceived at ``t_s``.
+
+        Args:
+            shared: a table of resampled forecasts kept by the caller for several copies of this source (the batched
+                environment's worlds, each with memo tables of its own): a copy that misses its own memo takes the
+                forecasts another copy resampled from the same inputs (recording, annotation frame, and resampling
+                weights equal bit for bit), so every copy gets what it would compute alone. Only with the cache on.
 
         Returns:
             ``(columns (M,), positions (M, H, 2))``: recording columns (ascending) and world
@@ -362,7 +370,7 @@ class PredictorForecast(ForecastSource):
             hit = self._cache.get(key)
             if hit is not None:
                 return hit
-        out = self._resampled(replay.recording, t_s)
+        out = self._resampled(replay.recording, t_s, shared if self.use_cache else None)
         if self.use_cache:
             self._cache[key] = out
         return out
@@ -391,19 +399,30 @@ class PredictorForecast(ForecastSource):
             weights = self._weights[wkey] = resample_matrix(float(step_s), self.dt_s, self.horizon, pred_len, offset_s)
         return weights
 
-    def _resampled(self, rec: Recording, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        empty = (np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2)))
+    def _resampled(
+        self, rec: Recording, t_s: float, shared: dict[Any, Any] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         at = self.frame_at(rec, t_s)
         if at is None:
-            return empty
+            return np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2))
         i, offset = at
+        # another copy's forecasts of the frame when its weights equal this copy's (a frame with forecasts has its
+        # forecast length under (name, i) once a copy resampled it, so this copy's weights are the ones used below)
+        pred_len = shared.get((rec.name, i)) if shared is not None else None
+        if shared is not None and pred_len is not None:
+            hit = shared.get((rec.name, i, self.resample_weights(rec.step_s, pred_len, offset).tobytes()))
+            if hit is not None:
+                return hit
         cols, fc = self.frame_forecasts(rec, i)
         if len(cols) == 0:
-            return empty
+            return np.zeros(0, dtype=np.int64), np.zeros((0, self.horizon, 2))
         weights = self.resample_weights(rec.step_s, fc.shape[1], offset)
         out = weights[:, 1:] @ fc.astype(np.float64)  # (H, P) @ (n, P, 2) -> (n, H, 2)
         if weights[:, 0].any():  # the first env steps fall before the first forecast step: the annotated position
             out += weights[None, :, 0, None] * rec.positions[i, cols][:, None, :]
+        if shared is not None:
+            shared[(rec.name, i)] = fc.shape[1]
+            shared[(rec.name, i, weights.tobytes())] = (cols, out)
         return cols, out
 
     def forecast(

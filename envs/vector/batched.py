@@ -152,6 +152,9 @@ class BatchedCrowdNavEnv(VectorEnv):
         # environment computes for itself (its own first request).
         self._world_sources = [_own_memos(env.forecaster) for _ in range(n)]
         self._world_uncertainty = [_own_memos(env.uncertainty) for _ in range(n)]
+        # what a world's source resampled, for the others to take when their inputs are equal bit for bit
+        # (PredictorForecast.all_forecasts' ``shared``)
+        self._shared_forecasts: dict[Any, Any] = {}
         self._timer = PhaseTimer(TIMING_KEYS)
         self._phys = BatchedWorld(n, cfg.robot_radius_m, cfg.pedestrian_radius_m)
         self._replay = BatchedReplay(n)
@@ -293,13 +296,11 @@ class BatchedCrowdNavEnv(VectorEnv):
         for w in stepping.tolist():
             ax, ay = act_list[w]
             commands[w] = CrowdNavEnv._command(self._worlds[w], (ax, ay))  # type: ignore[arg-type]
-        # replay at the substep ends of the step, then at its end + h * dt_s (resetting worlds: at t0 + h * dt_s)
+        # replay at the substep ends of the step (resetting worlds: at t0 last); _observe looks up the future
         t_now = self._times(all_w, self._n)
         t_next = np.where(resetting, t_now, self._times(all_w, self._n + 1))
-        pos_times = np.concatenate(
-            [t_now[:, None] + self._sub_offsets[None, :], t_next[:, None] + self._obs_offsets[None, :]], axis=1
-        )
-        pos, present = self._positions(all_w, pos_times)  # (N, S + 1 + H, P, 2)
+        pos_times = np.concatenate([t_now[:, None] + self._sub_offsets[None, :], t_next[:, None]], axis=1)
+        pos, present = self._positions(all_w, pos_times)  # (N, S + 1, P, 2)
         robot0 = self._phys.robot_positions.copy()
         path = np.empty((n, s + 1, 2))  # as CrowdNavEnv._robot_path (p += v * h)
         path[:, 0] = robot0
@@ -333,11 +334,10 @@ class BatchedCrowdNavEnv(VectorEnv):
         self._n[stepping] += 1
         self._velocity[stepping] = (after[stepping] - robot0[stepping]) / self.config.dt_s
         # the observation of every world: stepping ones at their step's end, resetting ones at t0
-        obs_present = present[:, s:].copy()
-        obs_present[:, 0] = sub_present[:, s]
+        obs_present = sub_present[:, s].copy()
         if resetting.any():
-            obs_present[resetting, 0] = present[resetting, s] & ~self._reset_ghost[resetting, : present.shape[2]]
-        gap_now, intruding, visible, ttc = self._observe(all_w, t_next, pos[:, s:], obs_present, after)
+            obs_present[resetting] = present[resetting, s] & ~self._reset_ghost[resetting, : present.shape[2]]
+        gap_now, intruding, visible, ttc = self._observe(all_w, t_next, pos[:, s], obs_present, after)
         rewards = np.zeros(n)
         terminated = np.zeros(n, dtype=bool)
         truncated = np.zeros(n, dtype=bool)
@@ -415,9 +415,9 @@ class BatchedCrowdNavEnv(VectorEnv):
     def _observe_reset(self, worlds: np.ndarray) -> None:
         """The first observation of the episodes just drawn in ``worlds``."""
         t0 = self._times(worlds, np.zeros(len(worlds), dtype=np.int64))
-        pos, present = self._positions(worlds, t0[:, None] + self._obs_offsets[None, :])
+        pos, present = self._positions(worlds, t0[:, None])
         present[:, 0] &= ~self._reset_ghost[worlds, : present.shape[2]]
-        self._observe(worlds, t0, pos, present, self._start[worlds])
+        self._observe(worlds, t0, pos[:, 0], present[:, 0], self._start[worlds])
 
     # ------------------------------------------------------------------ the phases of a step
 
@@ -568,14 +568,16 @@ class BatchedCrowdNavEnv(VectorEnv):
 
     @timed("observation")
     def _observe(
-        self, worlds: np.ndarray, t_s: np.ndarray, positions: np.ndarray, present: np.ndarray, robot: np.ndarray
+        self, worlds: np.ndarray, t_s: np.ndarray, p_now: np.ndarray, pres_now: np.ndarray, robot: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Perception at ``t_s`` of ``worlds`` (``CrowdNavEnv._observe`` of each): writes their observations; returns
         ``(gap at t_s (n,), intruding (n,), pedestrians perceived (n,), time to collision at t_s (n,), inf for a world
         just reset)``.
 
         Args:
-            positions: ``(n, 1 + H, P, 2)`` replay metres at ``t_s + h * dt_s``; present: ``(n, 1 + H, P)``.
+            p_now: ``(n, P, 2)`` replay metres at ``t_s``; pres_now: ``(n, P)`` the pedestrians in the world then
+                (pop-in ghosts removed). Their future (at ``t_s + h * dt_s``, ``h = 1..H``) is looked up here, for
+                the present rows only (and for every row when the forecast source needs the true future).
             robot: ``(n, 2)`` robot positions.
         """
         index, age, seen_pos, seen_vel, seen_present = self._replay.perceived_at(worlds, t_s)
@@ -583,7 +585,6 @@ class BatchedCrowdNavEnv(VectorEnv):
         perceived = seen_present & ~dropped
         rows, counts = self._nearest(worlds, robot, seen_pos, perceived)
         # the world at t_s: gap, and intrusion on a present pedestrian's true future path
-        p_now, pres_now = positions[:, 0], present[:, 0]
         d_now = np.hypot(p_now[..., 0] - robot[:, None, 0], p_now[..., 1] - robot[:, None, 1])
         gap = np.where(pres_now, d_now, math.inf).min(axis=1) - self._r_sum
         ttc = np.full(len(worlds), math.inf)
@@ -596,15 +597,18 @@ class BatchedCrowdNavEnv(VectorEnv):
         self._last_pos[worlds, :width] = p_now
         self._last_present[worlds] = False
         self._last_present[worlds, :width] = pres_now
-        fx = positions[:, 1:, :, 0] - robot[:, None, None, 0]
-        fy = positions[:, 1:, :, 1] - robot[:, None, None, 1]
+        future_s = t_s[:, None] + self._obs_offsets[None, 1:]
+        j, col = np.nonzero(pres_now)
+        f_pos, f_present = self._rows_positions(worlds, future_s, j, col)  # (m, H, 2), (m, H)
+        fx = f_pos[..., 0] - robot[j, None, 0]
+        fy = f_pos[..., 1] - robot[j, None, 1]
         r = self._r_sum
-        cand = present[:, 1:] & pres_now[:, None, :] & (np.abs(fx) < r) & (np.abs(fy) < r)
+        cand = f_present & (np.abs(fx) < r) & (np.abs(fy) < r)
         intruding = np.zeros(len(worlds), dtype=bool)
         if cand.any():
-            j, h, col = np.nonzero(cand)
-            hit = np.hypot(fx[j, h, col], fy[j, h, col]) < r
-            intruding[j[hit]] = True
+            i, h = np.nonzero(cand)
+            hit = np.hypot(fx[i, h], fy[i, h]) < r
+            intruding[j[i[hit]]] = True
         # the observation
         nw, k = len(worlds), self._k
         sel = np.arange(k)[None, :] < counts[:, None]
@@ -644,7 +648,7 @@ class BatchedCrowdNavEnv(VectorEnv):
             world.last_rows = rows_of[j]
             world.last_forecasts = None
         if self.with_forecasts:
-            self._forecasts(worlds, t_s, rows_of, seen_pos, positions, present, index, age, robot)
+            self._forecasts(worlds, t_s, future_s, rows_of, seen_pos, p_now, pres_now, index, age, robot)
         return gap, intruding, counts, ttc
 
     def _time_to_collision(
@@ -657,32 +661,43 @@ class BatchedCrowdNavEnv(VectorEnv):
         Args:
             robot: ``(n, 2)`` robot positions; p_now: ``(n, P, 2)`` pedestrians, metres; pres_now: ``(n, P)``.
         """
-        width = p_now.shape[1]
-        before, was = self._last_pos[worlds, :width], self._last_present[worlds, :width]
-        both = (pres_now & was)[..., None]
-        velocities = np.where(both, (p_now - np.where(both, before, p_now)) / self.config.dt_s, 0.0)
         out = np.full(len(worlds), math.inf)
         j, col = np.nonzero(pres_now)
         if len(j):
-            rel_p = p_now[j, col] - robot[j]
-            rel_v = velocities[j, col] - self._velocity[worlds[j]]
+            w = worlds[j]
+            p = p_now[j, col]
+            both = self._last_present[w, col][:, None]  # (present now, by the nonzero)
+            velocity = np.where(both, (p - np.where(both, self._last_pos[w, col], p)) / self.config.dt_s, 0.0)
+            rel_p = p - robot[j]
+            rel_v = velocity - self._velocity[w]
             np.minimum.at(out, j, time_to_collision(rel_p, rel_v, self._r_sum))
         return out
+
+    @timed("replay")
+    def _rows_positions(
+        self, worlds: np.ndarray, times_s: np.ndarray, which: np.ndarray, rows: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        return self._replay.rows_at(worlds, times_s, which, rows)
 
     @timed("forecasts")
     def _forecasts(
         self,
         worlds: np.ndarray,
         t_s: np.ndarray,
+        future_s: np.ndarray,
         rows_of: list[np.ndarray],
         seen_pos: np.ndarray,
-        positions: np.ndarray,
-        present: np.ndarray,
+        p_now: np.ndarray,
+        pres_now: np.ndarray,
         index: np.ndarray,
         age: np.ndarray,
         robot: np.ndarray,
     ) -> None:
-        """Each world's forecasts of its perceived pedestrians (``CrowdNavEnv._forecast``), into the observation."""
+        """Each world's forecasts of its perceived pedestrians (``CrowdNavEnv._forecast``), into the observation.
+
+        Args:
+            future_s: ``(n, H)`` the forecast times; p_now, pres_now: ``(n, P, 2)``, ``(n, P)`` the world at ``t_s``.
+        """
         b = self.env._builder
         k, hor = self._k, self._hor
         nw = len(worlds)
@@ -696,6 +711,8 @@ class BatchedCrowdNavEnv(VectorEnv):
             obs = self._obs
             obs["forecasts"][worlds] = fc_obs.reshape(nw, -1) if b.flat else fc_obs
             return
+        if source.needs_truth:
+            positions, present = self._positions(worlds, future_s)  # (n, H, P, 2)
         for j, w in enumerate(worlds.tolist()):
             rows = rows_of[j]
             m = len(rows)
@@ -704,9 +721,8 @@ class BatchedCrowdNavEnv(VectorEnv):
             world = self._worlds[w]
             truth = None
             if source.needs_truth:
-                pj, prj = positions[j], present[j]
-                future, valid = pj[1:, rows].transpose(1, 0, 2), prj[1:, rows].T
-                current = np.where(prj[0, rows, None], pj[0, rows], seen_pos[j, rows])
+                future, valid = positions[j][:, rows].transpose(1, 0, 2), present[j][:, rows].T
+                current = np.where(pres_now[j, rows, None], p_now[j, rows], seen_pos[j, rows])
                 truth = TrueFuture(fill_forward(future, valid, current), valid)
             own = self._world_sources[w]
             fc = own.forecast(world._replay, times[j], rows, truth, world.forecast_rng)  # type: ignore[arg-type,union-attr]
@@ -741,8 +757,9 @@ class BatchedCrowdNavEnv(VectorEnv):
         js = np.flatnonzero(counts)
         if len(js) == 0:
             return
+        shared = self._shared_forecasts
         tables = [
-            self._world_sources[w].all_forecasts(self._worlds[w]._replay, times[j])  # type: ignore[union-attr]
+            self._world_sources[w].all_forecasts(self._worlds[w]._replay, times[j], shared)  # type: ignore[union-attr]
             for j, w in zip(js.tolist(), worlds[js].tolist(), strict=True)
         ]  # type: ignore[arg-type]
         sizes = np.array([len(c) for c, _ in tables])

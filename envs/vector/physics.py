@@ -224,7 +224,9 @@ class BatchedWorld:
         num_w, num_sub = robot_velocities.shape[:2]
         self._ensure_rows(near.shape[1])
         if near.shape[1] < self.slot.shape[1]:
-            near = np.pad(near, ((0, 0), (0, self.slot.shape[1] - near.shape[1])))
+            wide = np.zeros(self.slot.shape, dtype=bool)
+            wide[:, : near.shape[1]] = near
+            near = wide
         self._assign(near)
         self._events = {}
         path = np.empty((num_w, num_sub + 1, 2))

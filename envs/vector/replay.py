@@ -126,12 +126,41 @@ class BatchedReplay:
         idx = self.frame_index(worlds, times_s)
         np.maximum(idx, 0, out=idx)
         wcol = worlds[:, None]
-        tau = times_s - self.times[wcol, idx]
+        shape = (*times_s.shape, self.width)
+        flat = (wcol * self._frames + idx).reshape(-1)  # (world, frame) as one index: a take, not fancy indexing
+        tau = times_s - self.times.reshape(-1).take(flat).reshape(times_s.shape)
         inner = tau > TIME_TOL_S
         tau *= inner
-        pos = self.positions[wcol, idx] + self.slopes[wcol, idx] * tau[:, :, None, None]
-        present = self.presence[wcol, idx, inner.astype(np.intp)]
+        pos = self.slopes.reshape(-1, self.width, 2).take(flat, axis=0).reshape(*shape, 2)
+        pos *= tau[:, :, None, None]
+        pos += self.positions.reshape(-1, self.width, 2).take(flat, axis=0).reshape(*shape, 2)
+        present = self.presence.reshape(-1, self.width).take(2 * flat + inner.reshape(-1), axis=0).reshape(shape)
         outside = (times_s < self._t_lo[wcol]) | (times_s > self._t_hi[wcol])
+        if outside.any():
+            present[outside] = False
+        return pos, present
+
+    def rows_at(
+        self, worlds: np.ndarray, times_s: np.ndarray, which: np.ndarray, rows: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Positions ``(m, T, 2)`` metres and presence ``(m, T)`` of row ``rows[i]`` of world ``worlds[which[i]]`` at
+        its times ``times_s[which[i]]`` (``times_s`` ``(n, T)`` seconds, one row per world of ``worlds`` ``(n,)``;
+        ``which``, ``rows`` ``(m,)``): :meth:`positions_at` of those rows only, the same arithmetic element by
+        element (the frame search once per world)."""
+        idx = self.frame_index(worlds, times_s)
+        np.maximum(idx, 0, out=idx)
+        wcol = worlds[:, None]
+        frame = wcol * self._frames + idx  # (world, frame) and (world, frame, row) as one index each: takes
+        tau = times_s - self.times.reshape(-1).take(frame)
+        inner = tau > TIME_TOL_S
+        tau *= inner
+        outside = ((times_s < self._t_lo[wcol]) | (times_s > self._t_hi[wcol]))[which]
+        frame, tau, inner = frame[which], tau[which], inner[which]
+        cell = frame * self.width + rows[:, None]
+        pos = self.slopes.reshape(-1, 2).take(cell, axis=0)
+        pos *= tau[:, :, None]
+        pos += self.positions.reshape(-1, 2).take(cell, axis=0)
+        present = self.presence.reshape(-1).take(cell + (frame + inner) * self.width)
         if outside.any():
             present[outside] = False
         return pos, present
