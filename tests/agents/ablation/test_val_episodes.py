@@ -148,7 +148,7 @@ def test_the_pilot_runs_on_validation_episodes_and_its_declared_policies() -> No
     from agents.training.config import load_train_config
 
     cfg = ab.load_config(REPO / "configs/ablation/learned_pilot.yaml")
-    assert (cfg.episodes_from, cfg.splits, cfg.arm_labels) == ("val", ("univ", "zara1"), ("mesrnn", "oracle"))
+    assert (cfg.episodes_from, cfg.splits, cfg.arm_labels) == ("val", ("univ",), ("mesrnn", "oracle"))
     v2 = ab.load_config(REPO / "configs/ablation/learned_v2.yaml")
     assert not set(cfg.seeds) & set(v2.seeds), "the final grid's runs are not the ones the choice was made on"
     evals = [c for c in ab.expand(cfg) if c.kind == "eval"]
