@@ -62,10 +62,35 @@ class _Episodes:
 def aggregate(episodes: _Episodes) -> dict[str, Any]:
     """The evaluation's own aggregates (:func:`agents.evaluation.summary.summarise`) of the pooled episodes: rates with
     Wilson intervals, metric means with bootstrap intervals (navigation time and path ratio over successful
-    episodes; the forecast ADE is undefined in the ``none`` arm)."""
+    episodes; the forecast ADE is undefined in the ``none`` arm).
+
+    Episodes pooled from cells that record the metrics added later (:data:`agents.rollout.ADDED_METRICS`) and cells
+    whose episodes were written before them (a cell reused from an older grid's archive) leave those metrics' means
+    and intervals ``None`` (their ``_n`` stays the count of episodes recording them) and name them in
+    ``metrics_partly_recorded``: averaging the cells that have them would pass a subset of splits for the whole."""
     from agents.evaluation.summary import summarise
 
-    return summarise(episodes.rows)
+    out = summarise(episodes.rows)
+    partial = [m for m in partly_recorded(episodes) if f"{m}_mean" in out]
+    for metric in partial:
+        out[f"{metric}_mean"] = None
+        out[f"{metric}_ci"] = None
+    if partial:
+        out["metrics_partly_recorded"] = partial
+    return out
+
+
+def partly_recorded(episodes: _Episodes) -> tuple[str, ...]:
+    """:data:`agents.rollout.ADDED_METRICS` when some of ``episodes``' cells (split, seed) record them and others do
+    not (every row blank or without the column), else ``()``. ``spl``, defined for every episode of a cell that
+    records the added metrics, tells the two apart."""
+    from agents.rollout import ADDED_METRICS
+
+    recorded: dict[tuple[str, int | None], bool] = {}
+    for (split, seed, _), row in zip(episodes.keys, episodes.rows):
+        has = bool(str(row.get("spl") or "").strip())
+        recorded[(split, seed)] = recorded.get((split, seed), False) or has
+    return ADDED_METRICS if len(set(recorded.values())) == 2 else ()
 
 
 def cell_info(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:

@@ -381,6 +381,16 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         ]
     for name, pol in summary["policies"].items():
         lines += [f"### {name}", "", *_rate_table(pol["arms"], bool(pol["timesteps"])), ""]
+        partial = sorted({m for e in pol["arms"].values() for m in e.get("metrics_partly_recorded", ())})
+        if partial:
+            lines += [
+                "'-' above in a pooled row for "
+                + ", ".join(f"`{m}`" for m in partial)
+                + ": some of the arm's cells were written before these metrics existed (cells reused from an older "
+                "grid's archive), so a pooled mean would cover only the splits that record them; the per-split tables "
+                "below show them where recorded.",
+                "",
+            ]
         for split in summary["splits"] if len(summary["splits"]) > 1 else ():
             per = {a: e["by_split"][split] for a, e in pol["arms"].items() if split in e.get("by_split", {})}
             if per:

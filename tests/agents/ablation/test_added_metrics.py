@@ -92,3 +92,43 @@ def test_an_archive_without_them_keeps_its_bootstrap_interval_and_columns(tmp_pa
     with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:
         header = fh.readline().strip().split(",")
     assert "spl" not in header and "path_ratio" in header
+
+
+def test_a_pooled_row_mixing_cells_with_and_without_them_shows_none_of_them(tmp_path: Path) -> None:
+    """A cell reused from an older grid lacks the added metrics: the pooled mean over the other splits alone would pass
+    for the whole arm's, so the pooled row leaves them undefined and says why; the per-split entries keep them."""
+    cfg = ab.config_from_mapping(
+        {
+            "name": "mixed",
+            "runs_dir": str(tmp_path / "runs"),
+            "out_dir": str(tmp_path / "results"),
+            "splits": ["zara1", "eth"],
+            "arms": ["none", "cv"],
+            "seeds": [0],
+            "policies": {"planner": {"kind": "planner"}},
+            "evaluation": {"episodes": 12, "seed": 0},
+            "comparisons": [["cv", "none"]],
+            "density_bins": [0.0, 12.0],
+        }
+    )
+    for split in ("zara1", "eth"):
+        for arm in ("none", "cv"):
+            rows: list[dict[str, Any]] = [
+                {"episode": i, "outcome": "success", "navigation_time_s": 10.0, "path_ratio": 1.1, "spl": "",
+                 "min_ttc_s": "", "crowd_density": float(i)}
+                for i in range(12)
+            ]
+            if split == "zara1" and arm == "cv":  # the only cell written after the metrics existed
+                for r in rows:
+                    r.update(spl=0.8, min_ttc_s=2.0)
+            _done_cell(cfg, f"eval/{split}/planner/{arm}", rows)
+    summary = ab.summarize(cfg, out=lambda s: None, plots=False)
+    cv = summary["policies"]["planner"]["arms"]["cv"]
+    assert cv["spl_mean"] is None and cv["spl_ci"] is None and cv["min_ttc_s_mean"] is None
+    assert cv["spl_n"] == 12 and "spl" in cv["metrics_partly_recorded"]
+    assert cv["navigation_time_s_mean"] == pytest.approx(10.0)  # recorded by every cell: pooled as before
+    assert cv["by_split"]["zara1"]["spl_mean"] == pytest.approx(0.8)
+    assert "metrics_partly_recorded" not in cv["by_split"]["zara1"]
+    assert "metrics_partly_recorded" not in summary["policies"]["planner"]["arms"]["none"]  # no cell records them
+    md = (cfg.out_path() / "summary.md").read_text()
+    assert "a pooled mean would cover only the splits that record them" in md
