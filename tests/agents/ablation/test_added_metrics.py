@@ -33,13 +33,13 @@ def _done_cell(cfg: ab.AblationConfig, name: str, rows: list[dict[str, Any]]) ->
     (folder / ab.DONE).write_text("now\n")
 
 
-def _grid(tmp_path: Path, added: bool) -> ab.AblationConfig:
-    cfg = ab.config_from_mapping(
+def _config(tmp_path: Path, splits: list[str]) -> ab.AblationConfig:
+    return ab.config_from_mapping(
         {
             "name": "tiny",
             "runs_dir": str(tmp_path / "runs"),
             "out_dir": str(tmp_path / "results"),
-            "splits": ["zara1"],
+            "splits": splits,
             "arms": ["none", "cv"],
             "seeds": [0],
             "policies": {"planner": {"kind": "planner"}},
@@ -48,6 +48,10 @@ def _grid(tmp_path: Path, added: bool) -> ab.AblationConfig:
             "density_bins": [0.0, 12.0],
         }
     )
+
+
+def _grid(tmp_path: Path, added: bool) -> ab.AblationConfig:
+    cfg = _config(tmp_path, ["zara1"])
     code = {"S": "success", "C": "collision", "T": "timeout"}
     for arm, outcomes in (("none", NONE_OUTCOMES), ("cv", CV_OUTCOMES)):
         rows: list[dict[str, Any]] = [
@@ -97,20 +101,7 @@ def test_an_archive_without_them_keeps_its_bootstrap_interval_and_columns(tmp_pa
 def test_a_pooled_row_mixing_cells_with_and_without_them_shows_none_of_them(tmp_path: Path) -> None:
     """A cell reused from an older grid lacks the added metrics: the pooled mean over the other splits alone would pass
     for the whole arm's, so the pooled row leaves them undefined and says why; the per-split entries keep them."""
-    cfg = ab.config_from_mapping(
-        {
-            "name": "mixed",
-            "runs_dir": str(tmp_path / "runs"),
-            "out_dir": str(tmp_path / "results"),
-            "splits": ["zara1", "eth"],
-            "arms": ["none", "cv"],
-            "seeds": [0],
-            "policies": {"planner": {"kind": "planner"}},
-            "evaluation": {"episodes": 12, "seed": 0},
-            "comparisons": [["cv", "none"]],
-            "density_bins": [0.0, 12.0],
-        }
-    )
+    cfg = _config(tmp_path, ["zara1", "eth"])
     for split in ("zara1", "eth"):
         for arm in ("none", "cv"):
             rows: list[dict[str, Any]] = [
