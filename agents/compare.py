@@ -1,12 +1,12 @@
 """Paired comparison of evaluations on the same episodes: an evaluation folder against others, or against cells of
-the ablation's ``episodes.csv.gz``.
+an ablation grid's episode archive.
 
-``python -m agents.compare EVAL_DIR [EVAL_DIR ...] [--against EVAL_DIR ...] [--grid results/ablation/planning_aid/episodes.csv.gz
+``python -m agents.compare EVAL_DIR [EVAL_DIR ...] [--against EVAL_DIR ...] [--grid results/ablation/planning_aid
 --cells ppo/mesrnn/0 planner/mesrnn ...] [--json]``
 
 Every evaluation of :mod:`agents.evaluation` on split ``S`` with episode list ``seed`` replays the same seeded
 episodes in the same order, so two evaluations (or an evaluation and a grid cell: ``POLICY/ARM[/TRAINING_SEED]``
-of the grid's ``episodes.csv.gz``, split and list from the evaluation's ``summary.json``) pair episode by episode
+of the grid's archive, split and list from the evaluation's ``summary.json``) pair episode by episode
 on the episodes both hold. Each comparison prints both success rates with 95 % Wilson intervals, the difference
 and the exact McNemar test (:func:`agents.stats.mcnemar_exact`). Pilots and single training seeds: the test is
 conditional on the trained policies; the seed-level question needs several seeds.
@@ -38,20 +38,35 @@ def evaluation_successes(folder: str | Path) -> tuple[dict[int, bool], dict[str,
     return {int(r["episode"]): r["outcome"] == "success" for r in rows}, summary
 
 
+def grid_rows(path: str | Path) -> list[dict[str, str]]:
+    """The episodes of an ablation grid's archive: a results folder (``results/ablation/<name>``, either layout of
+    :mod:`agents.ablation.archive`), its ``episodes/`` folder, or one CSV file (``.csv`` or ``.csv.gz``: the older
+    single ``episodes.csv.gz``, or one policy's file)."""
+    from agents.ablation.archive import ARCHIVE_DIR, has_archive, read_rows
+
+    path = Path(path)
+    if path.is_dir():
+        folder = path.parent if path.name == ARCHIVE_DIR and not has_archive(path) else path
+        if not has_archive(folder):
+            raise FileNotFoundError(f"{path} holds no episode archive ({ARCHIVE_DIR}/ or episodes.csv.gz)")
+        return read_rows(folder)
+    opener = gzip.open if path.name.endswith(".gz") else open
+    with opener(path, "rt", newline="", encoding="utf-8") as fh:
+        return list(csv.DictReader(fh))
+
+
 def grid_successes(path: str | Path, cell: str, split: str) -> dict[int, bool]:
-    """``{episode index: success}`` of a grid cell ``POLICY/ARM[/TRAINING_SEED]`` on ``split`` in an
-    ``episodes.csv.gz`` of the ablation."""
+    """``{episode index: success}`` of a grid cell ``POLICY/ARM[/TRAINING_SEED]`` on ``split`` in an ablation grid's
+    archive (:func:`grid_rows`)."""
     parts = cell.split("/")
     if len(parts) not in (2, 3):
         raise ValueError(f"a grid cell is POLICY/ARM or POLICY/ARM/TRAINING_SEED, got {cell!r}")
-    opener = gzip.open if str(path).endswith(".gz") else open
-    with opener(path, "rt", newline="", encoding="utf-8") as fh:
-        out = {
-            int(r["episode"]): r["outcome"] == "success"
-            for r in csv.DictReader(fh)
-            if r["split"] == split and r["policy"] == parts[0] and r["arm"] == parts[1]
-            and (len(parts) == 2 or r["seed"] == parts[2])
-        }  # fmt: skip
+    out = {
+        int(r["episode"]): r["outcome"] == "success"
+        for r in grid_rows(path)
+        if r["split"] == split and r["policy"] == parts[0] and r["arm"] == parts[1]
+        and (len(parts) == 2 or r["seed"] == parts[2])
+    }  # fmt: skip
     if not out:
         raise ValueError(f"{path} holds no episodes of cell {cell!r} on split {split!r}")
     return out
@@ -81,14 +96,19 @@ def _fmt(r: Mapping[str, Any]) -> str:
 def add_compare_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("evaluations", nargs="+", help="evaluation folders (agents.evaluate --out)")
     p.add_argument("--against", nargs="*", default=[], help="other evaluation folders to pair with")
-    p.add_argument("--grid", default=None, help="an ablation episodes.csv(.gz) holding the cells of --cells")
+    p.add_argument(
+        "--grid",
+        default=None,
+        help="an ablation grid's results folder (e.g. results/ablation/planners) or archive file holding the cells of "
+        "--cells",
+    )
     p.add_argument("--cells", nargs="*", default=[], help="grid cells POLICY/ARM[/TRAINING_SEED], e.g. ppo/mesrnn/0")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
 def run_from_args(args: argparse.Namespace) -> int:
     if args.cells and not args.grid:
-        raise ValueError("--cells needs --grid (an ablation episodes.csv.gz)")
+        raise ValueError("--cells needs --grid (an ablation grid's results folder)")
     results: dict[str, Any] = {}
     for folder in args.evaluations:
         mine, summary = evaluation_successes(folder)

@@ -75,9 +75,10 @@ The answer
     percentile intervals), the declared change of each gain across reactions (``reaction_comparisons``: an exact
     sign-flip test of the per-episode difference of paired differences, Holm) and the declared disturbance comparisons
     (``disturbance_comparisons``: Wilcoxon, Holm per metric). It also writes ``cells.json`` (every cell's state,
-    timings and spec) and ``episodes.csv.gz`` (every evaluated episode, values as written); the statistics are computed
-    from that archive, and a cell without a run folder is read from it (or from the ``reuse`` results that hold it: its
-    record says ``"from": <folder>``), so the committed results alone render the same summary again. A summary never
+    timings and spec) and ``episodes/`` (every evaluated episode, values as written, one file per policy:
+    :mod:`agents.ablation.archive`); the statistics are computed from that archive, and a cell without a run folder is
+    read from it (or from the ``reuse`` results that hold it: its record says ``"from": <folder>``), so the committed
+    results alone render the same summary again. A summary never
     replaces one holding more (missing cells: refused, named; ``--force`` overrides), and files whose content would not
     change are left untouched (:mod:`agents.ablation.results`).
 """

@@ -64,7 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--summarize-only",
         action="store_true",
-        help="write summary.json/.md, cells.json, episodes.csv.gz and plots from finished cells (cells without a "
+        help="write summary.json/.md, cells.json, episodes/ and plots from finished cells (cells without a "
         "run folder are read from the committed results); leaves the files alone when nothing but the stamps "
         "would change, and refuses (exit 1) to replace them with a summary holding less",
     )

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
+from agents.ablation.archive import ARCHIVE_DIR, LEGACY_ARCHIVE, has_archive
 from agents.evaluation import EPISODE_SOURCES
 from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError, check_keys, existing_config, load_yaml
@@ -112,9 +113,8 @@ CELL_STATES: Final[tuple[str, ...]] = ("done", "partial", "stale", "todo")
 
 
 #: A grid's committed results (``out_dir``): every cell's record (``cells.json``) and every evaluated episode, values as
-#: written (``episodes.csv.gz``); :mod:`agents.ablation.results`.
+#: written (``episodes/``, one file per policy: :mod:`agents.ablation.archive`); :mod:`agents.ablation.results`.
 RESULTS_CELLS: Final[str] = "cells.json"
-RESULTS_ARCHIVE: Final[str] = "episodes.csv.gz"
 
 
 _TOP_KEYS: Final[tuple[str, ...]] = (
@@ -383,14 +383,14 @@ def _bad(key: str, value: Any, allowed: str) -> ConfigError:
 
 
 def _reuse(value: Any, out_dir: Path) -> tuple[str, ...]:
-    """``reuse``: a list of other grids' results folders, each existing and holding :data:`RESULTS_CELLS` and
-    :data:`RESULTS_ARCHIVE`, none the grid's own ``out_dir``. Raises :class:`ConfigError` naming the key, the value and
-    what is allowed (or the missing file)."""
+    """``reuse``: a list of other grids' results folders, each existing and holding :data:`RESULTS_CELLS` and an episode
+    archive (:func:`agents.ablation.archive.has_archive`), none the grid's own ``out_dir``. Raises :class:`ConfigError`
+    naming the key, the value and what is allowed (or the missing file)."""
     if value is None:
         return ()
     allowed = (
         "a list of other grids' committed results folders, relative to the working directory (e.g. "
-        f"[results/ablation/planners]), each holding {RESULTS_CELLS} and {RESULTS_ARCHIVE}"
+        f"[results/ablation/planners]), each holding {RESULTS_CELLS} and {ARCHIVE_DIR}/ (or the older {LEGACY_ARCHIVE})"
     )
     if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
         raise _bad("reuse", value, allowed)
@@ -404,9 +404,10 @@ def _reuse(value: Any, out_dir: Path) -> tuple[str, ...]:
             raise _bad(
                 "reuse", folder, f"folders other than the grid's own out_dir ({out_dir}: it is read first anyway)"
             )
-        for name in (RESULTS_CELLS, RESULTS_ARCHIVE):
-            if not (path / name).is_file():
-                raise _bad("reuse", folder, f"{allowed}; {path / name} is missing")
+        if not (path / RESULTS_CELLS).is_file():
+            raise _bad("reuse", folder, f"{allowed}; {path / RESULTS_CELLS} is missing")
+        if not has_archive(path):
+            raise _bad("reuse", folder, f"{allowed}; {path / ARCHIVE_DIR}/ is missing")
     return tuple(value)
 
 

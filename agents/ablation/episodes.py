@@ -1,18 +1,19 @@
-"""Reading the evaluation cells' episodes, pooled per (policy, arm), and the combined episode archive."""
+"""Reading the evaluation cells' episodes, pooled per (policy, arm), and the grid's episode archive (its content; its
+files on disk: :mod:`agents.ablation.archive`)."""
 
 from __future__ import annotations
 
 import csv
 import datetime
-import io
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final
 
 import numpy as np
 
+from agents.ablation.archive import archive_files
 from agents.ablation.cells import CellStatus
 
 
@@ -142,7 +143,7 @@ def cell_record(st: CellStatus) -> dict[str, Any]:
     }
 
 
-#: Leading columns of the results' combined ``episodes.csv.gz`` (the cell and the episode), then every
+#: Leading columns of the results' episode archive (the cell and the episode), then every
 #: per-episode metric of :data:`agents.rollout.METRICS` the episodes record (:func:`agents.rollout.recorded_metrics`).
 ARCHIVE_KEYS: Final[tuple[str, ...]] = ("policy", "arm", "split", "seed", "episode", "outcome")
 #: Per-episode counts archived after the metrics: pop-in events (a track that began on the robot, ``envs.popin``),
@@ -166,55 +167,53 @@ def _exact(value: str | None) -> str:
     return text[:-2] if text.endswith(".0") else text
 
 
-def episodes_archive(pooled: Mapping[tuple[str, str], _Episodes]) -> bytes:
-    """Every evaluated episode in one gzipped CSV (:data:`ARCHIVE_KEYS` and the metrics, each value exactly as
-    the evaluation wrote it; byte-identical for identical inputs), committed beside the summary: the summary is
-    computed from this file (:func:`read_archive`), so the results alone reproduce it.
+def episodes_archive(pooled: Mapping[tuple[str, str], _Episodes]) -> dict[str, bytes]:
+    """Every evaluated episode as the archive's files, ``{file name: gzipped CSV}``, one per policy
+    (:mod:`agents.ablation.archive`), committed beside the summary in ``episodes/``. Each file holds
+    :data:`ARCHIVE_KEYS` and the metrics, every value exactly as the evaluation wrote it, and is byte-identical for
+    identical inputs. The summary is computed from these files (:func:`read_archive`), so the results alone reproduce
+    it. Read in the order of their policies' names, the files hold the rows of the single ``episodes.csv.gz`` that
+    this function wrote before, in the same order.
 
     The disturbance metrics (:data:`agents.rollout.DISTURBANCE_METRICS`) are the last columns when some episode
     reports them; an archive of episodes that do not (every grid before reacting pedestrians) has no such columns, so
-    it is written byte for byte as before, and its episodes read them as absent (blank), never as zero."""
-    import gzip
-
+    its rows are as before, and its episodes read them as absent (blank), never as zero."""
     from agents.rollout import DISTURBANCE_METRICS, recorded_metrics
 
     # the metrics the episodes record: one added since an archive was written stays out of it (agents.rollout)
     metrics = recorded_metrics([row for eps in pooled.values() for row in eps.rows])
     extra = (*ARCHIVE_COUNTS, *(DISTURBANCE_METRICS if _has_disturbance(pooled) else ()))
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow((*ARCHIVE_KEYS, *metrics, *extra))
+    rows: list[list[object]] = []
     for (policy, arm), eps in sorted(pooled.items()):
         for (split, seed, ep), row in sorted(
             zip(eps.keys, eps.rows, strict=True),
             key=lambda kr: (kr[0][0], -1 if kr[0][1] is None else kr[0][1], kr[0][2]),
         ):
             values = [_exact(row.get(col)) for col in (*metrics, *extra)]
-            writer.writerow([policy, arm, split, "" if seed is None else seed, ep, row.get("outcome", ""), *values])
-    return gzip.compress(buf.getvalue().encode("utf-8"), mtime=0)
+            rows.append([policy, arm, split, "" if seed is None else seed, ep, row.get("outcome", ""), *values])
+    return archive_files((*ARCHIVE_KEYS, *metrics, *extra), rows)
 
 
-def archive_rows(data: bytes) -> dict[str, list[dict[str, str]]]:
-    """The rows of an :func:`episodes_archive` per evaluation cell name (``eval/<split>/<policy>/<arm>[/seed<k>]``),
-    each with ``episode``, ``outcome`` and the metrics."""
-    import gzip
-
+def archive_rows(rows: Iterable[Mapping[str, str]]) -> dict[str, list[dict[str, str]]]:
+    """The archive's rows (:func:`agents.ablation.archive.read_rows`, :func:`agents.ablation.archive.files_rows`) per
+    evaluation cell name (``eval/<split>/<policy>/<arm>[/seed<k>]``), each with ``episode``, ``outcome`` and the
+    metrics."""
     out: dict[str, list[dict[str, str]]] = {}
-    for row in csv.DictReader(io.StringIO(gzip.decompress(data).decode("utf-8"))):
+    for row in rows:
         name = f"eval/{row['split']}/{row['policy']}/{row['arm']}" + (f"/seed{row['seed']}" if row["seed"] else "")
         out.setdefault(name, []).append({k: v for k, v in row.items() if k not in ("policy", "arm", "split", "seed")})
     return out
 
 
-def read_archive(data: bytes, splits: Sequence[str]) -> dict[tuple[str, str], _Episodes]:
-    """An :func:`episodes_archive` as episodes pooled per (policy, arm), in the grid's order (``splits``'
-    order, then training seed, then episode) -- the order in which the cells' own files list them."""
+def read_archive(rows: Iterable[Mapping[str, str]], splits: Sequence[str]) -> dict[tuple[str, str], _Episodes]:
+    """The archive's rows (:func:`archive_rows`) as episodes pooled per (policy, arm), in the grid's order
+    (``splits``' order, then training seed, then episode) -- the order in which the cells' own files list them."""
     pooled: dict[tuple[str, str], list[tuple[tuple[int, int, int], str, int | None, dict[str, str]]]] = {}
-    for name, rows in archive_rows(data).items():
+    for name, cell_rows in archive_rows(rows).items():
         _, split, policy, arm, *rest = name.split("/")
         seed = int(rest[0].removeprefix("seed")) if rest else None
         order = splits.index(split) if split in splits else len(splits)
-        for row in rows:
+        for row in cell_rows:
             ep = int(row["episode"])
             pooled.setdefault((policy, arm), []).append(((order, -1 if seed is None else seed, ep), split, seed, row))
     out: dict[tuple[str, str], _Episodes] = {}

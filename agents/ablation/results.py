@@ -1,21 +1,24 @@
 """The committed results as a source, and the rule that a summary never replaces one that holds more.
 
 ``results/ablation/<name>/`` is committed; the run folders (``runs/``) are not. Its ``cells.json`` (one record
-per cell: state, timings with every attempt's start and end, the cell's spec) and ``episodes.csv.gz`` (every
-evaluated episode, values as the evaluations wrote them) hold everything :func:`agents.ablation.summarize`
-reads, so:
+per cell: state, timings with every attempt's start and end, the cell's spec) and ``episodes/`` (every evaluated
+episode, values as the evaluations wrote them, one file per policy; :mod:`agents.ablation.archive`, which also reads
+the single ``episodes.csv.gz`` of older results) hold everything :func:`agents.ablation.summarize` reads, so:
 
 - a cell without a run folder is done, taken from the committed results, when they hold it as done and its spec
   and predictor weights are still the grid's (:func:`from_results`): the grid's own results first, then the other
   grids' results its config lists under ``reuse`` (a cell with the same name and an identical spec there is the same
   cell), in order. Running the grid skips it, so a fresh clone re-runs no committed cell, and its summary takes the
   cell's record and episodes from there (a record from another grid's results says so: ``"from": <folder>``);
-- new result files are rendered completely before any file is replaced, each replaced atomically;
+- new result files are rendered completely before any file is replaced, each replaced atomically; an older
+  ``episodes.csv.gz`` beside them is removed only when its rows are exactly the new archive's
+  (:func:`agents.ablation.archive.settle_legacy`), else left with a warning;
 - nothing is replaced by a summary that holds less: a cell done in the results but not now, or a complete
   summary replaced by an incomplete one, is refused (:class:`ResultsKept`, naming the missing cells) unless
   ``force``; a summary drawn from the grid's own archive alone that differs from the one it would replace (an archive
   written before it held start times and exact values) is refused the same way, saying what differs;
-- when nothing but the stamps (code version, time) would change, the files are left untouched.
+- when nothing but the stamps (code version, time) would change, the files are left untouched; when only the
+  archive's layout would (the older single file, the same rows), only the archive is written.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
+from agents.ablation.archive import ARCHIVE_DIR, LEGACY_ARCHIVE, has_archive, read_rows
 from agents.ablation.cells import (
     Cell,
     CellStatus,
@@ -37,14 +41,13 @@ from agents.ablation.cells import (
     trained_model,
     weights_fingerprint,
 )
-from agents.ablation.config import RESULTS_ARCHIVE, RESULTS_CELLS, AblationConfig
+from agents.ablation.config import RESULTS_CELLS, AblationConfig
 from agents.ablation.episodes import archive_rows, cell_record, read_episodes
 from crowdnav_mesrnn.config import ConfigError
 
 #: Keys of ``summary.json`` that name the checkout and the clock rather than the data.
 STAMPS: Final[tuple[str, ...]] = ("code_version", "generated")
 
-ARCHIVE: Final[str] = RESULTS_ARCHIVE
 CELLS: Final[str] = RESULTS_CELLS
 
 
@@ -63,7 +66,7 @@ def _load_json(path: Path) -> Any:
 @dataclass
 class Committed:
     """One committed results folder as a source of cells: its records, read when made, and its episodes, read once
-    and only when asked for (an archive is up to about 9 MB gzipped)."""
+    and only when asked for (an archive holds up to about 11 MB gzipped)."""
 
     folder: str
     """The folder as the config names it (``out_dir``, or an entry of ``reuse``)."""
@@ -74,26 +77,27 @@ class Committed:
     _rows: dict[str, list[dict[str, str]]] | None = field(default=None, repr=False)
 
     def rows(self) -> dict[str, list[dict[str, str]]]:
-        """``episodes.csv.gz``'s rows per evaluation cell name (:func:`agents.ablation.episodes.archive_rows`)."""
+        """The archive's rows (:func:`agents.ablation.archive.read_rows`) per evaluation cell name
+        (:func:`agents.ablation.episodes.archive_rows`)."""
         if self._rows is None:
-            path = Path(self.folder) / ARCHIVE
-            self._rows = archive_rows(path.read_bytes()) if path.is_file() else {}
+            self._rows = archive_rows(read_rows(self.folder))
         return self._rows
 
 
 def committed(cfg: AblationConfig) -> list[Committed]:
-    """The grid's own committed results (empty when ``out_dir`` holds no ``cells.json`` and ``episodes.csv.gz``), then
+    """The grid's own committed results (empty when ``out_dir`` holds no ``cells.json`` and episode archive), then
     each folder of its ``reuse``, in order. Raises :class:`ConfigError` naming ``reuse`` for a folder whose files are
     missing or whose ``cells.json`` is not a list of records."""
     own = str(cfg.out_path())
     records = _load_json(Path(own) / CELLS)
-    if not isinstance(records, list) or not (Path(own) / ARCHIVE).is_file():
+    if not isinstance(records, list) or not has_archive(own):
         records = []
     out = [Committed(own, True, _by_cell(records))]
     for folder in cfg.reuse:
-        for name in (CELLS, ARCHIVE):
-            if not (Path(folder) / name).is_file():
-                raise ConfigError(f"ablation config key 'reuse': {Path(folder) / name} is missing")
+        if not (Path(folder) / CELLS).is_file():
+            raise ConfigError(f"ablation config key 'reuse': {Path(folder) / CELLS} is missing")
+        if not has_archive(folder):
+            raise ConfigError(f"ablation config key 'reuse': {Path(folder) / ARCHIVE_DIR}/ is missing")
         records = _load_json(Path(folder) / CELLS)
         if not isinstance(records, list):
             raise ConfigError(f"ablation config key 'reuse': {Path(folder) / CELLS} is not a list of cell records")
@@ -327,13 +331,13 @@ def check_replace(
         diffs = _differences(_strip(old), json.loads(json.dumps(_strip(summary))))
         legacy = any("attempts" not in r for r in old_cells or [] if isinstance(r, dict))
         why = (
-            f" Its {CELLS} predates complete records: no attempt start times (and the {ARCHIVE} of that version "
+            f" Its {CELLS} predates complete records: no attempt start times (and the {LEGACY_ARCHIVE} of that version "
             "rounds every metric to 4 decimals), so the summary it was written with cannot be recomputed from it."
             if legacy
             else ""
         )
         raise ResultsKept(
-            f"kept {dest}/ as it is: no run folders here, and the summary re-rendered from the committed {ARCHIVE} "
+            f"kept {dest}/ as it is: no run folders here, and the summary re-rendered from the committed archive "
             f"and {CELLS} differs from the one there in {len(diffs) or 'its text, not its data'}"
             + (f" value(s): {'; '.join(diffs[:6])}{' ...' if len(diffs) > 6 else ''}." if diffs else ".")
             + why

@@ -1,4 +1,5 @@
-""":func:`summarize`: finished evaluation cells into summary.json, summary.md, cells.json, the episode archive, plots.
+""":func:`summarize`: finished evaluation cells into summary.json, summary.md, cells.json, the episode archive
+(``episodes/``, one file per policy), plots.
 
 The cells come from the run folders, or from the committed results for cells without a folder (the grid's own, then
 the other grids' its config lists under ``reuse``); what may be replaced, and when files are left alone, is
@@ -15,12 +16,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from agents.ablation.archive import ARCHIVE_DIR, archive_path, files_rows, stored_as, write_archive
 from agents.ablation.cells import _now
 from agents.ablation.config import AblationConfig
 from agents.ablation.episodes import _Episodes, aggregate, cell_info, episodes_archive, read_archive
 from agents.ablation.plots import write_plots
 from agents.ablation.report import summary_markdown
-from agents.ablation.results import ARCHIVE, CELLS, STAMPS, _load_json, _strip, check_replace, gather
+from agents.ablation.results import CELLS, STAMPS, _load_json, _strip, check_replace, gather
 from agents.ablation.stats import (
     _clean,
     by_density,
@@ -31,7 +33,7 @@ from agents.ablation.stats import (
     reaction_tests,
 )
 from agents.evaluation import EPISODE_SOURCES
-from crowdnav_mesrnn.utils import atomic_write, atomic_write_json, atomic_write_text, code_version
+from crowdnav_mesrnn.utils import atomic_write_json, atomic_write_text, code_version
 
 
 def ceiling_fractions(cfg: AblationConfig, policies: dict[str, Any], which: int = 0) -> dict[str, Any] | None:
@@ -129,21 +131,24 @@ def avoidable_failures(cfg: AblationConfig, pooled: dict[tuple[str, str], _Episo
 def summarize(
     cfg: AblationConfig, out: Callable[[str], None] = print, plots: bool = True, force: bool = False
 ) -> dict[str, Any]:
-    """Write ``summary.json``, ``summary.md``, ``cells.json``, ``episodes.csv.gz`` and the plots into
-    ``cfg.out_path()``; returns the summary.
+    """Write ``summary.json``, ``summary.md``, ``cells.json``, the episode archive (``episodes/``, one file per
+    policy: :mod:`agents.ablation.archive`) and the plots into ``cfg.out_path()``; returns the summary.
 
     The statistics are computed from the episode archive as written (so the committed results alone render
     the same summary again). Every file is rendered before any is replaced; when only the stamps (code
-    version, time) would change, nothing is written. Raises :class:`agents.ablation.results.ResultsKept`
-    (files untouched) when the new summary would hold less than the existing one, or -- drawn from the
-    committed archive alone -- differ from it; ``force`` replaces them anyway.
+    version, time) would change, nothing is written, and when only the archive's layout would (the older single
+    ``episodes.csv.gz``, the same rows), only the archive is. An older ``episodes.csv.gz`` is removed when its rows are
+    exactly the new archive's, else left with a warning (:func:`agents.ablation.archive.write_archive`). Raises
+    :class:`agents.ablation.results.ResultsKept` (files untouched) when the new summary would hold less than the
+    existing one, or -- drawn from the committed archive alone -- differ from it; ``force`` replaces them anyway.
     """
     records, episodes, sources = gather(cfg)
     raw: dict[tuple[str, str], _Episodes] = {}
     for policy_name, arm_label, split, seed, rows in episodes:
         raw.setdefault((policy_name, arm_label), _Episodes()).add(split, seed, rows)
     archive = episodes_archive(raw)
-    pooled = read_archive(archive, cfg.splits)
+    rows = files_rows(archive)
+    pooled = read_archive(rows, cfg.splits)
     info = cell_info(records)
     edges = density_edges(cfg, pooled)
     policies: dict[str, Any] = {}
@@ -236,7 +241,8 @@ def summarize(
     summary = _clean(summary)
     dest = cfg.out_path()
     where = (
-        f"{sources['runs']} cell(s) from run folders, {sources['archive']} cell(s) from the archive {dest / ARCHIVE}"
+        f"{sources['runs']} cell(s) from run folders, {sources['archive']} cell(s) from the archive "
+        f"{archive_path(dest)}"
         + (
             f", {sources['reused']} cell(s) from other grids' results ({', '.join(cfg.reuse)})"
             if sources["reused"]
@@ -250,19 +256,32 @@ def summarize(
         figures = write_plots(summary, staging) if plots else []
         markdown = summary_markdown(summary, cfg, figures)
         old = _load_json(dest / "summary.json")
-        if isinstance(old, dict) and _unchanged(dest, old, summary, cells_text, archive, cfg, figures):
-            out(f"{dest}/ is up to date ({where}): no file changed")
+        unchanged = isinstance(old, dict) and _unchanged(dest, old, summary, cells_text, cfg, figures)
+        if unchanged and (stored := stored_as(dest, archive, rows)):
+            if stored == "same":
+                out(f"{dest}/ is up to date ({where}): no file changed")
+            else:
+                write_archive(dest, archive, out)
+                out(
+                    f"{dest}/ is up to date ({where}) but for the archive's layout: wrote {dest / ARCHIVE_DIR}/ "
+                    f"({len(archive)} file(s), the same rows); no other file changed"
+                )
             return {**summary, **{k: old.get(k) for k in STAMPS}}
         check_replace(cfg, summary, records, sources, force)
         atomic_write_json(staging / "summary.json", summary)
         atomic_write_text(staging / CELLS, cells_text)
-        atomic_write(staging / ARCHIVE, lambda fh: fh.write(archive))
         atomic_write_text(staging / "summary.md", markdown)
-        for name in ["summary.json", CELLS, ARCHIVE, *(Path(f).name for f in figures), "summary.md"]:
+        for name in ["summary.json", CELLS]:
+            os.replace(staging / name, dest / name)
+        write_archive(dest, archive, out)
+        for name in [*(Path(f).name for f in figures), "summary.md"]:
             os.replace(staging / name, dest / name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    out(f"wrote {dest}/: summary.json, summary.md, cells.json, episodes.csv.gz and {len(figures)} plot(s) ({where})")
+    out(
+        f"wrote {dest}/: summary.json, summary.md, cells.json, {ARCHIVE_DIR}/ ({len(archive)} file(s)) and "
+        f"{len(figures)} plot(s) ({where})"
+    )
     return summary
 
 
@@ -271,19 +290,17 @@ def _unchanged(
     old: dict[str, Any],
     summary: dict[str, Any],
     cells_text: str,
-    archive: bytes,
     cfg: AblationConfig,
     figures: list[str],
 ) -> bool:
-    """The files in ``dest`` hold this summary already (stamps aside): same data, same text, every plot there."""
+    """The files in ``dest`` hold this summary already (stamps aside): same data, same text, every plot there (the
+    archive: :func:`agents.ablation.archive.stored_as`)."""
     if _strip(old) != json.loads(json.dumps(_strip(summary))):
         return False
     try:
-        same = (
-            (dest / CELLS).read_text(encoding="utf-8") == cells_text
-            and (dest / ARCHIVE).read_bytes() == archive
-            and (dest / "summary.md").read_text(encoding="utf-8")
-            == summary_markdown({**summary, **{k: old.get(k) for k in STAMPS}}, cfg, figures)
+        same = (dest / CELLS).read_text(encoding="utf-8") == cells_text
+        same = same and (dest / "summary.md").read_text(encoding="utf-8") == summary_markdown(
+            {**summary, **{k: old.get(k) for k in STAMPS}}, cfg, figures
         )
     except OSError:
         return False

@@ -61,6 +61,7 @@ def _repo_root() -> Path:
 def committed_grid(root: Path | None = None) -> tuple[Any, dict[tuple[str, str, str], list[Mapping[str, str]]]]:
     """The planner grid's config and its valid evaluated episodes per ``(grid policy, arm, split)`` (rows sorted
     by episode); ``(None, {})`` when the checkout holds no grid (an installed package)."""
+    from agents.ablation.archive import has_archive
     from agents.ablation.config import load_config
     from agents.ablation.results import gather
 
@@ -76,7 +77,7 @@ def committed_grid(root: Path | None = None) -> tuple[Any, dict[tuple[str, str, 
         reuse=tuple(str(root / r) for r in cfg.reuse),
         source=str(path),
     )
-    if not (cfg.out_path() / "episodes.csv.gz").is_file():
+    if not has_archive(cfg.out_path()):
         return cfg, {}
     _records, episodes, _sources = gather(cfg)
     cells = {

@@ -52,3 +52,21 @@ def test_grid_cells_and_command_line(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert out["against"]["grid ppo/mesrnn/0"]["difference"] == pytest.approx(0.25)
     assert out["against"]["grid ppo/mesrnn/1"]["difference"] == pytest.approx(0.25)
     assert main([str(mine), "--cells", "ppo/mesrnn"]) == 2  # cells without a grid file
+
+
+def test_grid_cells_from_a_results_folder_in_either_archive_layout(tmp_path: Path) -> None:
+    from agents.ablation.archive import archive_files, write_archive
+
+    header = ("policy", "arm", "split", "seed", "episode", "outcome")
+    rows = [[policy, "cv", "univ", "", i, "success" if i < k else "collision"] for policy, k in (("a", 1), ("b", 3))
+            for i in range(4)]  # fmt: skip
+    files = archive_files(header, rows)
+    write_archive(tmp_path / "new", files, out=lambda s: None)
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "episodes.csv.gz").write_bytes(files["b.csv.gz"])  # an older single file (of one policy)
+    for grid in (tmp_path / "new", tmp_path / "new" / "episodes", tmp_path / "new" / "episodes" / "b.csv.gz"):
+        assert grid_successes(grid, "b/cv", "univ") == {0: True, 1: True, 2: True, 3: False}, grid
+    assert grid_successes(tmp_path / "old", "b/cv", "univ") == {0: True, 1: True, 2: True, 3: False}
+    assert grid_successes(tmp_path / "new", "a/cv", "univ") == {0: True, 1: False, 2: False, 3: False}
+    with pytest.raises(FileNotFoundError, match="holds no episode archive"):
+        grid_successes(tmp_path, "a/cv", "univ")

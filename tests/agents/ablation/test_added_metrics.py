@@ -77,7 +77,7 @@ def test_episodes_with_the_added_metrics_get_columns_exact_intervals_and_verdict
     assert "difference_ci" not in test
     assert test["difference_exact_ci"] == pytest.approx(list(mcnemar_difference_ci(7, 0, 12)))
     assert test["verdict"] == "better" and test["p_holm"] <= 0.05
-    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:
+    with gzip.open(cfg.out_path() / "episodes" / "planner.csv.gz", "rt") as fh:
         header = fh.readline().strip().split(",")
     assert {"spl", "min_ttc_s", "path_ratio_required"} <= set(header) and "mean_accel_mps2" not in header
     md = (cfg.out_path() / "summary.md").read_text()
@@ -93,7 +93,7 @@ def test_an_archive_without_them_keeps_its_bootstrap_interval_and_columns(tmp_pa
     assert "difference_ci" in test and "difference_exact_ci" not in test and "verdict" not in test
     md = (cfg.out_path() / "summary.md").read_text()
     assert "| min gap m |" in md and "SPL" not in md and "verdict" not in md
-    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:
+    with gzip.open(cfg.out_path() / "episodes" / "planner.csv.gz", "rt") as fh:
         header = fh.readline().strip().split(",")
     assert "spl" not in header and "path_ratio" in header
 

@@ -680,8 +680,7 @@ def test_summary_statistics_on_hand_made_episodes(tmp_path: Path, fakes: Fakes) 
     assert wx["mean_difference"] == pytest.approx(-3.0 / 5)
     assert wx["p_value"] == pytest.approx(sps.wilcoxon([-1.0, -0.5, -0.5, -0.5, -0.5]).pvalue)
 
-    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:
-        archived = list(csv.DictReader(fh))
+    archived = ab.archive.read_rows(cfg.out_path())
     assert len(archived) == 36 and archived[0]["policy"] == "planner" and archived[0]["seed"] == ""
     cv_rows = [r for r in archived if r["arm"] == "cv"]
     assert [r["outcome"][0].upper() for r in cv_rows] == list(cv_outcomes)
@@ -788,7 +787,7 @@ def test_popin_events_are_archived_and_counted_per_cell(tmp_path: Path, fakes: F
     assert (none["popin_episodes"], none["popin_events"]) == (2, 3)
     assert none["by_split"]["zara1"]["popin_episodes"] == 2
     assert summary["policies"]["planner"]["arms"]["oracle"]["popin_episodes"] == 0
-    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:
+    with gzip.open(cfg.out_path() / "episodes" / "planner.csv.gz", "rt") as fh:
         assert next(csv.reader(fh))[-1] == "popin_events"
 
 
@@ -920,7 +919,9 @@ def _planner_grid(tmp_path: Path, arms: tuple[str, ...] = ("none", "cv")) -> tup
 
 
 def _results(cfg: ab.AblationConfig) -> dict[str, bytes]:
-    return {p.name: p.read_bytes() for p in sorted(cfg.out_path().iterdir()) if p.is_file()}
+    """Every result file by its path in ``out_dir`` (the archive's as ``episodes/<policy>.csv.gz``)."""
+    out = cfg.out_path()
+    return {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
 
 
 @pytest.fixture
@@ -936,11 +937,11 @@ def test_summarize_only_in_a_fresh_clone_keeps_the_shipped_results(
     cfg, path = _planner_grid(tmp_path)
     ab.summarize(cfg, out=lambda s: None)
     shipped = _results(cfg)
-    assert {"summary.json", "summary.md", "cells.json", "episodes.csv.gz", "rates_by_arm.png"} <= set(shipped)
+    assert {"summary.json", "summary.md", "cells.json", "episodes/planner.csv.gz", "rates_by_arm.png"} <= set(shipped)
     # summarising the same finished cells again changes no file (not even the time stamp)
-    stamps = {p.name: p.stat().st_mtime_ns for p in cfg.out_path().iterdir()}
+    stamps = {p: p.stat().st_mtime_ns for p in cfg.out_path().rglob("*")}
     ab.summarize(cfg, out=lambda s: None)
-    assert {p.name: p.stat().st_mtime_ns for p in cfg.out_path().iterdir()} == stamps
+    assert {p: p.stat().st_mtime_ns for p in cfg.out_path().rglob("*")} == stamps
     # a fresh clone: the results are committed, the run folders are not
     import shutil
 
@@ -957,8 +958,8 @@ def test_the_archive_alone_rerenders_the_summary_identically(tmp_path: Path, fak
     ab.summarize(cfg, out=lambda s: None)
     shipped = _results(cfg)
     assert {"rates_by_arm.png", "rates_by_density.png"} <= set(shipped)
-    with gzip.open(cfg.out_path() / "episodes.csv.gz", "rt") as fh:  # every value as the evaluation wrote it
-        assert [r["navigation_time_s"] for r in csv.DictReader(fh)][:1] == [repr(10.123456789012345 + 1)]
+    rows = ab.archive.read_rows(cfg.out_path())  # every value as the evaluation wrote it
+    assert [r["navigation_time_s"] for r in rows][:1] == [repr(10.123456789012345 + 1)]
     cells = json.loads((cfg.out_path() / "cells.json").read_text())
     assert cells[0]["attempts"] == [{"started": "2026-01-01T10:00:00+0000", "finished": "2026-01-01T10:00:02+0000"}]
     shutil.rmtree(cfg.runs_path())
@@ -969,6 +970,58 @@ def test_the_archive_alone_rerenders_the_summary_identically(tmp_path: Path, fak
     assert _results(cfg) == shipped
     assert summary["complete"] and summary["wall_time"]["first_start"] == "2026-01-01T10:00:00+00:00"
     assert "2 cell(s) from the archive" in "\n".join(lines)
+
+
+def _to_legacy(folder: Path) -> Path:
+    """Turn the archive in ``folder`` into the older single ``episodes.csv.gz`` its rows once were: the header, then
+    every file's rows in the order of their policies' names."""
+    import shutil
+
+    files = ab.archive.read_files(folder)
+    texts = [gzip.decompress(files[n]).decode() for n in sorted(files, key=ab.archive.archive_policy)]
+    header = texts[0].split("\n", 1)[0] + "\n"
+    legacy = folder / "episodes.csv.gz"
+    legacy.write_bytes(gzip.compress((header + "".join(t.split("\n", 1)[1] for t in texts)).encode(), mtime=0))
+    shutil.rmtree(folder / "episodes")
+    return legacy
+
+
+def test_an_older_single_archive_is_read_and_moved_by_a_summary_that_changes_nothing_else(
+    tmp_path: Path, fakes: Fakes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import shutil
+
+    cfg, path = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None)
+    shipped = _results(cfg)
+    shutil.rmtree(cfg.runs_path())
+    legacy = _to_legacy(cfg.out_path())  # results written before the archive was split per policy
+    other = _other_grid(tmp_path, cfg.out_path())  # another grid reuses them as they are
+    assert {st.cell.name: st.source for st in ab.plan(other)}["eval/zara1/planner/cv"] == str(cfg.out_path())
+    assert ab.main([str(path), "--summarize-only"]) == 0
+    out = capsys.readouterr().out
+    assert f"2 cell(s) from the archive {legacy}" in out and "but for the archive's layout" in out
+    assert f"removed {legacy}" in out
+    assert _results(cfg) == shipped  # every other file untouched (stamps too); the archive as the summary writes it
+
+
+def test_an_older_archive_of_other_episodes_is_left_with_a_warning_and_readers_then_refuse(
+    tmp_path: Path, fakes: Fakes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import shutil
+
+    cfg, path = _planner_grid(tmp_path)
+    ab.summarize(cfg, out=lambda s: None, plots=False)
+    legacy = _to_legacy(cfg.out_path())
+    _fake_done_cell(cfg, "eval/zara1/planner/cv", _episode_rows("CCCC", [1, 1, 1, 1], [1.0, 2.0, 3.0, 4.0]))
+    lines: list[str] = []
+    ab.summarize(cfg, out=lines.append, plots=False)
+    assert legacy.is_file() and any(line.startswith(f"warning: left {legacy} as it is") for line in lines)
+    assert ab.archive.read_files(cfg.out_path())  # the new archive beside it
+    shutil.rmtree(cfg.runs_path())
+    assert ab.main([str(path), "--summarize-only"]) == 2
+    err = capsys.readouterr().err
+    assert f"{cfg.out_path() / 'episodes'}/ (8 rows)" in err and f"older {legacy} (8 rows)" in err
 
 
 def test_an_incomplete_grid_never_replaces_a_complete_summary(
@@ -1140,8 +1193,8 @@ def test_a_cell_done_in_a_reused_grids_results_is_done_here_and_read_from_there(
     for name in ("eval/zara1/planner/none", "eval/zara1/planner/cv"):
         assert ours[name] == {**theirs[name], "from": str(first.out_path())}
         assert (
-            ab.episodes.archive_rows((cfg.out_path() / "episodes.csv.gz").read_bytes())[name]
-            == ab.episodes.archive_rows((first.out_path() / "episodes.csv.gz").read_bytes())[name]
+            ab.episodes.archive_rows(ab.archive.read_rows(cfg.out_path()))[name]
+            == ab.episodes.archive_rows(ab.archive.read_rows(first.out_path()))[name]
         )
     assert "from" not in ours["eval/zara1/planner/oracle"]
     summary = json.loads((cfg.out_path() / "summary.json").read_text())
@@ -1224,9 +1277,10 @@ def test_reused_results_are_tried_in_order_and_a_cell_without_episodes_there_is_
     }
     # the first results lose cv's episodes: cv comes from the second; without them there too it is stale, not done
     for grid in (first, second):
-        with gzip.open(grid.out_path() / "episodes.csv.gz", "rt") as fh:
+        path = grid.out_path() / "episodes" / "planner.csv.gz"
+        with gzip.open(path, "rt") as fh:
             rows = [r for r in csv.DictReader(fh) if r["arm"] != "cv"]
-        with gzip.open(grid.out_path() / "episodes.csv.gz", "wt", newline="") as fh:
+        with gzip.open(path, "wt", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(rows)
@@ -1255,7 +1309,7 @@ def test_replicate_runs_a_reused_cell_afresh(tmp_path: Path, fakes: Fakes) -> No
         ([3], ["'reuse'", "[3]", "a list of other grids'"]),
         (["nowhere"], ["'reuse'", "'nowhere'", "there is no folder 'nowhere'"]),
         (["empty"], ["'reuse'", "'empty'", "cells.json is missing"]),
-        (["no_archive"], ["'reuse'", "episodes.csv.gz is missing"]),
+        (["no_archive"], ["'reuse'", "no_archive/episodes/ is missing"]),
         (["no_archive", "no_archive"], ["'reuse'", "without repeats"]),
         (["results"], ["'reuse'", "own out_dir"]),
     ],
@@ -1271,5 +1325,8 @@ def test_bad_reuse_names_key_value_and_allowed(
         ab.config_from_mapping(_raw(tmp_path, out_dir="results", reuse=reuse))
     for word in words:
         assert word in str(err.value), (word, str(err.value))
+    (tmp_path / "no_archive" / "episodes").mkdir()
+    assert ab.config_from_mapping(_raw(tmp_path, reuse=["no_archive"])).reuse == ("no_archive",)
+    (tmp_path / "no_archive" / "episodes").rmdir()  # the older single file counts too
     (tmp_path / "no_archive" / "episodes.csv.gz").write_bytes(gzip.compress(b""))
     assert ab.config_from_mapping(_raw(tmp_path, reuse=["no_archive"])).reuse == ("no_archive",)
