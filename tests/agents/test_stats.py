@@ -153,6 +153,17 @@ def test_wilcoxon_hand_worked() -> None:
     assert res["mean_difference"] == pytest.approx((1 + 2 + 3 - 4 + 5) / 5)
 
 
+def test_wilcoxon_ties_differences_equal_in_exact_arithmetic() -> None:
+    # times on the 0.4 s control grid: 14.4 - 14.0 and 2.8 - 2.4 are both 0.4, but not in float64
+    assert 14.4 - 14.0 != 2.8 - 2.4
+    a = [14.4, 2.8, 10.8, 5.2, 7.6]
+    b = [14.0, 2.4, 10.0, 6.0, 7.6 + 1e-15]  # differences 0.4, 0.4, 0.8, -0.8, ~0
+    res = wilcoxon_paired(a, b)
+    assert res["n"] == 5 and res["n_nonzero"] == 4  # rounding noise is no difference
+    exact = wilcoxon_paired([2.0, 2.0, 4.0, 1.0], [1.0, 1.0, 2.0, 3.0])  # the same differences x 2.5, exact ties
+    assert res["statistic"] == pytest.approx(exact["statistic"]) and res["p_value"] == pytest.approx(exact["p_value"])
+
+
 def test_wilcoxon_degenerate() -> None:
     none = wilcoxon_paired([], [])
     assert none["n"] == 0 and none["p_value"] == 1.0 and math.isnan(none["median_difference"])
