@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import gzip
 import json
 import sys
 from collections.abc import Mapping, Sequence
@@ -50,8 +49,11 @@ def grid_rows(path: str | Path) -> list[dict[str, str]]:
         if not has_archive(folder):
             raise FileNotFoundError(f"{path} holds no episode archive ({ARCHIVE_DIR}/ or episodes.csv.gz)")
         return read_rows(folder)
-    opener = gzip.open if path.name.endswith(".gz") else open
-    with opener(path, "rt", newline="", encoding="utf-8") as fh:
+    if path.name.endswith(".gz"):
+        from agents.ablation.archive import read_file
+
+        return read_file(path)  # a damaged file: an error naming it
+    with open(path, newline="", encoding="utf-8") as fh:
         return list(csv.DictReader(fh))
 
 

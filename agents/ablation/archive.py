@@ -27,9 +27,12 @@ Rules
       Otherwise :class:`ArchiveConflict` names both.
     - Writing (:func:`write_archive`) writes each file atomically. A folder without ``episodes/`` gets the whole folder
       at once: it is written beside under a temporary name, then renamed.
-    - Nothing is deleted that the writer did not create. The older ``episodes.csv.gz`` is removed only when its rows
-      are exactly the new files' rows, read back from disk; it is then the grid's own earlier archive. Otherwise it is
-      left, with a warning, and readers refuse the folder until one of the two is removed. A file in ``episodes/``
+    - Nothing is deleted that the writer did not create. The older ``episodes.csv.gz`` is removed only when the new
+      files, read back from disk, hold every one of its rows with every value (exactly its rows, or more: a grid that
+      grew); removing it then loses nothing. Otherwise it is left, with a warning, and readers refuse the folder until
+      one of the two is removed.
+    - Every file is read whole and checked: a file that is empty, not gzip, or has a row with more or fewer fields than
+      its header, or a header other than the other files', is an error naming it (and the line). A file in ``episodes/``
       that this write did not produce is left too, with a warning (a policy no longer in the grid).
 """
 
@@ -43,6 +46,8 @@ import shutil
 import string
 import tempfile
 import urllib.parse
+import zlib
+from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Final
@@ -121,13 +126,42 @@ def archive_files(header: Sequence[str], rows: Iterable[Sequence[object]]) -> di
     return {archive_name(policy): _gzip_csv(header, groups[policy]) for policy in sorted(groups)}
 
 
-def _table(data: bytes, where: str | os.PathLike[str]) -> Rows:
-    """The rows of a gzipped CSV (one dict per row, in the header's column order)."""
+def _text(data: bytes, where: str | os.PathLike[str]) -> str:
+    """The text of a gzipped UTF-8 file; :class:`ValueError` naming ``where`` when it is not one (or is empty)."""
     try:
         text = gzip.decompress(data).decode("utf-8")
-    except (OSError, EOFError, UnicodeDecodeError) as exc:
+    except (OSError, EOFError, UnicodeDecodeError, zlib.error) as exc:
         raise ValueError(f"{where}: not a gzipped UTF-8 CSV ({exc})") from None
-    return list(csv.DictReader(io.StringIO(text)))
+    if not text.strip():
+        raise ValueError(f"{where}: empty{' (0 bytes)' if not data else ''}: not a gzipped CSV with a header line")
+    return text
+
+
+def _table(data: bytes, where: str | os.PathLike[str]) -> Rows:
+    """The rows of a gzipped CSV (one dict per row, in the header's column order). Raises :class:`ValueError` naming
+    the file, and the line for a row with more or fewer fields than the header."""
+    return _header_rows(data, where)[1]
+
+
+def read_file(path: str | os.PathLike[str]) -> Rows:
+    """The rows of one gzipped CSV of an archive (or any gzipped episode CSV), checked as :func:`_table` checks them:
+    a damaged, empty or ragged file is a :class:`ValueError` naming it."""
+    return _table(Path(path).read_bytes(), path)
+
+
+def _header_rows(data: bytes, where: str | os.PathLike[str]) -> tuple[list[str], Rows]:
+    reader = csv.DictReader(io.StringIO(_text(data, where)))
+    rows: Rows = []
+    try:
+        for row in reader:
+            if None in row or None in row.values():
+                raise ValueError(
+                    f"{where}: line {reader.line_num} does not have the header's {len(reader.fieldnames or ())} fields"
+                )
+            rows.append(row)
+    except csv.Error as exc:
+        raise ValueError(f"{where}: line {reader.line_num}: {exc}") from None
+    return list(reader.fieldnames or ()), rows
 
 
 def files_rows(files: Mapping[str, bytes], where: str | os.PathLike[str] = ARCHIVE_DIR) -> Rows:
@@ -135,8 +169,16 @@ def files_rows(files: Mapping[str, bytes], where: str | os.PathLike[str] = ARCHI
     :class:`ValueError` naming the file (in folder ``where``) for a name that is no policy's, or a row of another
     policy."""
     rows: Rows = []
+    first: tuple[str, list[str]] | None = None
     for policy, name in sorted((archive_policy(name), name) for name in files):
-        table = _table(files[name], f"{where}/{name}")
+        header, table = _header_rows(files[name], f"{where}/{name}")
+        if first is None:
+            first = (name, header)
+        elif header != first[1]:
+            raise ValueError(
+                f"{where}/{name}: its header {header} differs from that of {where}/{first[0]} {first[1]}; every file "
+                "of an archive has the same columns"
+            )
         for i, row in enumerate(table, start=1):
             if row.get(POLICY_COLUMN) != policy:
                 raise ValueError(
@@ -192,9 +234,13 @@ def read_rows(folder: str | os.PathLike[str]) -> Rows:
     if new is not None and old is not None and not same_rows(new, old):
         raise ArchiveConflict(
             f"{folder} holds two episode archives that differ: {folder / ARCHIVE_DIR}/ ({len(new)} rows) and the older "
-            f"{legacy} ({len(old)} rows); {_first_difference(new, old)}. Remove the one that does not belong with "
-            f"{folder / 'cells.json'}. An interrupted move leaves {ARCHIVE_DIR}/ incomplete. A summary of other "
-            f"episodes leaves the older file, with a warning."
+            f"{legacy} ({len(old)} rows); {_first_difference(new, old)}. "
+            + (
+                f"Every row of {legacy} is in {ARCHIVE_DIR}/: remove {legacy}."
+                if _holds(new, old)
+                else f"Remove the one that does not belong with {folder / 'cells.json'}. A summary of other episodes "
+                "leaves the older file, with a warning."
+            )
         )
     return new if new is not None else old or []
 
@@ -262,12 +308,32 @@ def settle_legacy(folder: str | os.PathLike[str], rows: Rows, out: Callable[[str
         legacy.unlink()
         out(f"removed {legacy}: its {len(old)} rows are exactly those of {target}/, which now holds them per policy")
         return True
+    if _holds(rows, old):
+        legacy.unlink()
+        out(
+            f"removed {legacy}: each of its {len(old)} rows is in {target}/ ({len(rows)} rows), every value as there; "
+            "nothing of it is lost"
+        )
+        return True
     out(
         f"warning: left {legacy} as it is: its rows differ from those of {target}/ ({_first_difference(old, rows)}), "
         f"so it is not this archive's earlier form. Readers refuse {folder} while it holds both; remove the older file "
         "once you no longer need it."
     )
     return False
+
+
+def _holds(new: Rows, old: Rows) -> bool:
+    """Every row of ``old`` is a distinct row of ``new``, with the same value in each of ``old``'s columns (``new`` may
+    have more rows, and more columns): removing ``old`` loses nothing."""
+    if not old:
+        return True
+    columns = list(old[0])
+    if not new or not set(columns) <= set(new[0]):
+        return False
+    need = Counter(tuple(r.get(c) for c in columns) for r in old)
+    have = Counter(tuple(r.get(c) for c in columns) for r in new)
+    return all(have[k] >= n for k, n in need.items())
 
 
 def split_legacy(folder: str | os.PathLike[str], out: Callable[[str], None] = print) -> dict[str, bytes]:
@@ -282,8 +348,7 @@ def split_legacy(folder: str | os.PathLike[str], out: Callable[[str], None] = pr
     legacy = folder / LEGACY_ARCHIVE
     if not legacy.is_file():
         raise FileNotFoundError(f"{legacy} does not exist: nothing to split")
-    data = gzip.decompress(legacy.read_bytes()).decode("utf-8")
-    header, *rows = list(csv.reader(io.StringIO(data)))
+    header, *rows = list(csv.reader(io.StringIO(_text(legacy.read_bytes(), legacy))))
     if POLICY_COLUMN not in header:
         raise ValueError(f"{legacy}: no {POLICY_COLUMN!r} column in its header {header}")
     files = archive_files(header, rows)

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
-from agents.ablation.archive import ARCHIVE_DIR, LEGACY_ARCHIVE, has_archive
+from agents.ablation.archive import ARCHIVE_DIR, LEGACY_ARCHIVE, archive_name, has_archive
 from agents.evaluation import EPISODE_SOURCES
 from crowdnav_mesrnn import predictors
 from crowdnav_mesrnn.config import ConfigError, check_keys, existing_config, load_yaml
@@ -555,12 +555,32 @@ def _noisy_label(ade: float) -> str:
     return f"noisy_oracle-{ade:g}"
 
 
+#: Longest file name (bytes) of a policy's episode archive file (``episodes/<name>.csv.gz``, percent-encoded): file
+#: systems allow 255, and an atomic write adds a temporary suffix.
+MAX_ARCHIVE_NAME_BYTES: Final[int] = 200
+
+
+def _policy_name(name: Any) -> None:
+    """A policy name a grid can run: a non-empty string without ``/`` whose archive file name fits
+    :data:`MAX_ARCHIVE_NAME_BYTES` -- checked when the config loads, not after hours of cells."""
+    if not isinstance(name, str) or not name.strip() or "/" in name:
+        raise _bad("policies", name, "policy names that are non-empty strings without '/' (they name cells and files)")
+    if len(archive_name(name).encode()) > MAX_ARCHIVE_NAME_BYTES:
+        raise _bad(
+            "policies",
+            name,
+            f"a shorter policy name: its episode file name {archive_name(name)!r} would exceed "
+            f"{MAX_ARCHIVE_NAME_BYTES} bytes",
+        )
+
+
 def _policies(value: Any) -> tuple[PolicySpec, ...]:
     if not isinstance(value, dict) or not value:
         raise _bad("policies", value, "a mapping of policy names to {kind: " + "|".join(POLICY_KINDS) + ", ...}")
     out = []
     for name, spec in value.items():
         where = f"policies.{name}"
+        _policy_name(name)
         if not isinstance(spec, dict):
             raise _bad(where, spec, "a mapping with keys " + ", ".join(_POLICY_KEYS))
         check_keys(spec, _POLICY_KEYS, f"ablation config {where!r}")

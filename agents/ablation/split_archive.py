@@ -16,7 +16,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from agents.ablation.archive import ARCHIVE_DIR, split_legacy
+from agents.ablation.archive import ARCHIVE_DIR, LEGACY_ARCHIVE, split_legacy
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,6 +25,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_from_args(args: argparse.Namespace) -> int:
     for folder in args.folders:
+        if not (Path(folder) / LEGACY_ARCHIVE).exists() and (Path(folder) / ARCHIVE_DIR).is_dir():
+            print(f"{Path(folder) / ARCHIVE_DIR}/: split already (no {LEGACY_ARCHIVE}); left as it is")
+            continue
         files = split_legacy(folder)
         largest = max(files, key=lambda name: len(files[name]), default="")
         print(

@@ -271,10 +271,8 @@ def summarize(
         atomic_write_json(staging / "summary.json", summary)
         atomic_write_text(staging / CELLS, cells_text)
         atomic_write_text(staging / "summary.md", markdown)
-        for name in ["summary.json", CELLS]:
-            os.replace(staging / name, dest / name)
-        write_archive(dest, archive, out)
-        for name in [*(Path(f).name for f in figures), "summary.md"]:
+        write_archive(dest, archive, out)  # the data first: a failure here replaces nothing else
+        for name in ["summary.json", CELLS, *(Path(f).name for f in figures), "summary.md"]:
             os.replace(staging / name, dest / name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)

@@ -162,7 +162,9 @@ def test_both_layouts_that_disagree_raise_naming_both_files(tmp_path: Path) -> N
 def test_the_older_file_is_removed_only_when_it_holds_the_new_files_rows(tmp_path: Path) -> None:
     rows = _table()
     lines: list[str] = []
-    for folder, old in (("same", rows), ("other", rows[:-1])):
+    changed = [list(r) for r in rows]
+    changed[7][5] = "timeout"  # a row the new files do not hold (rows[:-1] they all hold: that file is removed)
+    for folder, old in (("same", rows), ("other", changed)):
         _legacy(tmp_path / folder, old)
         write_archive(tmp_path / folder, archive_files(HEADER, rows), out=lines.append)
     assert not (tmp_path / "same" / LEGACY_ARCHIVE).exists()
@@ -186,7 +188,10 @@ def test_an_older_archive_is_split_row_for_row(tmp_path: Path, capsys: pytest.Ca
     assert f"{tmp_path / ARCHIVE_DIR}/: 5 file(s), the largest" in capsys.readouterr().out
     assert not (tmp_path / LEGACY_ARCHIVE).exists()
     assert read_rows(tmp_path) == _dicts(rows, header)
-    assert split_main([str(tmp_path)]) == 2  # nothing left to split
+    assert split_main([str(tmp_path)]) == 0  # split already: said, and left (a glob of folders goes on)
+    assert "split already" in capsys.readouterr().out
+    assert read_rows(tmp_path) == _dicts(rows, header)
+    assert split_main([str(tmp_path / "nothing here")]) == 2  # neither layout: nothing to split
     assert "does not exist" in capsys.readouterr().err
 
 
@@ -203,3 +208,53 @@ def test_an_older_archive_is_not_split_when_that_would_reorder_or_replace_rows(t
         split_legacy(tmp_path / "both")
     assert (tmp_path / "both" / LEGACY_ARCHIVE).is_file()
     assert _dicts(rows[1:]) == [r for name in sorted(files) for r in _read(tmp_path / "both" / ARCHIVE_DIR / name)]
+
+
+# ----------------------------------------------------------------------------- audit: damaged files, growth
+
+
+@pytest.mark.parametrize(
+    ("damage", "match"),
+    [
+        (lambda b: b"", r"p\.csv\.gz: empty \(0 bytes\)"),
+        (lambda b: gzip.compress(b""), r"p\.csv\.gz: empty"),
+        (lambda b: b[:30] + bytes([b[30] ^ 0x55]) + b[31:], r"p\.csv\.gz: not a gzipped UTF-8 CSV"),
+        (lambda b: gzip.compress(gzip.decompress(b).replace(b"\n", b",x\n", 2)), r"p\.csv\.gz: line 3 does not have"),
+        (lambda b: gzip.compress(gzip.decompress(b).replace(b"navigation_time_s", b"nav_time")), r"header .* differs"),
+    ],
+)
+def test_a_damaged_file_is_refused_naming_it(tmp_path: Path, damage, match: str) -> None:
+    rows = [["o", "cv", "zara1", "", str(ep), "success", "1.5"] for ep in range(40)]
+    rows += [["p", "cv", "zara1", "", str(ep), "success", str(ep / 7)] for ep in range(40)]
+    write_archive(tmp_path, archive_files(HEADER, rows), out=lambda s: None)
+    path = tmp_path / ARCHIVE_DIR / "p.csv.gz"
+    path.write_bytes(damage(path.read_bytes()))
+    with pytest.raises(ValueError, match=match):
+        read_rows(tmp_path)
+
+
+def test_an_older_file_whose_rows_the_new_archive_all_holds_is_removed(tmp_path: Path) -> None:
+    old = _table(("planner@none",))
+    _legacy(tmp_path, old)
+    lines: list[str] = []
+    write_archive(tmp_path, archive_files(HEADER, _table()), out=lines.append)  # the grid grew by policies
+    assert not (tmp_path / LEGACY_ARCHIVE).exists() and "nothing of it is lost" in lines[-1]
+    assert read_rows(tmp_path) == _dicts(_table())
+
+
+@pytest.mark.parametrize("name", ["", "a/b", "P" * 90])
+def test_a_policy_name_no_archive_file_can_hold_is_refused_when_the_config_loads(name: str) -> None:
+    from agents.ablation import config_from_mapping
+    from crowdnav_mesrnn.config import ConfigError
+
+    with pytest.raises(ConfigError, match="'policies'"):
+        config_from_mapping(
+            {
+                "name": "names",
+                "splits": ["zara1"],
+                "arms": ["cv"],
+                "seeds": [0],
+                "policies": {name: {"kind": "planner"}},
+                "evaluation": {"episodes": 2, "seed": 0},
+            }
+        )
