@@ -341,8 +341,9 @@ def split_legacy(folder: str | os.PathLike[str], out: Callable[[str], None] = pr
     anything. The header and every value stay as they are (an archive too old for a re-render keeps its columns and
     rounding). The older file is removed once the new files read back its rows exactly. Returns the files.
 
-    Raises :class:`FileNotFoundError` when there is no older file. Raises :class:`ValueError` when its rows are not in
-    the order of their policies' names (splitting would reorder them), and :class:`ArchiveConflict` when
+    Raises :class:`FileNotFoundError` when there is no older file. Raises :class:`ValueError` when it holds no row
+    (the files would not keep its header) or its rows are not in the order of their policies' names (splitting would
+    reorder them), and :class:`ArchiveConflict` when
     ``episodes/`` is there already with other rows. Nothing is written in these cases."""
     folder = Path(folder)
     legacy = folder / LEGACY_ARCHIVE
@@ -351,6 +352,10 @@ def split_legacy(folder: str | os.PathLike[str], out: Callable[[str], None] = pr
     header, *rows = list(csv.reader(io.StringIO(_text(legacy.read_bytes(), legacy))))
     if POLICY_COLUMN not in header:
         raise ValueError(f"{legacy}: no {POLICY_COLUMN!r} column in its header {header}")
+    if not rows:
+        raise ValueError(
+            f"{legacy}: a header and no episode: nothing to split (its columns would be lost); left as it is"
+        )
     files = archive_files(header, rows)
     old = _table(legacy.read_bytes(), legacy)
     if not same_rows(files_rows(files), old):

@@ -258,3 +258,10 @@ def test_a_policy_name_no_archive_file_can_hold_is_refused_when_the_config_loads
                 "evaluation": {"episodes": 2, "seed": 0},
             }
         )
+
+
+def test_an_older_archive_of_a_header_alone_is_not_split(tmp_path: Path) -> None:
+    legacy = _legacy(tmp_path, [])
+    with pytest.raises(ValueError, match="no episode: nothing to split"):
+        split_legacy(tmp_path)
+    assert legacy.is_file() and not (tmp_path / ARCHIVE_DIR).exists()  # left whole, nothing written
