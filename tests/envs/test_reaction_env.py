@@ -159,6 +159,7 @@ def test_none_makes_no_crowd_and_has_no_snapshot() -> None:
 # ---------------------------------------------------------------------------------------------- every value, every arm
 
 
+@pytest.mark.slow  # 3-6 s: the quick suite stays under 5 minutes (README, Development)
 @pytest.mark.parametrize("reaction", REACTION_MODELS)
 def test_every_reaction_runs_with_every_arm_and_passes_the_checkers(
     reaction: str, data_dir: Path, tiny_learned_predictor: Callable

@@ -71,6 +71,7 @@ def test_demo_on_the_synthetic_crowd(tmp_path: Path, capsys: pytest.CaptureFixtu
         assert gif.n_frames > 5
 
 
+@pytest.mark.slow  # 3-6 s: the quick suite stays under 5 minutes (README, Development)
 def test_demo_on_a_held_out_scene(data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "demo.gif"
     assert main(["demo", "--split", "zara1", "--data-dir", str(data_dir), "--out", str(out), "--json"]) == 0

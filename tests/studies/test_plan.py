@@ -196,6 +196,7 @@ def test_execute_is_resumable_and_exports_the_best_seed(
     assert "| VLSTM | a |" in "\n".join(render_seeds(res))
 
 
+@pytest.mark.slow  # 3-6 s: the quick suite stays under 5 minutes (README, Development)
 def test_dry_run_lists_every_run_with_a_cpu_estimate(tmp_path: Path, data_dir: Path) -> None:
     from crowdnav_mesrnn.studies.plan_budget import dry_run
 

@@ -45,6 +45,7 @@ def test_density_edges_are_labelled_as_whole_pedestrians() -> None:
     assert [_edge(v) for v in (0.0, 5.0, 23.0, 2.5)] == ["0", "5", "23", "2.5"]
 
 
+@pytest.mark.slow  # 3-6 s: the quick suite stays under 5 minutes (README, Development)
 def test_plots_of_the_committed_summary_have_one_legend_outside_the_panels(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

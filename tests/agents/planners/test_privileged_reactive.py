@@ -81,6 +81,7 @@ def test_its_plan_is_what_happens_bit_for_bit_and_keeps_clear(model: str) -> Non
     assert planner.stats.plans == 2 and planner.stats.found == 2 and planner.stats.escapes == 0
 
 
+@pytest.mark.slow  # 3-6 s: the quick suite stays under 5 minutes (README, Development)
 def test_no_collision_in_replayed_episodes_whose_plans_are_contact_free(data_dir: Path) -> None:
     env = CrowdNavEnv(predictor="none", split="zara1", part="test", reaction="orca", data_dir=str(data_dir))
     planner = make_planner("privileged", env.config, reactive=True, env=env)

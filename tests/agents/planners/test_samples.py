@@ -64,6 +64,7 @@ def test_options_and_the_key_are_checked() -> None:
         SearchPlanner(CFG, samples=True, sample_share=1.5)
 
 
+@pytest.mark.slow  # 3-6 s: the quick suite stays under 5 minutes (README, Development)
 def test_on_replayed_scenes_equal_samples_give_the_point_plans_and_runs_repeat(data_dir: Path) -> None:
     """Observations of a cv_gaussian episode (batched): with every sample replaced by the forecast the samples planner
     chooses as the point planner does; with the drawn samples, the same episode twice gives the same actions."""

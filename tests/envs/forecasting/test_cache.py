@@ -191,6 +191,7 @@ print(json.dumps({"computed": f.chunks_computed, "loaded": f.chunks_loaded}))
 """
 
 
+@pytest.mark.slow  # 3-6 s: the quick suite stays under 5 minutes (README, Development)
 def test_carried_forecasts_are_computed_once_by_processes_started_together(tmp_path: Path) -> None:
     """A carried-memory pass computes every chunk of a recording at once: a process needing another chunk must
     wait for it rather than run the whole pass again (each SubprocVecEnv worker did)."""
