@@ -266,7 +266,7 @@ def write_archive(
     """Write ``files`` (:func:`archive_files`) into ``folder``'s ``episodes/`` (the module's *Rules*). Each file is
     written atomically, and only where its bytes differ; a folder without ``episodes/`` gets it whole. Then: files
     there that ``files`` does not name are left, with a warning; the older ``episodes.csv.gz`` is removed when its rows
-    are exactly the files' (:func:`settle_legacy`)."""
+    are all in the files (:func:`settle_legacy`)."""
     folder = Path(folder)
     target = folder / ARCHIVE_DIR
     if not target.exists():
@@ -296,8 +296,9 @@ def write_archive(
 
 
 def settle_legacy(folder: str | os.PathLike[str], rows: Rows, out: Callable[[str], None] = print) -> bool:
-    """Remove ``folder``'s older ``episodes.csv.gz`` when its rows are exactly ``rows`` (the rows of the new files
-    on disk: it is then the grid's own earlier archive) and say so. Otherwise leave it and say why in a warning.
+    """Remove ``folder``'s older ``episodes.csv.gz`` when its rows are exactly ``rows`` (the rows of the new files on
+    disk: it is then the grid's own earlier archive), or every one of them is among ``rows`` with every value (a grid
+    that grew: removing it loses nothing), and say so. Otherwise leave it and say why in a warning.
     Returns whether it was removed (``False`` also when there is none)."""
     legacy = Path(folder) / LEGACY_ARCHIVE
     if not legacy.is_file():

@@ -137,8 +137,8 @@ def summarize(
     The statistics are computed from the episode archive as written (so the committed results alone render
     the same summary again). Every file is rendered before any is replaced; when only the stamps (code
     version, time) would change, nothing is written, and when only the archive's layout would (the older single
-    ``episodes.csv.gz``, the same rows), only the archive is. An older ``episodes.csv.gz`` is removed when its rows are
-    exactly the new archive's, else left with a warning (:func:`agents.ablation.archive.write_archive`). Raises
+    ``episodes.csv.gz``, the same rows), only the archive is. An older ``episodes.csv.gz`` is removed when the new archive
+    holds every one of its rows, else left with a warning (:func:`agents.ablation.archive.write_archive`). Raises
     :class:`agents.ablation.results.ResultsKept` (files untouched) when the new summary would hold less than the
     existing one, or -- drawn from the committed archive alone -- differ from it; ``force`` replaces them anyway.
     """
