@@ -41,7 +41,7 @@ def grid_rows(path: str | Path) -> list[dict[str, str]]:
     """The episodes of an ablation grid's archive: a results folder (``results/ablation/<name>``, either layout of
     :mod:`agents.ablation.archive`), its ``episodes/`` folder, or one CSV file (``.csv`` or ``.csv.gz``: the older
     single ``episodes.csv.gz``, or one policy's file)."""
-    from agents.ablation.archive import ARCHIVE_DIR, has_archive, read_rows
+    from agents.ablation.archive import ARCHIVE_DIR, has_archive, read_file, read_rows
 
     path = Path(path)
     if path.is_dir():
@@ -50,8 +50,6 @@ def grid_rows(path: str | Path) -> list[dict[str, str]]:
             raise FileNotFoundError(f"{path} holds no episode archive ({ARCHIVE_DIR}/ or episodes.csv.gz)")
         return read_rows(folder)
     if path.name.endswith(".gz"):
-        from agents.ablation.archive import read_file
-
         return read_file(path)  # a damaged file: an error naming it
     with open(path, newline="", encoding="utf-8") as fh:
         return list(csv.DictReader(fh))

@@ -230,7 +230,7 @@ def read_rows(folder: str | os.PathLike[str]) -> Rows:
     folder = Path(folder)
     legacy = folder / LEGACY_ARCHIVE
     new = files_rows(read_files(folder), folder / ARCHIVE_DIR) if (folder / ARCHIVE_DIR).is_dir() else None
-    old = _table(legacy.read_bytes(), legacy) if legacy.is_file() else None
+    old = _table(data, legacy) if legacy.is_file() else None
     if new is not None and old is not None and not same_rows(new, old):
         raise ArchiveConflict(
             f"{folder} holds two episode archives that differ: {folder / ARCHIVE_DIR}/ ({len(new)} rows) and the older "
@@ -303,7 +303,7 @@ def settle_legacy(folder: str | os.PathLike[str], rows: Rows, out: Callable[[str
     legacy = Path(folder) / LEGACY_ARCHIVE
     if not legacy.is_file():
         return False
-    old = _table(legacy.read_bytes(), legacy)
+    old = _table(data, legacy)
     target = Path(folder) / ARCHIVE_DIR
     if same_rows(old, rows):
         legacy.unlink()
@@ -350,7 +350,8 @@ def split_legacy(folder: str | os.PathLike[str], out: Callable[[str], None] = pr
     legacy = folder / LEGACY_ARCHIVE
     if not legacy.is_file():
         raise FileNotFoundError(f"{legacy} does not exist: nothing to split")
-    header, *rows = list(csv.reader(io.StringIO(_text(legacy.read_bytes(), legacy))))
+    data = legacy.read_bytes()
+    header, *rows = list(csv.reader(io.StringIO(_text(data, legacy))))
     if POLICY_COLUMN not in header:
         raise ValueError(f"{legacy}: no {POLICY_COLUMN!r} column in its header {header}")
     if not rows:
@@ -358,7 +359,7 @@ def split_legacy(folder: str | os.PathLike[str], out: Callable[[str], None] = pr
             f"{legacy}: a header and no episode: nothing to split (its columns would be lost); left as it is"
         )
     files = archive_files(header, rows)
-    old = _table(legacy.read_bytes(), legacy)
+    old = _table(data, legacy)
     if not same_rows(files_rows(files), old):
         raise ValueError(
             f"{legacy}: its rows are not in the order of their policies' names, so the files of {ARCHIVE_DIR}/ would "
