@@ -230,7 +230,7 @@ def read_rows(folder: str | os.PathLike[str]) -> Rows:
     folder = Path(folder)
     legacy = folder / LEGACY_ARCHIVE
     new = files_rows(read_files(folder), folder / ARCHIVE_DIR) if (folder / ARCHIVE_DIR).is_dir() else None
-    old = _table(data, legacy) if legacy.is_file() else None
+    old = _table(legacy.read_bytes(), legacy) if legacy.is_file() else None
     if new is not None and old is not None and not same_rows(new, old):
         raise ArchiveConflict(
             f"{folder} holds two episode archives that differ: {folder / ARCHIVE_DIR}/ ({len(new)} rows) and the older "
