@@ -303,7 +303,7 @@ def settle_legacy(folder: str | os.PathLike[str], rows: Rows, out: Callable[[str
     legacy = Path(folder) / LEGACY_ARCHIVE
     if not legacy.is_file():
         return False
-    old = _table(data, legacy)
+    old = _table(legacy.read_bytes(), legacy)
     target = Path(folder) / ARCHIVE_DIR
     if same_rows(old, rows):
         legacy.unlink()
