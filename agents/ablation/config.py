@@ -115,6 +115,9 @@ CELL_STATES: Final[tuple[str, ...]] = ("done", "partial", "stale", "todo")
 #: A grid's committed results (``out_dir``): every cell's record (``cells.json``) and every evaluated episode, values as
 #: written (``episodes/``, one file per policy: :mod:`agents.ablation.archive`); :mod:`agents.ablation.results`.
 RESULTS_CELLS: Final[str] = "cells.json"
+#: The older single episode archive's name (:data:`agents.ablation.archive.LEGACY_ARCHIVE`), kept for imports written
+#: before the archive became ``episodes/``; readers still accept that file.
+RESULTS_ARCHIVE: Final[str] = LEGACY_ARCHIVE
 
 
 _TOP_KEYS: Final[tuple[str, ...]] = (

@@ -49,6 +49,8 @@ from crowdnav_mesrnn.config import ConfigError
 STAMPS: Final[tuple[str, ...]] = ("code_version", "generated")
 
 CELLS: Final[str] = RESULTS_CELLS
+#: The older single archive's name, kept for imports written before ``episodes/`` (see ``config.RESULTS_ARCHIVE``).
+ARCHIVE: Final[str] = LEGACY_ARCHIVE
 
 
 class ResultsKept(Exception):
