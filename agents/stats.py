@@ -25,6 +25,7 @@ import numpy as np
 from scipy import optimize, stats
 
 __all__ = [
+    "DIFFERENCE_DECIMALS",
     "VERDICTS",
     "bootstrap_mean_ci",
     "holm",
@@ -35,7 +36,6 @@ __all__ = [
     "paired_seed_test",
     "paired_verdict",
     "welch_seed_test",
-    "DIFFERENCE_DECIMALS",
     "wilcoxon_paired",
     "wilson_interval",
 ]

@@ -88,7 +88,7 @@ def partly_recorded(episodes: _Episodes) -> tuple[str, ...]:
     from agents.rollout import ADDED_METRICS
 
     recorded: dict[tuple[str, int | None], bool] = {}
-    for (split, seed, _), row in zip(episodes.keys, episodes.rows):
+    for (split, seed, _), row in zip(episodes.keys, episodes.rows, strict=True):
         has = bool(str(row.get("spl") or "").strip())
         recorded[(split, seed)] = recorded.get((split, seed), False) or has
     return ADDED_METRICS if len(set(recorded.values())) == 2 else ()
