@@ -329,7 +329,8 @@ def paired_seed_test(
     t_{n-1} sd(d) / sqrt(n)``). With a single value on one side (a deterministic planner, evaluated once on the
     same episodes): the other side's per-seed rates minus that fixed rate, the same one-sample test. ``n_a``,
     ``n_b`` count the values; a pair with a non-finite value is dropped. Without two differences, or with identical
-    ones, there is nothing to test from: ``p_value`` and the interval are ``nan`` and ``note`` says why.
+    ones (equal to :data:`DIFFERENCE_DECIMALS` decimals), there is nothing to test from: ``p_value`` and the interval
+    are ``nan`` and ``note`` says why.
 
     Raises:
         ValueError: both sides have several values but not the same number (they cannot be paired by seed).
@@ -350,7 +351,10 @@ def paired_seed_test(
     n = int(d.size)
     diff = float(d.mean()) if n else math.nan
     out["difference"] = diff
-    if n < 2 or float(d.std(ddof=1)) == 0.0:
+    # identical differences up to rounding noise: rates k / n of different seeds give differences equal in exact
+    # arithmetic but not in float64 (416/500 - 407/500 != 410/500 - 401/500), whose spread of 1e-17 would make t
+    # about 1e15 (as :func:`wilcoxon_paired` rounds before ranking)
+    if n < 2 or float(np.ptp(np.round(d, DIFFERENCE_DECIMALS))) == 0.0:
         return _untestable(out, "no variance between seeds (fewer than two seeds, or identical differences)")
     res = stats.ttest_1samp(d, 0.0)
     se = float(d.std(ddof=1)) / math.sqrt(n)

@@ -248,3 +248,18 @@ def test_paired_seed_test_fixed_side_and_degenerate_inputs() -> None:
         out = paired_seed_test(a, b)
         assert math.isnan(out["p_value"]) and "no variance" in out["note"]
     assert "no seeds" in paired_seed_test([], [0.5])["note"]
+
+
+def test_paired_seed_test_differences_equal_in_exact_arithmetic() -> None:
+    # per-seed rates over 500 episodes, every seed of a 9 episodes above its seed of b: identical differences, so
+    # there is no variance to test from -- but 416/500 - 407/500 and 410/500 - 401/500 differ in the last bit, which
+    # made t about 1e15 and p about 1e-59 (a "significant" seed-level test out of rounding noise)
+    a = np.array([416, 410, 426, 491, 474]) / 500
+    b = np.array([407, 401, 417, 482, 465]) / 500
+    assert len(set((a - b).tolist())) > 1
+    out = paired_seed_test(a, b)
+    assert math.isnan(out["p_value"]) and "no variance" in out["note"]
+    assert out["difference"] == pytest.approx(9 / 500) and all(math.isnan(v) for v in out["difference_ci"])
+    # a real spread of the differences is still tested
+    c = np.array([417, 410, 426, 491, 474]) / 500
+    assert paired_seed_test(c, b)["p_value"] == pytest.approx(sps.ttest_rel(c, b).pvalue)
