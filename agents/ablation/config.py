@@ -120,6 +120,9 @@ RESULTS_CELLS: Final[str] = "cells.json"
 RESULTS_ARCHIVE: Final[str] = LEGACY_ARCHIVE
 
 
+#: ``test_unit`` values (:attr:`AblationConfig.test_unit`).
+TEST_UNITS: Final[tuple[str, ...]] = ("pair", "episode")
+
 _TOP_KEYS: Final[tuple[str, ...]] = (
     "name",
     "description",
@@ -139,6 +142,7 @@ _TOP_KEYS: Final[tuple[str, ...]] = (
     "density_bins",
     "alpha",
     "power",
+    "test_unit",
     "estimates",
     "reuse",
 )
@@ -331,6 +335,14 @@ class AblationConfig:
     a list = bin edges (pedestrians within sensor range)."""
     alpha: float = 0.05
     power: float = 0.8
+    test_unit: str = "pair"
+    """The unit of a paired test where a side has training seeds (:data:`TEST_UNITS`). ``pair`` (the default, every
+    grid declared before ``learned_v2``): two seeded policies pair (seed, episode) and are tested by exact McNemar,
+    navigation time by Wilcoxon over (seed, episode) pairs (against a planner too). ``episode``: the episode is the
+    unit, since the seeds replay the same episodes and which episodes one side wins repeats across seeds: success by
+    the exact sign-flip test of each episode's successes summed over the seeds (as a seeded policy against a planner
+    already is in both), navigation time by Wilcoxon over each episode's mean difference over the seeds both sides
+    finished (:func:`agents.ablation.stats.paired_tests`). Two policies without seeds are tested alike in both."""
     train_steps_per_s: Mapping[str, float] = field(default_factory=lambda: {"default": 1000.0})
     """Fallback training throughputs per ``<policy name>/<arm label>``, arm label, arm source or policy name, looked up
     in that order (``default`` for the others), env steps/s."""
@@ -898,6 +910,9 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
         bins = tuple(float(v) for v in bins)
     else:
         bins = _positive_int(bins, "density_bins")
+    test_unit = raw.get("test_unit", "pair")
+    if test_unit not in TEST_UNITS:
+        raise _bad("test_unit", test_unit, ", ".join(TEST_UNITS))
     alpha, power = raw.get("alpha", 0.05), raw.get("power", 0.8)
     for key, value in (("alpha", alpha), ("power", power)):
         if not isinstance(value, float) or not 0.0 < value < 1.0:
@@ -933,6 +948,7 @@ def config_from_mapping(raw: Mapping[str, Any], source: str = "") -> AblationCon
         density_bins=bins,
         alpha=float(alpha),
         power=float(power),
+        test_unit=str(test_unit),
         train_steps_per_s=_rates(estimates.get("train_steps_per_s", 1000.0), "estimates.train_steps_per_s"),
         eval_episodes_per_s=_rates(estimates.get("eval_episodes_per_s", 2.0), "estimates.eval_episodes_per_s"),
         description=str(raw.get("description", "")),

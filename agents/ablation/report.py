@@ -419,6 +419,7 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
     mc = summary["multiple_comparisons"]
     fam = mc["family_sizes"]
     against_fixed = any(t.get("test", "").startswith("exact sign-flip") for t in summary["tests"])
+    by_episode = mc.get("test_unit") == "episode"
     lines += [
         "## Paired tests",
         "",
@@ -426,7 +427,14 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         f"within each policy and split; policy comparisons {', '.join(f'{a} vs {b}' for a, b in cfg.policy_comparisons) or '(none declared)'} "
         "within each arm and split. "
         + (
-            "Pairs are (training seed, episode). Success: exact McNemar test (two-sided binomial test on the "
+            "The unit of every test is the episode (`test_unit: episode`): the training seeds replay the same "
+            "episodes, and which episodes a policy wins repeats across its seeds, so the (seed, episode) pairs of one "
+            "episode are not independent. Success: per episode d = a's successes summed over its seeds minus b's (a "
+            "policy without seeds counts seeds x its success), the exact sign-flip test of d (rows marked †); two "
+            "policies without seeds: exact McNemar test on the episodes. Navigation time: Wilcoxon signed-rank test "
+            "over episodes, each episode's value the mean difference over the seeds both sides finished. "
+            if by_episode
+            else "Pairs are (training seed, episode). Success: exact McNemar test (two-sided binomial test on the "
             "discordant pairs; against a policy without seeds, the test marked † below); navigation time: Wilcoxon "
             "signed-rank test over episodes both sides finished (a policy without seeds pairs its episode with that "
             "episode of every seed). "
@@ -441,10 +449,18 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         f"Minimum detectable difference (MDD): the difference in success rate the McNemar design detects with "
         f"{100 * summary['power']:.0f} % power at the observed discordant fraction (Connor's 1987 normal "
         f"approximation), at alpha = {mc['alpha']} and at the strictest Holm level alpha / {max(fam.get('success', 0), 1)}; "
-        "'-' where no difference the observed discordance allows reaches that power (or no pair is discordant).",
+        "'-' where no difference the observed discordance allows reaches that power (or no pair is discordant)"
+        + ("; McNemar rows only." if by_episode else "."),
         "",
     ]
-    if against_fixed:
+    if by_episode:
+        lines += [
+            "Rows marked †: the sign-flip test of d (H0: d symmetric about 0, i.e. swapping the two sides within an "
+            "episode changes nothing), its mean / seeds the difference with a bootstrap percentile interval over "
+            "episodes; n counts episodes and b10 / b01 do not apply.",
+            "",
+        ]
+    elif against_fixed:
         lines += [
             "A policy with training seeds against one without (a deterministic planner, run once on the same "
             "episodes; rows marked †) counts each of the planner's episodes once: per episode d = the seeded "
@@ -457,7 +473,14 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
     if exact:
         lines += [
             "The interval of a success difference is the exact conditional one (the Clopper-Pearson interval of the "
-            "discordant pairs' split, mapped onto the difference): it excludes 0 exactly when p < 0.05. The verdict "
+            "discordant pairs' split, mapped onto the difference): it excludes 0 exactly when p < 0.05"
+            + (
+                " (McNemar rows; a † row's bootstrap interval is not the inversion of its test, so near p = 0.05 the "
+                "two can disagree)"
+                if against_fixed
+                else ""
+            )
+            + ". The verdict "
             f"reads the Holm-adjusted p at alpha = {mc['alpha']}, so a comparison whose interval excludes 0 can still "
             "show no difference once the family of tests is counted; 'no difference shown' is not a finding of "
             "equality.",
@@ -499,8 +522,11 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
     if seed_rows:
         lines += [
             "",
-            "Seed level (secondary): the McNemar test above is conditional on the trained policies, so it does not "
-            "count the variance between training seeds. Here each training seed's success rate over the same paired "
+            "Seed level (secondary): the "
+            + ("episode-level tests above are" if by_episode else "McNemar test above is")
+            + " conditional on the trained policies, so "
+            + ("they do" if by_episode else "it does")
+            + " not count the variance between training seeds. Here each training seed's success rate over the same paired "
             "episodes is one observation, paired by seed as declared: the paired t-test and 95 % t-interval on the "
             "per-seed differences (seed i of a against seed i of b; a policy without seeds is one fixed rate on the "
             "same episodes, which makes it a one-sample test), Holm-corrected over "
@@ -527,9 +553,14 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
             )
     lines += [
         "",
-        "Navigation time (s) of episodes both sides finished, a - b:",
+        (
+            "Navigation time (s), a - b, per episode the mean over the seeds both sides finished (episodes with at "
+            "least one; median and mean over those episodes):"
+            if by_episode
+            else "Navigation time (s) of episodes both sides finished, a - b:"
+        ),
         "",
-        "| split | a | b | pairs | median diff | mean diff | p | p Holm |",
+        f"| split | a | b | {'episodes' if by_episode else 'pairs'} | median diff | mean diff | p | p Holm |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for t in summary["tests"]:

@@ -118,6 +118,21 @@ def _seed_level(
             "rates_b": rb}  # fmt: skip
 
 
+def _episode_table(
+    keys: Sequence[tuple[int | None, int]], sa: np.ndarray, sb: np.ndarray
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """``(S, a, b)``: the number of seeds among ``keys`` (seed, episode) and both sides' values as ``(E, S)`` arrays over
+    the ``E`` episodes every seed ran, in episode and seed order (a side without seeds repeats its value per seed)."""
+    per: dict[int, dict[int, tuple[float, float]]] = {}
+    for (seed, ep), x, y in zip(keys, sa, sb, strict=True):
+        per.setdefault(ep, {})[-1 if seed is None else seed] = (float(x), float(y))
+    seeds = sorted({-1 if s is None else s for s, _ in keys})
+    full = sorted(ep for ep, by in per.items() if len(by) == len(seeds))
+    a = np.asarray([[per[ep][s][0] for s in seeds] for ep in full]).reshape(len(full), len(seeds))
+    b = np.asarray([[per[ep][s][1] for s in seeds] for ep in full]).reshape(len(full), len(seeds))
+    return len(seeds), a, b
+
+
 def seeds_against_fixed(
     keys: Sequence[tuple[int | None, int]], sa: np.ndarray, sb: np.ndarray, a_seeded: bool, confidence: float = 0.95
 ) -> dict[str, Any]:
@@ -131,14 +146,10 @@ def seeds_against_fixed(
     over episodes; the test is the exact sign-flip test of ``d`` (:func:`sign_flip_exact`, H0: ``d`` symmetric
     about 0). Its unit is the episode: the variance between training seeds is the seed-level test's
     (:func:`agents.stats.paired_seed_test`)."""
-    per: dict[int, dict[int, tuple[float, float]]] = {}
-    for (seed, ep), x, y in zip(keys, sa, sb, strict=True):
-        per.setdefault(ep, {})[-1 if seed is None else seed] = (float(x), float(y))
-    seeds = sorted({-1 if s is None else s for s, _ in keys})
-    full = sorted(ep for ep, by in per.items() if len(by) == len(seeds))
-    n_seeds = len(seeds)
-    seeded = np.asarray([[per[ep][s][0 if a_seeded else 1] for s in seeds] for ep in full]).reshape(len(full), -1)
-    fixed = np.asarray([per[ep][seeds[0]][1 if a_seeded else 0] for ep in full])
+    n_seeds, a, b = _episode_table(keys, sa, sb)
+    full = len(a)
+    seeded = a if a_seeded else b
+    fixed = (b if a_seeded else a)[:, 0] if full else np.zeros(0)
     d = seeded.sum(axis=1) - n_seeds * fixed
     if not a_seeded:
         d = -d
@@ -147,7 +158,7 @@ def seeds_against_fixed(
     rate_a, rate_b = (rate_seeded, rate_fixed) if a_seeded else (rate_fixed, rate_seeded)
     return {
         "test": "exact sign-flip over episodes (seeds summed)",
-        "n": len(full),
+        "n": full,
         "seeds": n_seeds,
         "rate_a": rate_a,
         "rate_b": rate_b,
@@ -157,6 +168,57 @@ def seeds_against_fixed(
         "statistic": test["statistic"],
         "p_value": test["p_value"],
     }
+
+
+def seeds_summed(
+    keys: Sequence[tuple[int | None, int]], sa: np.ndarray, sb: np.ndarray, confidence: float = 0.95
+) -> dict[str, Any]:
+    """The episode-level success test of two policies with training seeds (``test_unit: episode``), counting each
+    episode once.
+
+    The seeds of both sides replay the same episodes, and which episodes one side wins repeats across seeds, so the
+    (seed, episode) pairs of one episode are not independent: McNemar's test over them (``test_unit: pair``) is too
+    liberal. Here each episode ``e`` that every seed of the pairs ran gives the integer ``d_e = sum_s (s_a(s, e) -
+    s_b(s, e))`` in ``{-S, ..., S}``; ``difference`` = mean ``d`` / ``S`` (the difference of success rates) with a
+    bootstrap percentile interval over episodes, and the test is the exact sign-flip test of ``d``
+    (:func:`sign_flip_exact`, H0: ``d`` symmetric about 0: swapping the two sides' labels within an episode changes
+    nothing), as :func:`seeds_against_fixed` for a seeded policy against a planner. Conditional on the trained
+    policies, like McNemar's: the variance between training seeds is the seed-level test's."""
+    n_seeds, a, b = _episode_table(keys, sa, sb)
+    d = a.sum(axis=1) - b.sum(axis=1)
+    test = sign_flip_exact(np.round(d))
+    return {
+        "test": "exact sign-flip over episodes (seeds summed)",
+        "n": len(a),
+        "seeds": n_seeds,
+        "rate_a": float(a.mean()) if a.size else math.nan,
+        "rate_b": float(b.mean()) if b.size else math.nan,
+        "difference": test["mean"] / n_seeds if len(a) else math.nan,
+        "difference_ci": list(percentile_mean_ci(d / n_seeds, confidence)),
+        "d_counts": test["counts"],
+        "statistic": test["statistic"],
+        "p_value": test["p_value"],
+    }
+
+
+def episode_mean_differences(
+    keys: Sequence[tuple[int | None, int]], ta: np.ndarray, tb: np.ndarray, both: np.ndarray
+) -> np.ndarray:
+    """Per episode, the mean of ``ta - tb`` over the keys (seed, episode) of that episode where ``both`` holds (the
+    seeds both sides finished), in episode order; episodes without such a key are left out. Differences are rounded to
+    :data:`agents.stats.DIFFERENCE_DECIMALS` before averaging (times on a 0.4 s grid). With one key per episode (two
+    policies without seeds) these are the pairs' differences."""
+    from agents.stats import DIFFERENCE_DECIMALS
+
+    eps = np.asarray([e for _, e in keys], dtype=np.int64)[both]
+    d = np.round(np.asarray(ta, dtype=float)[both] - np.asarray(tb, dtype=float)[both], DIFFERENCE_DECIMALS)
+    if eps.size == 0:
+        return np.zeros(0)
+    order = np.unique(eps)
+    where = np.searchsorted(order, eps)
+    sums = np.bincount(where, weights=d, minlength=order.size)
+    counts = np.bincount(where, minlength=order.size)
+    return sums / counts
 
 
 def paired_tests(
@@ -198,15 +260,24 @@ def paired_tests(
             tests.append({**base, "endpoint": "success", "missing": True})
             continue
         a_seeded, b_seeded = (any(s is not None for _, s, _ in e.keys) for e in (ea, eb))
+        by_episode = cfg.test_unit == "episode"
         if a_seeded != b_seeded:  # a seeded policy against a deterministic one: each of its episodes once
             mc = seeds_against_fixed(keys, sa, sb, a_seeded)
+        elif a_seeded and by_episode:  # two seeded policies, the episode the unit: each episode once
+            mc = seeds_summed(keys, sa, sb)
         else:
             mc = mcnemar_exact(sa, sb, intervals=intervals)
         seed_level = _seed_level(a_seeded, b_seeded, keys, sa, sb, 0.95)
         tests.append({**base, "endpoint": "success", **mc, **({"seed_level": seed_level} if seed_level else {})})
         both = sa & sb
-        wx = wilcoxon_paired(ta[both], tb[both])
-        tests.append({**base, "endpoint": "navigation_time_s", "population": "episodes both finished", **wx})
+        if by_episode and (a_seeded or b_seeded):
+            means = episode_mean_differences(keys, ta, tb, both)
+            wx = wilcoxon_paired(means, np.zeros_like(means))
+            population = "episodes with a seed both sides finished (mean difference over those seeds)"
+        else:
+            wx = wilcoxon_paired(ta[both], tb[both])
+            population = "episodes both finished"
+        tests.append({**base, "endpoint": "navigation_time_s", "population": population, **wx})
     families: dict[str, int] = {}
     for endpoint in ("success", "navigation_time_s"):
         members = [t for t in tests if t["endpoint"] == endpoint and not t.get("missing")]

@@ -229,6 +229,8 @@ def summarize(
             "method": "Holm-Bonferroni within each endpoint",
             "alpha": cfg.alpha,
             "family_sizes": families,
+            # the unit of tests with training seeds, where it is not the (seed, episode) pair: absent in older grids
+            **({"test_unit": cfg.test_unit} if cfg.test_unit != "pair" else {}),
         },
         "power": cfg.power,
         "wall_time": {

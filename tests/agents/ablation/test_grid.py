@@ -751,6 +751,86 @@ def test_summary_pairs_ppo_seeds_with_the_planner_and_counts_missing(tmp_path: P
     assert "With two seeds per arm these intervals are wide" in md and "three seeds" not in md
 
 
+def test_episode_unit_counts_each_episode_once_for_seeded_policies(tmp_path: Path, fakes: Fakes) -> None:
+    # test_unit: episode (learned_v2): two seeded arms are tested by the sign-flip test of each episode's successes
+    # summed over the seeds, navigation time by Wilcoxon over each episode's mean difference over the seeds both
+    # sides finished; planner against planner stays McNemar, a grid without the key keeps (seed, episode) pairs
+    raw = _raw(tmp_path, evaluation={"episodes": 3, "seed": 0}, test_unit="episode")
+    cfg = ab.config_from_mapping(raw)
+    d = [1.0, 2.0, 3.0]
+    _fake_done_cell(cfg, "eval/zara1/planner/none", _episode_rows("SSS", [10.0, 11.0, 12.0], d))
+    _fake_done_cell(cfg, "eval/zara1/planner/mesrnn", _episode_rows("SCS", [10.0, 11.0, 12.0], d))
+    runs = {  # (arm, seed): outcomes, times
+        ("none", 0): ("SCS", [10.0, 11.0, 12.0]),
+        ("none", 1): ("CCS", [10.0, 11.0, 12.0]),
+        ("mesrnn", 0): ("SSS", [10.0, 11.0, 12.0]),
+        ("mesrnn", 1): ("SCS", [10.4, 11.0, 12.8]),
+    }
+    for (arm, seed), (outcomes, times) in runs.items():
+        cells = [f"train/zara1/ppo/{arm}/seed{seed}", f"eval/zara1/ppo/{arm}/seed{seed}"]
+        folder = ab.cell_dir(cfg, cells[0])
+        (folder / ab.TRAIN_RUN).mkdir(parents=True)
+        (folder / ab.TRAIN_RUN / "best_model.zip").write_bytes(b"m")
+        _fake_done_cell(cfg, cells[0], [{"episode": 0}])
+        _fake_done_cell(cfg, cells[1], _episode_rows(outcomes, times, d))
+        meta = json.loads((ab.cell_dir(cfg, cells[1]) / ab.CELL_JSON).read_text())
+        meta["model_sha256"] = ab.cells._file_sha256(folder / ab.TRAIN_RUN / "best_model.zip")
+        (ab.cell_dir(cfg, cells[1]) / ab.CELL_JSON).write_text(json.dumps(meta))
+    summary = ab.summarize(cfg, out=lambda s: None, plots=False)
+    assert summary["multiple_comparisons"]["test_unit"] == "episode"
+
+    def test(endpoint: str, pa: str, aa: str, pb: str, ab_: str) -> dict[str, Any]:
+        return next(
+            t for t in summary["tests"]
+            if t["endpoint"] == endpoint and (t["a"]["policy"], t["a"]["arm"], t["b"]["policy"], t["b"]["arm"])
+            == (pa, aa, pb, ab_)
+        )  # fmt: skip
+
+    # mesrnn's successes per episode over the 2 seeds (2, 1, 2), none's (1, 0, 2): d = (1, 1, 0), S = 2 over two
+    # magnitudes of 1, so p = P(|S| >= 2) = 1/2, difference (2/3) / 2 = 1/3, n = 3 episodes (not 6 pairs)
+    arms = test("success", "ppo", "mesrnn", "ppo", "none")
+    assert arms["test"] == "exact sign-flip over episodes (seeds summed)" and "b01" not in arms
+    assert (arms["n"], arms["seeds"], arms["d_counts"]) == (3, 2, {"0": 1, "1": 2})
+    assert arms["difference"] == pytest.approx(1 / 3) and arms["p_value"] == pytest.approx(0.5)
+    assert (arms["rate_a"], arms["rate_b"]) == (pytest.approx(5 / 6), pytest.approx(3 / 6))
+    assert arms["seed_level"]["rates_a"] == pytest.approx([1.0, 2 / 3])  # the secondary test is unchanged
+    # navigation time: seed 0 finished episodes 0 and 2 on both sides (differences 0, 0), seed 1 episode 2 only
+    # (12.8 - 12.0): episode means 0 (episode 0) and (0 + 0.8) / 2 (episode 2); episode 1 none finished both
+    nav = test("navigation_time_s", "ppo", "mesrnn", "ppo", "none")
+    assert (nav["n"], nav["n_nonzero"]) == (2, 1) and nav["mean_difference"] == pytest.approx(0.2)
+    assert nav["population"].startswith("episodes with a seed both sides finished")
+    # against the planner: PPO none finished episodes 0, 2 (seed 0) and 2 (seed 1), the planner all: 2 episodes
+    assert test("navigation_time_s", "ppo", "none", "planner", "none")["n"] == 2
+    # two policies without seeds: McNemar on the episodes, as before
+    assert "b01" in test("success", "planner", "mesrnn", "planner", "none")
+    md = (cfg.out_path() / "summary.md").read_text()
+    assert "The unit of every test is the episode" in md and "| split | a | b | episodes | median diff |" in md
+    # the same cells under the default unit: McNemar over 6 (seed, episode) pairs, navigation time over 3 pairs
+    pairs = ab.summarize(ab.config_from_mapping({**raw, "test_unit": "pair"}), out=lambda s: None, plots=False,
+                         force=True)  # fmt: skip
+    old = next(t for t in pairs["tests"] if t["endpoint"] == "success" and t["a"]["arm"] == "mesrnn"
+               and t["b"]["policy"] == "ppo")  # fmt: skip
+    assert (old["n"], old["b10"], old["b01"]) == (6, 2, 0) and "test_unit" not in pairs["multiple_comparisons"]
+    with pytest.raises(ConfigError, match=r"'test_unit': got 'seed'; allowed: pair, episode"):
+        ab.config_from_mapping({**raw, "test_unit": "seed"})
+
+
+def test_seeds_summed_with_one_seed_is_mcnemar_and_counts_episodes_with_every_seed() -> None:
+    from agents.ablation.stats import seeds_summed
+    from agents.stats import mcnemar_exact
+
+    rng = np.random.default_rng(3)
+    sa, sb = rng.random(40) < 0.7, rng.random(40) < 0.5
+    keys = [(0, e) for e in range(40)]
+    one = seeds_summed(keys, sa, sb)
+    assert one["p_value"] == pytest.approx(mcnemar_exact(sa, sb)["p_value"], rel=1e-12)
+    assert one["difference"] == pytest.approx(sa.mean() - sb.mean())
+    # an episode one seed lacks (an unfinished cell) is left out, not counted with fewer seeds
+    keys2 = keys + [(1, e) for e in range(39)]
+    two = seeds_summed(keys2, np.concatenate([sa, sa[:39]]), np.concatenate([sb, sb[:39]]))
+    assert (two["n"], two["seeds"]) == (39, 2)
+
+
 def test_success_is_reported_as_a_fraction_of_the_privileged_ceiling(tmp_path: Path, fakes: Fakes) -> None:
     raw = _raw(tmp_path, arms=["none", "oracle"], comparisons=[["oracle", "none"]], seeds=[0])
     raw["policies"] = {"planner": {"kind": "planner"}, "ceiling": {"kind": "privileged", "arms": ["oracle"]}}
