@@ -81,6 +81,69 @@ def aggregate(episodes: _Episodes) -> dict[str, Any]:
     return out
 
 
+#: ``intervals`` of an aggregate whose intervals resample episodes (:func:`episode_intervals`).
+EPISODE_BOOTSTRAP: Final[str] = "percentile bootstrap over episodes (an episode's seeds resampled together)"
+
+
+def _ratio_interval(
+    sums: np.ndarray, counts: np.ndarray, confidence: float, n_resamples: int, seed: int
+) -> list[float] | None:
+    """Percentile bootstrap interval of ``sum(sums) / sum(counts)`` resampling the clusters (the entries) with
+    replacement; ``None`` when no cluster counts anything. Resamples whose clusters count nothing are left out."""
+    if counts.sum() <= 0:
+        return None
+    rng = np.random.default_rng(seed)
+    weights = rng.multinomial(len(sums), np.full(len(sums), 1.0 / len(sums)), size=n_resamples).astype(float)
+    num, den = weights @ sums, weights @ counts
+    ratios = num[den > 0] / den[den > 0]
+    alpha = (1.0 - confidence) / 2.0
+    lo, hi = np.quantile(ratios, [alpha, 1.0 - alpha])
+    return [float(lo), float(hi)]
+
+
+def episode_intervals(
+    episodes: _Episodes, out: Mapping[str, Any], confidence: float = 0.95, n_resamples: int = 2000, seed: int = 0
+) -> dict[str, Any]:
+    """``out`` (:func:`aggregate` of ``episodes``) with every rate's and mean's interval replaced by a percentile
+    bootstrap that resamples episodes -- (split, episode index), each with all its training seeds' rows -- instead of
+    rows (``test_unit: episode``).
+
+    A learned policy's seeds replay the same episodes, and an episode hard for one seed tends to be hard for the others,
+    so its rows are not independent: Wilson's interval over the pooled rows, and a bootstrap over rows, are too narrow
+    (in the learned grid about half as wide as this one). Each estimate stays the pooled rows' (a ratio of sums: the
+    rate is successes / rows; a mean, the sum of the values the metric is defined for / their number) and so does
+    each ``_n``; the interval is the percentile interval of that ratio over ``n_resamples`` resamples of the episodes
+    (seeded, so a summary re-renders identically). ``intervals`` names the method. Intervals ``None`` in ``out`` (a
+    metric partly recorded, none defined) stay ``None``."""
+    from agents.evaluation.summary import OUTCOMES as EVAL_OUTCOMES
+    from agents.evaluation.summary import SUCCESS_ONLY_METRICS
+
+    res = dict(out)
+    clusters: dict[tuple[str, int], int] = {}
+    which = np.asarray([clusters.setdefault((split, ep), len(clusters)) for split, _, ep in episodes.keys], dtype=int)
+    n_clusters = len(clusters)
+    if n_clusters == 0:
+        return res
+    outcome = episodes.outcome()
+    rows = np.bincount(which, minlength=n_clusters).astype(float)
+    for name in EVAL_OUTCOMES:
+        if res.get(f"{name}_ci") is not None:
+            hits = np.bincount(which, weights=(outcome == name).astype(float), minlength=n_clusters)
+            res[f"{name}_ci"] = _ratio_interval(hits, rows, confidence, n_resamples, seed)
+    success = outcome == "success"
+    for key in [k for k in out if k.endswith("_ci") and k[: -len("_ci")] not in EVAL_OUTCOMES]:
+        metric = key[: -len("_ci")]
+        if res[key] is None:
+            continue
+        values = episodes.metric(metric)
+        use = np.isfinite(values) & (success if metric in SUCCESS_ONLY_METRICS else True)
+        sums = np.bincount(which[use], weights=values[use], minlength=n_clusters)
+        counts = np.bincount(which[use], minlength=n_clusters).astype(float)
+        res[key] = _ratio_interval(sums, counts, confidence, n_resamples, seed)
+    res["intervals"] = EPISODE_BOOTSTRAP
+    return res
+
+
 def partly_recorded(episodes: _Episodes) -> tuple[str, ...]:
     """:data:`agents.rollout.ADDED_METRICS` when some of ``episodes``' cells (split, seed) record them and others do
     not (every row blank or without the column), else ``()``. ``spl``, defined for every episode of a cell that

@@ -370,6 +370,19 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         "episodes, scored against the replay).",
         "",
     ]
+    seeded_by_episode = sorted(
+        name for name, pol in summary["policies"].items() if any("intervals" in e for e in pol["arms"].values())
+    )
+    if seeded_by_episode:
+        lines += [
+            "Intervals of "
+            + ", ".join(f"`{n}`" for n in seeded_by_episode)
+            + " (training seeds; here and in the density tables): a 95 % percentile bootstrap over episodes, each "
+            "resampled with all its seeds' rows, around the pooled estimate. The seeds replay the same episodes, and an "
+            "episode hard for one seed tends to be hard for the others, so an interval over rows would be too narrow. "
+            "They do not count the variance between training seeds (the seed-level tests below do).",
+            "",
+        ]
     if any(_columns(pol["arms"]) is _CURRENT_COLUMNS for pol in summary["policies"].values()):
         lines += [
             "Path ratio to required: path length / (straight line - goal tolerance), at least 1 for a success. SPL: "
@@ -427,7 +440,8 @@ def summary_markdown(summary: Mapping[str, Any], cfg: AblationConfig, figures: S
         f"within each policy and split; policy comparisons {', '.join(f'{a} vs {b}' for a, b in cfg.policy_comparisons) or '(none declared)'} "
         "within each arm and split. "
         + (
-            "The unit of every test is the episode (`test_unit: episode`): the training seeds replay the same "
+            "The unit of every success and navigation-time test below is the episode (`test_unit: episode`; the "
+            "seed-level tests further down are the exception): the training seeds replay the same "
             "episodes, and which episodes a policy wins repeats across its seeds, so the (seed, episode) pairs of one "
             "episode are not independent. Success: per episode d = a's successes summed over its seeds minus b's (a "
             "policy without seeds counts seeds x its success), the exact sign-flip test of d (rows marked †); two "

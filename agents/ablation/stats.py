@@ -44,7 +44,14 @@ def _bin_index(density: np.ndarray, edges: Sequence[float]) -> np.ndarray:
     return np.where((density < e[0]) | (density > e[-1]) | ~np.isfinite(density), -1, idx)
 
 
-def by_density(episodes: _Episodes, edges: Sequence[float], confidence: float = 0.95) -> list[dict[str, Any]]:
+def by_density(
+    episodes: _Episodes, edges: Sequence[float], confidence: float = 0.95, by_episode: bool = False
+) -> list[dict[str, Any]]:
+    """Outcome rates per crowd-density bin, with Wilson intervals over the rows, or with ``by_episode`` (a seeded
+    policy under ``test_unit: episode``) percentile bootstrap intervals resampling episodes, each with all its seeds'
+    rows (:func:`agents.ablation.episodes.episode_intervals`; a bin holds whole episodes: the density is the
+    episode's, the same for every seed)."""
+    from agents.ablation.episodes import _ratio_interval
     from agents.stats import wilson_interval
 
     if len(edges) < 2:
@@ -56,10 +63,24 @@ def by_density(episodes: _Episodes, edges: Sequence[float], confidence: float = 
         sel = idx == b
         n = int(sel.sum())
         row: dict[str, Any] = {"bin": [edges[b], edges[b + 1]], "episodes": n}
+        clusters: dict[tuple[str, int], int] = {}
+        which = np.asarray(
+            [
+                clusters.setdefault((k[0], k[2]), len(clusters))
+                for k, keep in zip(episodes.keys, sel, strict=True)
+                if keep
+            ],
+            dtype=int,
+        )
         for o in OUTCOMES:
             k = int(np.sum(outcome[sel] == o))
             row[f"{o}_rate"] = k / n if n else math.nan
-            row[f"{o}_ci"] = list(wilson_interval(k, n, confidence))
+            if by_episode and n:
+                hits = np.bincount(which, weights=(outcome[sel] == o).astype(float), minlength=len(clusters))
+                rows_per = np.bincount(which, minlength=len(clusters)).astype(float)
+                row[f"{o}_ci"] = _ratio_interval(hits, rows_per, confidence, 2000, 0)
+            else:
+                row[f"{o}_ci"] = list(wilson_interval(k, n, confidence))
         rows.append(row)
     return rows
 

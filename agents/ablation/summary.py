@@ -19,7 +19,14 @@ from typing import Any
 from agents.ablation.archive import ARCHIVE_DIR, archive_path, files_rows, stored_as, write_archive
 from agents.ablation.cells import _now
 from agents.ablation.config import AblationConfig
-from agents.ablation.episodes import _Episodes, aggregate, cell_info, episodes_archive, read_archive
+from agents.ablation.episodes import (
+    _Episodes,
+    aggregate,
+    cell_info,
+    episode_intervals,
+    episodes_archive,
+    read_archive,
+)
 from agents.ablation.plots import write_plots
 from agents.ablation.report import summary_markdown
 from agents.ablation.results import CELLS, STAMPS, _load_json, _strip, check_replace, gather
@@ -158,21 +165,28 @@ def summarize(
             eps = pooled.get((policy.name, arm.label))
             if eps is None:
                 continue
+            # a seeded policy under test_unit: episode resamples episodes (with all their seeds) for its intervals
+            by_episode = cfg.test_unit == "episode" and any(s is not None for _, s, _ in eps.keys)
+
+            def rates(sub: _Episodes, by_episode: bool = by_episode) -> dict[str, Any]:
+                out = aggregate(sub)
+                return episode_intervals(sub, out) if by_episode else out
+
             entry: dict[str, Any] = {
                 "predictor": arm.predictor,
                 "noisy_oracle_ade_m": arm.noisy_oracle_ade_m,
                 **arm.spec(),  # absent in point arms: their summaries stay
                 "seeds": sorted({s for _, s, _ in eps.keys if s is not None}),
                 "splits": sorted({sp for sp, _, _ in eps.keys}),
-                **aggregate(eps),
+                **rates(eps),
                 **disturbance_summary(eps),  # nothing for episodes without them (grids before reacting pedestrians)
             }
             entry["by_split"] = {
-                split: {**aggregate(sub), **disturbance_summary(sub)}
+                split: {**rates(sub), **disturbance_summary(sub)}
                 for split in entry["splits"]
                 for sub in [eps.subset([k[0] == split for k in eps.keys])]
             }
-            entry["by_density"] = by_density(eps, edges)
+            entry["by_density"] = by_density(eps, edges, by_episode=by_episode)
             arms[arm.label] = entry
         policies[policy.name] = {
             "kind": policy.kind,

@@ -804,7 +804,19 @@ def test_episode_unit_counts_each_episode_once_for_seeded_policies(tmp_path: Pat
     # two policies without seeds: McNemar on the episodes, as before
     assert "b01" in test("success", "planner", "mesrnn", "planner", "none")
     md = (cfg.out_path() / "summary.md").read_text()
-    assert "The unit of every test is the episode" in md and "| split | a | b | episodes | median diff |" in md
+    assert "The unit of every success and navigation-time test below is the episode" in md
+    assert "| split | a | b | episodes | median diff |" in md
+    assert "(or no pair is discordant); McNemar rows only." in md
+    assert "Rows marked †: the sign-flip test of d" in md
+    # PPO's intervals resample episodes with all their seeds: with 2 seeds of identical outcomes per episode the
+    # interval is the episodes' (3 of them), not the 6 rows' Wilson one; the planner keeps Wilson
+    ppo = summary["policies"]["ppo"]["arms"]["mesrnn"]
+    assert (
+        ppo["intervals"].startswith("percentile bootstrap over episodes")
+        and "intervals" not in (summary["policies"]["planner"]["arms"]["mesrnn"])
+    )
+    assert ppo["by_split"]["zara1"]["intervals"] == ppo["intervals"]
+    assert "Intervals of `ppo` (training seeds" in md
     # the same cells under the default unit: McNemar over 6 (seed, episode) pairs, navigation time over 3 pairs
     pairs = ab.summarize(ab.config_from_mapping({**raw, "test_unit": "pair"}), out=lambda s: None, plots=False,
                          force=True)  # fmt: skip
@@ -829,6 +841,31 @@ def test_seeds_summed_with_one_seed_is_mcnemar_and_counts_episodes_with_every_se
     keys2 = keys + [(1, e) for e in range(39)]
     two = seeds_summed(keys2, np.concatenate([sa, sa[:39]]), np.concatenate([sb, sb[:39]]))
     assert (two["n"], two["seeds"]) == (39, 2)
+
+
+def test_episode_intervals_resample_episodes_with_all_their_seeds() -> None:
+    from agents.ablation.episodes import _Episodes, aggregate, episode_intervals
+
+    rng = np.random.default_rng(5)
+    outcomes = np.where(rng.random(200) < 0.7, "success", "collision")
+    times = np.round(rng.uniform(8, 20, 200) / 0.4) * 0.4
+
+    def episodes(seeds: int) -> _Episodes:
+        eps = _Episodes()
+        for seed in range(seeds):  # every seed the same outcome on an episode: the most clustered case
+            rows = [{"episode": str(e), "outcome": o, "navigation_time_s": str(t)}
+                    for e, (o, t) in enumerate(zip(outcomes, times, strict=True))]  # fmt: skip
+            eps.add("zara1", seed, rows)
+        return eps
+
+    one, five = episodes(1), episodes(5)
+    a1, a5 = episode_intervals(one, aggregate(one)), episode_intervals(five, aggregate(five))
+    # five copies of each episode carry no more information than one: the same interval, not a narrower one
+    assert a5["success_ci"] == pytest.approx(a1["success_ci"]) and a5["success_rate"] == a1["success_rate"]
+    assert a5["navigation_time_s_ci"] == pytest.approx(a1["navigation_time_s_ci"])
+    wilson = wilson_interval(int((outcomes == "success").sum()) * 5, 1000)
+    assert (a5["success_ci"][1] - a5["success_ci"][0]) > 1.8 * (wilson[1] - wilson[0])
+    assert aggregate(five)["success_ci"] == pytest.approx(list(wilson))  # what the pooled rows would have said
 
 
 def test_success_is_reported_as_a_fraction_of_the_privileged_ceiling(tmp_path: Path, fakes: Fakes) -> None:
