@@ -85,15 +85,26 @@ def aggregate(episodes: _Episodes) -> dict[str, Any]:
 EPISODE_BOOTSTRAP: Final[str] = "percentile bootstrap over episodes (an episode's seeds resampled together)"
 
 
-def _ratio_interval(
-    sums: np.ndarray, counts: np.ndarray, confidence: float, n_resamples: int, seed: int
-) -> list[float] | None:
-    """Percentile bootstrap interval of ``sum(sums) / sum(counts)`` resampling the clusters (the entries) with
-    replacement; ``None`` when no cluster counts anything. Resamples whose clusters count nothing are left out."""
+def episode_clusters(keys: Sequence[tuple[str, int | None, int]]) -> tuple[np.ndarray, int]:
+    """``(which, n)``: for each key (split, seed, episode) the index of its episode (split, episode) among the ``n``
+    distinct ones, numbered in order of first appearance."""
+    clusters: dict[tuple[str, int], int] = {}
+    which = np.asarray([clusters.setdefault((split, ep), len(clusters)) for split, _, ep in keys], dtype=int)
+    return which, len(clusters)
+
+
+def resample_weights(n: int, n_resamples: int = 2000, seed: int = 0) -> np.ndarray:
+    """``(n_resamples, n)``: how often each of ``n`` clusters is drawn in each bootstrap resample (seeded)."""
+    rng = np.random.default_rng(seed)
+    return rng.multinomial(n, np.full(n, 1.0 / n), size=n_resamples).astype(float)
+
+
+def _ratio_interval(sums: np.ndarray, counts: np.ndarray, weights: np.ndarray, confidence: float) -> list[float] | None:
+    """Percentile bootstrap interval of ``sum(sums) / sum(counts)`` over the resamples of the clusters (the entries)
+    that ``weights`` (:func:`resample_weights`) draws; ``None`` when no cluster counts anything. Resamples whose
+    clusters count nothing are left out."""
     if counts.sum() <= 0:
         return None
-    rng = np.random.default_rng(seed)
-    weights = rng.multinomial(len(sums), np.full(len(sums), 1.0 / len(sums)), size=n_resamples).astype(float)
     num, den = weights @ sums, weights @ counts
     ratios = num[den > 0] / den[den > 0]
     alpha = (1.0 - confidence) / 2.0
@@ -119,17 +130,16 @@ def episode_intervals(
     from agents.evaluation.summary import SUCCESS_ONLY_METRICS
 
     res = dict(out)
-    clusters: dict[tuple[str, int], int] = {}
-    which = np.asarray([clusters.setdefault((split, ep), len(clusters)) for split, _, ep in episodes.keys], dtype=int)
-    n_clusters = len(clusters)
+    which, n_clusters = episode_clusters(episodes.keys)
     if n_clusters == 0:
         return res
+    weights = resample_weights(n_clusters, n_resamples, seed)  # one set of resamples for every estimate
     outcome = episodes.outcome()
     rows = np.bincount(which, minlength=n_clusters).astype(float)
     for name in EVAL_OUTCOMES:
         if res.get(f"{name}_ci") is not None:
             hits = np.bincount(which, weights=(outcome == name).astype(float), minlength=n_clusters)
-            res[f"{name}_ci"] = _ratio_interval(hits, rows, confidence, n_resamples, seed)
+            res[f"{name}_ci"] = _ratio_interval(hits, rows, weights, confidence)
     success = outcome == "success"
     for key in [k for k in out if k.endswith("_ci") and k[: -len("_ci")] not in EVAL_OUTCOMES]:
         metric = key[: -len("_ci")]
@@ -139,7 +149,7 @@ def episode_intervals(
         use = np.isfinite(values) & (success if metric in SUCCESS_ONLY_METRICS else True)
         sums = np.bincount(which[use], weights=values[use], minlength=n_clusters)
         counts = np.bincount(which[use], minlength=n_clusters).astype(float)
-        res[key] = _ratio_interval(sums, counts, confidence, n_resamples, seed)
+        res[key] = _ratio_interval(sums, counts, weights, confidence)
     res["intervals"] = EPISODE_BOOTSTRAP
     return res
 

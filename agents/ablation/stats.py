@@ -51,7 +51,7 @@ def by_density(
     policy under ``test_unit: episode``) percentile bootstrap intervals resampling episodes, each with all its seeds'
     rows (:func:`agents.ablation.episodes.episode_intervals`; a bin holds whole episodes: the density is the
     episode's, the same for every seed)."""
-    from agents.ablation.episodes import _ratio_interval
+    from agents.ablation.episodes import _ratio_interval, episode_clusters, resample_weights
     from agents.stats import wilson_interval
 
     if len(edges) < 2:
@@ -63,22 +63,16 @@ def by_density(
         sel = idx == b
         n = int(sel.sum())
         row: dict[str, Any] = {"bin": [edges[b], edges[b + 1]], "episodes": n}
-        clusters: dict[tuple[str, int], int] = {}
-        which = np.asarray(
-            [
-                clusters.setdefault((k[0], k[2]), len(clusters))
-                for k, keep in zip(episodes.keys, sel, strict=True)
-                if keep
-            ],
-            dtype=int,
-        )
+        if by_episode and n:
+            which, n_clusters = episode_clusters([k for k, keep in zip(episodes.keys, sel, strict=True) if keep])
+            rows_per = np.bincount(which, minlength=n_clusters).astype(float)
+            weights = resample_weights(n_clusters)
         for o in OUTCOMES:
             k = int(np.sum(outcome[sel] == o))
             row[f"{o}_rate"] = k / n if n else math.nan
             if by_episode and n:
-                hits = np.bincount(which, weights=(outcome[sel] == o).astype(float), minlength=len(clusters))
-                rows_per = np.bincount(which, minlength=len(clusters)).astype(float)
-                row[f"{o}_ci"] = _ratio_interval(hits, rows_per, confidence, 2000, 0)
+                hits = np.bincount(which, weights=(outcome[sel] == o).astype(float), minlength=n_clusters)
+                row[f"{o}_ci"] = _ratio_interval(hits, rows_per, weights, confidence)
             else:
                 row[f"{o}_ci"] = list(wilson_interval(k, n, confidence))
         rows.append(row)
