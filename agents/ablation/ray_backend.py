@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import json
 import os
 import shutil
 import socket
@@ -157,12 +158,16 @@ def _ray_version() -> str:
 
 
 def _pack(folder: Path) -> bytes:
-    """A folder as gzipped tar bytes, files only, skipping temporary files (``.name.tmp``) and files that
-    vanish while it is read (a training run replaces its old checkpoints)."""
+    """A folder as gzipped tar bytes, files only, skipping temporary files (``.name.tmp``), checkpoints being
+    written or replaced (``.step_<n>.partial``, ``.step_<n>.old``) and files that vanish while it is read (a
+    training run replaces its old checkpoints)."""
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w:gz") as tar:
         for dirpath, dirnames, filenames in sorted(os.walk(folder)) if folder.is_dir() else []:
             dirnames.sort()
+            parts = Path(dirpath).relative_to(folder).parts
+            if any(p.startswith(".") and p.endswith((".partial", ".old")) for p in parts):
+                continue
             for name in sorted(filenames):
                 if name.startswith(".") and name.endswith(".tmp"):
                     continue
@@ -230,7 +235,34 @@ class _Inbox:
 
 
 def _checkpoint_steps(folder: Path) -> int | None:
-    latest = _read_json(folder / TRAIN_RUN / "checkpoints" / "latest.json") or {}
+    """The step of the cell folder's checkpoint a resume would use (the latest complete one), or None."""
+    from agents.training.callbacks import latest_checkpoint
+
+    ckpt = latest_checkpoint(folder / TRAIN_RUN)
+    steps = (_read_json(ckpt / "state.json") or {}).get("steps") if ckpt is not None else None
+    return int(steps) if isinstance(steps, int) else None
+
+
+def _archived_checkpoint(blob: bytes) -> int | None:
+    """The step of the checkpoint ``checkpoints/latest.json`` points at in a packed cell folder, if that
+    checkpoint's files are all in the archive; else None. A folder packed while the run wrote a new checkpoint
+    can hold a pointer to a folder it caught half-written or removed: such an archive is not shipped."""
+    from agents.training.callbacks import CHECKPOINT_FILES
+
+    root = f"./{TRAIN_RUN}/checkpoints"
+    with tarfile.open(fileobj=io.BytesIO(blob), mode="r:gz") as tar:
+        names = set(tar.getnames())
+        if f"{root}/latest.json" not in names:
+            return None
+        member = tar.extractfile(f"{root}/latest.json")
+        try:
+            latest = json.loads(member.read()) if member is not None else None
+        except ValueError:
+            return None
+    if not isinstance(latest, dict) or not isinstance(latest.get("folder"), str):
+        return None
+    if not all(f"{root}/{latest['folder']}/{name}" in names for name in CHECKPOINT_FILES):
+        return None
     steps = latest.get("steps")
     return int(steps) if isinstance(steps, int) else None
 
@@ -251,7 +283,11 @@ class _Shipper:
         steps = _checkpoint_steps(self.folder)
         if steps is None or steps == self._last:
             return
-        self._ray.get(self.inbox.put.remote(self.name, steps, _pack(self.folder)))
+        blob = _pack(self.folder)
+        steps = _archived_checkpoint(blob)
+        if steps is None or steps == self._last:  # caught mid-write: the next look ships it
+            return
+        self._ray.get(self.inbox.put.remote(self.name, steps, blob))
         self._last = steps
 
     def _run(self) -> None:

@@ -232,27 +232,58 @@ class Progress(BaseCallback):
             self.bar.close()
 
 
+#: The files every checkpoint folder holds; a folder without one of them is incomplete and never resumed from.
+CHECKPOINT_FILES = ("model.zip", "state.json")
+
+
 def save_checkpoint(model: Any, run_dir: Path, validation_state: Mapping[str, Any], keep: int = 1) -> Path:
     """``checkpoints/step_<n>/`` with ``model.zip``, ``model_vecnormalize.pkl``, ``replay_buffer.pkl`` (off-policy)
-    and ``state.json``; then ``checkpoints/latest.json`` points at it; older ones beyond ``keep`` are removed."""
+    and ``state.json``; then ``checkpoints/latest.json`` points at it; older ones beyond ``keep`` are removed.
+
+    The files are written into a staging folder (``.step_<n>.partial``) that is renamed into place once all of them
+    are there, so a process killed at any moment leaves either the complete folder or none of it (the staging folder
+    is cleared at the next save)."""
     steps = int(model.num_timesteps)
     root = run_dir / "checkpoints"
     folder = root / f"step_{steps:010d}"
-    save_model(model, folder / "model.zip")
-    save_vecnormalize(model, folder / "model.zip")
+    staging = root / f".{folder.name}.partial"
+    shutil.rmtree(staging, ignore_errors=True)
+    save_model(model, staging / "model.zip")
+    save_vecnormalize(model, staging / "model.zip")
     if getattr(model, "replay_buffer", None) is not None:
-        atomic_write(folder / "replay_buffer.pkl", lambda fh: model.save_replay_buffer(fh))
-    atomic_write_json(folder / "state.json", {"steps": steps, "validation": validation_state})
-    atomic_write_json(root / "latest.json", {"steps": steps, "folder": folder.name})
-    for old in sorted(p for p in root.glob("step_*") if p.is_dir())[:-keep]:
+        atomic_write(staging / "replay_buffer.pkl", lambda fh: model.save_replay_buffer(fh))
+    atomic_write_json(staging / "state.json", {"steps": steps, "validation": validation_state})
+    if folder.exists():  # a second checkpoint at the same step (an interrupt right after a periodic one)
+        old = root / f".{folder.name}.old"
         shutil.rmtree(old, ignore_errors=True)
+        folder.rename(old)
+        staging.rename(folder)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        staging.rename(folder)
+    atomic_write_json(root / "latest.json", {"steps": steps, "folder": folder.name})
+    for old_folder in sorted(p for p in root.glob("step_*") if p.is_dir())[:-keep]:
+        shutil.rmtree(old_folder, ignore_errors=True)
     return folder
 
 
+def checkpoint_complete(folder: Path) -> bool:
+    """Whether ``folder`` holds every file of a checkpoint (:data:`CHECKPOINT_FILES`)."""
+    return all((folder / name).is_file() for name in CHECKPOINT_FILES)
+
+
 def latest_checkpoint(run_dir: Path) -> Path | None:
-    """The folder ``checkpoints/latest.json`` points at, or None."""
-    pointer = run_dir / "checkpoints" / "latest.json"
-    if not pointer.is_file():
-        return None
-    folder = run_dir / "checkpoints" / json.loads(pointer.read_text())["folder"]
-    return folder if (folder / "model.zip").is_file() else None
+    """The folder ``checkpoints/latest.json`` points at if it is complete; otherwise the newest complete
+    ``step_<n>`` folder (a pointer can outlive its folder, e.g. in a copy taken while a run wrote a new one);
+    None when there is no complete checkpoint."""
+    root = run_dir / "checkpoints"
+    pointer = root / "latest.json"
+    if pointer.is_file():
+        try:
+            name = json.loads(pointer.read_text())["folder"]
+        except (ValueError, KeyError, TypeError):
+            name = None
+        if isinstance(name, str) and checkpoint_complete(root / name):
+            return root / name
+    complete = sorted(p for p in root.glob("step_*") if p.is_dir() and checkpoint_complete(p))
+    return complete[-1] if complete else None

@@ -4,7 +4,10 @@ as ``ray start`` does (issue 16, items 4 and 5). The grid on a real head and a k
 
 from __future__ import annotations
 
+import io
+import json
 import socket
+import tarfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -12,6 +15,7 @@ from typing import Any
 import pytest
 
 import agents.ablation as ab
+import agents.ablation.ray_backend as rb
 from crowdnav_mesrnn.config import ConfigError
 
 
@@ -129,3 +133,36 @@ def test_a_token_turns_token_authentication_on_as_ray_start_does(
     with pytest.raises(ConfigError, match="RAY_AUTH_MODE here: disabled"):
         ab.run_grid(_grid(tmp_path), backend="ray", address=f"127.0.0.1:{listening}", out=lambda s: None)
     assert no_ray_init[0]["RAY_AUTH_MODE"] == "disabled"
+
+
+def _cell_with_checkpoints(folder: Path, pointer: int, complete: dict[int, bool]) -> None:
+    root = folder / ab.TRAIN_RUN / "checkpoints"
+    for steps, whole in complete.items():
+        step = root / f"step_{steps:010d}"
+        step.mkdir(parents=True)
+        (step / "model.zip").write_bytes(b"weights")
+        if whole:
+            (step / "state.json").write_text(json.dumps({"steps": steps}))
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "latest.json").write_text(json.dumps({"steps": pointer, "folder": f"step_{pointer:010d}"}))
+
+
+def test_a_cell_folder_packed_mid_checkpoint_is_not_shipped(tmp_path: Path) -> None:
+    # packed while the run wrote step 256: its pointer is there, its state file not yet
+    _cell_with_checkpoints(tmp_path / "mid", 256, {128: True, 256: False})
+    assert rb._archived_checkpoint(rb._pack(tmp_path / "mid")) is None
+    # the driver still reports (and a resume uses) the complete step 128
+    assert rb._checkpoint_steps(tmp_path / "mid") == 128
+    _cell_with_checkpoints(tmp_path / "whole", 256, {256: True})
+    assert rb._archived_checkpoint(rb._pack(tmp_path / "whole")) == 256
+
+
+def test_packing_skips_checkpoints_being_written_or_replaced(tmp_path: Path) -> None:
+    _cell_with_checkpoints(tmp_path, 64, {64: True})
+    for name in (".step_0000000128.partial", ".step_0000000064.old"):
+        (tmp_path / ab.TRAIN_RUN / "checkpoints" / name).mkdir()
+        (tmp_path / ab.TRAIN_RUN / "checkpoints" / name / "model.zip").write_bytes(b"half")
+    with tarfile.open(fileobj=io.BytesIO(rb._pack(tmp_path)), mode="r:gz") as tar:
+        names = tar.getnames()
+    assert not [n for n in names if ".partial" in n or ".old" in n]
+    assert f"./{ab.TRAIN_RUN}/checkpoints/step_0000000064/state.json" in names
