@@ -72,7 +72,12 @@ def add_parser(sub: Any) -> None:
         "download",
         help="fetch the ETH/UCY recordings, verify them against pinned SHA-256 sums and install them atomically",
     )
-    d.add_argument("--dest", default=None, help=f"folder to create (default: {DEFAULT_DEST}, searched by the project)")
+    d.add_argument(
+        "--dest",
+        default=None,
+        help=f"folder to create (default: {DEFAULT_DEST}, searched by the project; without --dest nothing is fetched "
+        "when the folder the project already uses verifies)",
+    )
     d.add_argument(
         "--url",
         default=None,

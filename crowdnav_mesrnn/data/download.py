@@ -53,7 +53,7 @@ from pathlib import Path
 from typing import BinaryIO, Final
 
 from crowdnav_mesrnn.data.deadline import SCHEMES, Deadline, finite_seconds
-from crowdnav_mesrnn.data.paths import ENV_VAR, candidate_dirs
+from crowdnav_mesrnn.data.paths import ENV_VAR, DataNotFoundError, candidate_dirs, find_data_dir
 
 #: The Social-GAN datasets archive (a zip; its layout is mapped by :func:`archive_member_for`). Untested here:
 #: the machines this project is developed and tested on reach no host but package registries.
@@ -390,6 +390,15 @@ def _from_layout(
         progress(f"  [{k}/{len(ETH_UCY_SHA256)}] {rel}")
 
 
+def _data_in_use() -> tuple[str, Path] | None:
+    """The data folder the project would use with no argument, with where it was found; None if none."""
+    try:
+        path = find_data_dir()
+    except DataNotFoundError:
+        return None
+    return next((label, p) for label, p in candidate_dirs(None) if p == path)
+
+
 def verify_folder(root: Path) -> list[str]:
     """Problems of ``root`` against :data:`ETH_UCY_SHA256` (missing or differing files); empty when it matches."""
     problems = []
@@ -592,8 +601,9 @@ def download_data(
     """Fetch, verify and install the ETH/UCY recordings in the project's layout.
 
     Args:
-        dest: the data folder to create or fill (default :data:`DEFAULT_DEST`, the user cache the project
-            searches). A file is refused.
+        dest: the data folder to create or fill; a file is refused. When None and the folder the project already
+            uses (``$CROWDNAV_MESRNN_DATA``, ``./data/eth_ucy`` or the user cache: the first holding data)
+            verifies, that folder is returned and nothing is fetched; otherwise :data:`DEFAULT_DEST`, the user cache.
         url: a ``.zip`` in the Social-GAN layout (default :data:`DEFAULT_URL`), or a base URL serving the
             project's layout (``BASE/all_data/biwi_eth.txt``, ``BASE/train/...``, ``BASE/val/...``); ``http``,
             ``https`` or ``file`` URLs, or a local path to either.
@@ -616,10 +626,27 @@ def download_data(
         DownloadError: any other failure (a file missing from the source, an unreadable archive, a write error).
             After any error ``dest`` holds what it held before.
     """
-    dest = Path(dest).expanduser() if dest is not None else DEFAULT_DEST
     timeout_s = finite_seconds("timeout_s", timeout_s)
     deadline_s = finite_seconds("deadline_s", deadline_s)
     url = source_url(url or DEFAULT_URL)
+    if dest is None:  # no folder asked for: the one the project already uses may hold the data
+        in_use = _data_in_use()
+        if in_use is not None:
+            label, path = in_use
+            problems = verify_folder(path)
+            if not problems:
+                progress(
+                    f"the project already uses {path} ({label}), which holds every file: nothing to fetch "
+                    "(pass --dest to download a copy elsewhere)"
+                )
+                return DownloadResult(path, len(ETH_UCY_SHA256), str(path), True, found_by_default(path))
+            if path.resolve() != DEFAULT_DEST.resolve():
+                progress(
+                    f"note: the project uses {path} ({label}), which does not verify ({problems[0]}; "
+                    f"`crowdnav-mesrnn data check {path}` lists all); downloading into {DEFAULT_DEST}, "
+                    f"which the project uses only when {path} holds no data"
+                )
+    dest = Path(dest).expanduser() if dest is not None else DEFAULT_DEST
     home = lock_path(dest).parent  # the lock and the staging folder live beside the real folder
     try:
         home.mkdir(parents=True, exist_ok=True)

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import pytest
 
+import crowdnav_mesrnn.data.download as download
 from crowdnav_mesrnn.cli import main
 from crowdnav_mesrnn.data.download import (
     CHUNK_BYTES,
@@ -436,3 +437,24 @@ def test_default_place_is_found(tmp_path: Path, monkeypatch: pytest.MonkeyPatch)
 
 def test_no_data_message_names_the_command() -> None:
     assert "crowdnav-mesrnn data download" in HOW_TO_GET_DATA
+
+
+def test_without_dest_a_verified_folder_in_use_is_kept_and_nothing_fetched(
+    served_copy: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(download, "DEFAULT_DEST", tmp_path / "home" / ".cache" / "crowdnav-mesrnn" / "eth_ucy")
+    monkeypatch.setenv(ENV_VAR, str(served_copy))
+    # the source is unreachable: a download would fail
+    assert main(["data", "download", "--url", "http://127.0.0.1:9/", "--timeout", "1"]) == 0
+    out = capsys.readouterr().out
+    assert f"the project already uses {served_copy} (${ENV_VAR})" in out and "24 files" in out
+    assert not (tmp_path / "home").exists()  # nothing written into the default place
+    # a folder in use that does not verify is said so, and the download goes ahead (here: and fails)
+    target = served_copy / "val" / "biwi_hotel_val.txt"
+    target.write_bytes(target.read_bytes()[:-10])
+    assert main(["data", "download", "--url", "http://127.0.0.1:9/", "--timeout", "1"]) == 1
+    captured = capsys.readouterr()
+    assert f"note: the project uses {served_copy} (${ENV_VAR}), which does not verify" in captured.out
+    assert "biwi_hotel_val.txt" in captured.out and "unreachable" in captured.err
