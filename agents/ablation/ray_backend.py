@@ -245,23 +245,30 @@ def _checkpoint_steps(folder: Path) -> int | None:
 
 def _archived_checkpoint(blob: bytes) -> int | None:
     """The step of the checkpoint ``checkpoints/latest.json`` points at in a packed cell folder, if that
-    checkpoint's files are all in the archive; else None. A folder packed while the run wrote a new checkpoint
-    can hold a pointer to a folder it caught half-written or removed: such an archive is not shipped."""
+    checkpoint is complete in the archive (the files of ``agents.training.callbacks.checkpoint_complete``); else
+    None. A folder packed while the run wrote a new checkpoint can hold a pointer to a folder it caught half-written
+    or removed: such an archive is not shipped."""
     from agents.training.callbacks import CHECKPOINT_FILES
 
     root = f"./{TRAIN_RUN}/checkpoints"
+
+    def member_json(tar: tarfile.TarFile, name: str) -> Any:
+        try:
+            member = tar.extractfile(name)
+            return json.loads(member.read()) if member is not None else None
+        except (KeyError, ValueError):
+            return None
+
     with tarfile.open(fileobj=io.BytesIO(blob), mode="r:gz") as tar:
         names = set(tar.getnames())
-        if f"{root}/latest.json" not in names:
+        latest = member_json(tar, f"{root}/latest.json")
+        if not isinstance(latest, dict) or not isinstance(latest.get("folder"), str):
             return None
-        member = tar.extractfile(f"{root}/latest.json")
-        try:
-            latest = json.loads(member.read()) if member is not None else None
-        except ValueError:
-            return None
-    if not isinstance(latest, dict) or not isinstance(latest.get("folder"), str):
+        folder = f"{root}/{latest['folder']}"
+        state = member_json(tar, f"{folder}/state.json")
+    if not isinstance(state, dict) or not isinstance(state.get("files", []), list):
         return None
-    if not all(f"{root}/{latest['folder']}/{name}" in names for name in CHECKPOINT_FILES):
+    if not all(f"{folder}/{name}" in names for name in (*CHECKPOINT_FILES, *map(str, state.get("files", [])))):
         return None
     steps = latest.get("steps")
     return int(steps) if isinstance(steps, int) else None
@@ -283,7 +290,10 @@ class _Shipper:
         steps = _checkpoint_steps(self.folder)
         if steps is None or steps == self._last:
             return
-        blob = _pack(self.folder)
+        from agents.training.callbacks import CHECKPOINT_LOCK
+
+        with CHECKPOINT_LOCK:  # the training run in this process does not save or prune while it is read
+            blob = _pack(self.folder)
         steps = _archived_checkpoint(blob)
         if steps is None or steps == self._last:  # caught mid-write: the next look ships it
             return

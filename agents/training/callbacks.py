@@ -10,6 +10,7 @@ import copy
 import json
 import pickle
 import shutil
+import threading
 import time
 import warnings
 from collections.abc import Mapping
@@ -232,50 +233,92 @@ class Progress(BaseCallback):
             self.bar.close()
 
 
-#: The files every checkpoint folder holds; a folder without one of them is incomplete and never resumed from.
+#: The files every checkpoint folder holds; its ``state.json`` (written last) lists the others it holds. A folder
+#: without one of them is incomplete and never resumed from.
 CHECKPOINT_FILES = ("model.zip", "state.json")
+
+#: Held while this process writes a checkpoint, and by anything in it that copies a run's checkpoints meanwhile (the
+#: Ray task's shipper thread), so a copy never catches a checkpoint half-written or half-pruned.
+CHECKPOINT_LOCK = threading.Lock()
+
+#: Folders a checkpoint passes through: ``.step_<n>.partial`` while written, ``.step_<n>.old`` while replaced.
+_STAGING_SUFFIXES = (".partial", ".old")
 
 
 def save_checkpoint(model: Any, run_dir: Path, validation_state: Mapping[str, Any], keep: int = 1) -> Path:
     """``checkpoints/step_<n>/`` with ``model.zip``, ``model_vecnormalize.pkl``, ``replay_buffer.pkl`` (off-policy)
-    and ``state.json``; then ``checkpoints/latest.json`` points at it; older ones beyond ``keep`` are removed.
+    and ``state.json`` (listing the other files); then ``checkpoints/latest.json`` points at it. Then the ``keep - 1``
+    newest older checkpoints are kept and the others removed, with any newer one (left by a run this one resumed
+    before it: it is not the one resumed from).
 
-    The files are written into a staging folder (``.step_<n>.partial``) that is renamed into place once all of them
-    are there, so a process killed at any moment leaves either the complete folder or none of it (the staging folder
-    is cleared at the next save)."""
+    The files are written into a staging folder (``.step_<n>.partial``) renamed into place once all of them are
+    there, so a process killed at any moment leaves the complete folder or a staging folder that
+    :func:`recover_checkpoints` sorts out (staging folders left by a killed save are cleared at the next save)."""
     steps = int(model.num_timesteps)
     root = run_dir / "checkpoints"
     folder = root / f"step_{steps:010d}"
     staging = root / f".{folder.name}.partial"
-    shutil.rmtree(staging, ignore_errors=True)
-    save_model(model, staging / "model.zip")
-    save_vecnormalize(model, staging / "model.zip")
-    if getattr(model, "replay_buffer", None) is not None:
-        atomic_write(staging / "replay_buffer.pkl", lambda fh: model.save_replay_buffer(fh))
-    atomic_write_json(staging / "state.json", {"steps": steps, "validation": validation_state})
-    if folder.exists():  # a second checkpoint at the same step (an interrupt right after a periodic one)
-        old = root / f".{folder.name}.old"
-        shutil.rmtree(old, ignore_errors=True)
-        folder.rename(old)
-        staging.rename(folder)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        staging.rename(folder)
-    atomic_write_json(root / "latest.json", {"steps": steps, "folder": folder.name})
-    for old_folder in sorted(p for p in root.glob("step_*") if p.is_dir())[:-keep]:
-        shutil.rmtree(old_folder, ignore_errors=True)
+    with CHECKPOINT_LOCK:
+        _clear_staging(root)
+        save_model(model, staging / "model.zip")
+        save_vecnormalize(model, staging / "model.zip")
+        if getattr(model, "replay_buffer", None) is not None:
+            atomic_write(staging / "replay_buffer.pkl", lambda fh: model.save_replay_buffer(fh))
+        files = sorted(p.name for p in staging.iterdir() if p.is_file())
+        state = {"steps": steps, "validation": validation_state, "files": files}
+        atomic_write_json(staging / "state.json", state)
+        if folder.exists():  # a second checkpoint at the same step (an interrupt right after a periodic one)
+            old = root / f".{folder.name}.old"
+            folder.rename(old)  # killed before the next rename: recover_checkpoints renames the staging folder
+            staging.rename(folder)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            staging.rename(folder)
+        atomic_write_json(root / "latest.json", {"steps": steps, "folder": folder.name})
+        others = sorted(p for p in root.glob("step_*") if p.is_dir() and p != folder)
+        older = [p for p in others if p.name < folder.name]  # zero-padded: names sort by step
+        newer = [p for p in others if p.name > folder.name]
+        for gone in newer + older[: max(0, len(older) - (keep - 1))]:
+            shutil.rmtree(gone, ignore_errors=True)
     return folder
 
 
+def _clear_staging(root: Path) -> None:
+    for path in root.glob(".step_*"):
+        if path.is_dir() and path.name.endswith(_STAGING_SUFFIXES):
+            shutil.rmtree(path, ignore_errors=True)
+
+
 def checkpoint_complete(folder: Path) -> bool:
-    """Whether ``folder`` holds every file of a checkpoint (:data:`CHECKPOINT_FILES`)."""
-    return all((folder / name).is_file() for name in CHECKPOINT_FILES)
+    """Whether ``folder`` holds every file of a checkpoint: :data:`CHECKPOINT_FILES` and those its ``state.json``
+    lists (checkpoints written before the list existed: :data:`CHECKPOINT_FILES` only)."""
+    try:
+        state = json.loads((folder / "state.json").read_text())
+    except (OSError, ValueError):
+        return False
+    listed = state.get("files", []) if isinstance(state, dict) else None
+    if not isinstance(listed, list) or not all(isinstance(name, str) for name in listed):
+        return False
+    return all((folder / name).is_file() for name in (*CHECKPOINT_FILES, *listed))
+
+
+def recover_checkpoints(run_dir: Path) -> None:
+    """Before a resume: a complete staging folder whose ``step_<n>`` is missing (a save killed between its renames)
+    is renamed into place; every other staging folder is removed."""
+    root = run_dir / "checkpoints"
+    with CHECKPOINT_LOCK:
+        for suffix in _STAGING_SUFFIXES:  # the newer files first: .partial was written after .old
+            for path in sorted(root.glob(f".step_*{suffix}")):
+                target = root / path.name[1 : -len(suffix)]
+                if path.is_dir() and not target.exists() and checkpoint_complete(path):
+                    path.rename(target)
+        _clear_staging(root)
 
 
 def latest_checkpoint(run_dir: Path) -> Path | None:
-    """The folder ``checkpoints/latest.json`` points at if it is complete; otherwise the newest complete
-    ``step_<n>`` folder (a pointer can outlive its folder, e.g. in a copy taken while a run wrote a new one);
-    None when there is no complete checkpoint."""
+    """The folder ``checkpoints/latest.json`` points at if it is complete (:func:`checkpoint_complete`); otherwise
+    the newest complete ``step_<n>`` folder (a pointer can outlive its folder, e.g. in a copy taken while a run wrote
+    a new one); None when there is no complete checkpoint."""
     root = run_dir / "checkpoints"
     pointer = root / "latest.json"
     if pointer.is_file():

@@ -45,6 +45,7 @@ from agents.training.callbacks import (
     Progress,
     Validation,
     latest_checkpoint,
+    recover_checkpoints,
     save_model,
     save_policy_file,
     save_vecnormalize,
@@ -276,6 +277,8 @@ def train(
             print(f"{run_dir} is finished ({done_steps} steps); nothing to resume")
             return run_dir
         (run_dir / "DONE").unlink()  # extending a finished run: it is unfinished until the new DONE
+    if resume:
+        recover_checkpoints(run_dir)
     ckpt = latest_checkpoint(run_dir) if resume else None
     if not resume and run_dir.exists() and any(run_dir.iterdir()):
         raise ConfigError(f"{run_dir} exists and is not empty; pass --resume to continue it, or choose another --out")

@@ -75,8 +75,9 @@ def add_parser(sub: Any) -> None:
     d.add_argument(
         "--dest",
         default=None,
-        help=f"folder to create (default: {DEFAULT_DEST}, searched by the project; without --dest nothing is fetched "
-        "when the folder the project already uses verifies)",
+        help=f"folder to create (default: {DEFAULT_DEST}, searched by the project; without --dest, a folder the "
+        "project already uses instead ($CROWDNAV_MESRNN_DATA or ./data/eth_ucy) is kept when it verifies and "
+        "refused when it does not)",
     )
     d.add_argument(
         "--url",

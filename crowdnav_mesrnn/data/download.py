@@ -601,9 +601,10 @@ def download_data(
     """Fetch, verify and install the ETH/UCY recordings in the project's layout.
 
     Args:
-        dest: the data folder to create or fill; a file is refused. When None and the folder the project already
-            uses (``$CROWDNAV_MESRNN_DATA``, ``./data/eth_ucy`` or the user cache: the first holding data)
-            verifies, that folder is returned and nothing is fetched; otherwise :data:`DEFAULT_DEST`, the user cache.
+        dest: the data folder to create or fill; a file is refused. When None: if the project already uses a
+            folder other than :data:`DEFAULT_DEST` (``$CROWDNAV_MESRNN_DATA`` or ``./data/eth_ucy``, the first
+            holding data), that folder is returned when it verifies (nothing fetched) and refused when not (a copy
+            in the user cache would not be used); otherwise :data:`DEFAULT_DEST`, the user cache.
         url: a ``.zip`` in the Social-GAN layout (default :data:`DEFAULT_URL`), or a base URL serving the
             project's layout (``BASE/all_data/biwi_eth.txt``, ``BASE/train/...``, ``BASE/val/...``); ``http``,
             ``https`` or ``file`` URLs, or a local path to either.
@@ -622,7 +623,7 @@ def download_data(
             other ways to get the data.
         ChecksumError: a file differs from its pinned SHA-256 or size (the message names it).
         DestinationError: ``dest`` is a file, another download into it is running, or it holds other files and
-            ``force`` is False.
+            ``force`` is False; or ``dest`` is None and the folder the project uses does not verify.
         DownloadError: any other failure (a file missing from the source, an unreadable archive, a write error).
             After any error ``dest`` holds what it held before.
     """
@@ -631,21 +632,22 @@ def download_data(
     url = source_url(url or DEFAULT_URL)
     if dest is None:  # no folder asked for: the one the project already uses may hold the data
         in_use = _data_in_use()
-        if in_use is not None:
+        if in_use is not None and in_use[1].resolve() != DEFAULT_DEST.resolve():
             label, path = in_use
             problems = verify_folder(path)
-            if not problems:
-                progress(
-                    f"the project already uses {path} ({label}), which holds every file: nothing to fetch "
-                    "(pass --dest to download a copy elsewhere)"
+            if problems:  # a copy in the user cache would not be used while this folder holds all_data/
+                raise DestinationError(
+                    f"the project uses {path} ({label}), which does not verify: {problems[0]}"
+                    + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else "")
+                    + f"; a download into {DEFAULT_DEST} would not be used while it holds all_data/. Nothing was "
+                    f"fetched. Repair it with `crowdnav-mesrnn data download --dest {path} --force` (replaces only "
+                    "the project's files), or download elsewhere with --dest and point the project there"
                 )
-                return DownloadResult(path, len(ETH_UCY_SHA256), str(path), True, found_by_default(path))
-            if path.resolve() != DEFAULT_DEST.resolve():
-                progress(
-                    f"note: the project uses {path} ({label}), which does not verify ({problems[0]}; "
-                    f"`crowdnav-mesrnn data check {path}` lists all); downloading into {DEFAULT_DEST}, "
-                    f"which the project uses only when {path} holds no data"
-                )
+            progress(
+                f"the project already uses {path} ({label}), which holds every file, verified: nothing to fetch "
+                "(the pinned files are the same from any --url; pass --dest to download a copy elsewhere)"
+            )
+            return DownloadResult(path, len(ETH_UCY_SHA256), str(path), True, found_by_default(path))
     dest = Path(dest).expanduser() if dest is not None else DEFAULT_DEST
     home = lock_path(dest).parent  # the lock and the staging folder live beside the real folder
     try:

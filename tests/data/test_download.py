@@ -439,22 +439,56 @@ def test_no_data_message_names_the_command() -> None:
     assert "crowdnav-mesrnn data download" in HOW_TO_GET_DATA
 
 
-def test_without_dest_a_verified_folder_in_use_is_kept_and_nothing_fetched(
-    served_copy: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+@pytest.mark.parametrize("where", ["variable", "working directory"])
+def test_without_dest_a_folder_in_use_is_checked_kept_when_it_verifies_and_refused_when_not(
+    served_copy: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    where: str,
 ) -> None:
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(download, "DEFAULT_DEST", tmp_path / "home" / ".cache" / "crowdnav-mesrnn" / "eth_ucy")
-    monkeypatch.setenv(ENV_VAR, str(served_copy))
+    cache = tmp_path / "home" / ".cache" / "crowdnav-mesrnn" / "eth_ucy"
+    monkeypatch.setattr(download, "DEFAULT_DEST", cache)
+    if where == "variable":
+        monkeypatch.chdir(tmp_path)
+        monkeypatch.setenv(ENV_VAR, str(served_copy))
+        label = f"${ENV_VAR}"
+    else:  # ./data/eth_ucy, found before the user cache
+        monkeypatch.delenv(ENV_VAR, raising=False)
+        (tmp_path / "work" / "data").mkdir(parents=True)
+        served_copy = served_copy.rename(tmp_path / "work" / "data" / "eth_ucy")
+        monkeypatch.chdir(tmp_path / "work")
+        label = "working directory"
     # the source is unreachable: a download would fail
     assert main(["data", "download", "--url", "http://127.0.0.1:9/", "--timeout", "1"]) == 0
     out = capsys.readouterr().out
-    assert f"the project already uses {served_copy} (${ENV_VAR})" in out and "24 files" in out
+    assert f"the project already uses {served_copy} ({label})" in out and "24 files" in out
     assert not (tmp_path / "home").exists()  # nothing written into the default place
-    # a folder in use that does not verify is said so, and the download goes ahead (here: and fails)
+    # a folder in use that does not verify is named with its file, and nothing is fetched or written
     target = served_copy / "val" / "biwi_hotel_val.txt"
     target.write_bytes(target.read_bytes()[:-10])
+    before = _snapshot(served_copy)
     assert main(["data", "download", "--url", "http://127.0.0.1:9/", "--timeout", "1"]) == 1
-    captured = capsys.readouterr()
-    assert f"note: the project uses {served_copy} (${ENV_VAR}), which does not verify" in captured.out
-    assert "biwi_hotel_val.txt" in captured.out and "unreachable" in captured.err
+    err = capsys.readouterr().err
+    assert f"the project uses {served_copy} ({label}), which does not verify" in err
+    assert "biwi_hotel_val.txt" in err and f"--dest {served_copy} --force" in err and "unreachable" not in err
+    assert _snapshot(served_copy) == before and not (tmp_path / "home").exists()
+
+
+def test_the_named_repair_restores_a_folder_in_use(
+    data_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    broken = tmp_path / "mine"
+    for rel in ETH_UCY_SHA256:
+        (broken / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(data_dir / rel, broken / rel)
+    (broken / "val" / "biwi_hotel_val.txt").write_text("damaged\n")
+    monkeypatch.setenv(ENV_VAR, str(broken))
+    monkeypatch.setattr(download, "DEFAULT_DEST", tmp_path / "cache")
+    assert main(["data", "download", "--url", str(data_dir)]) == 1
+    assert main(["data", "download", "--url", str(data_dir), "--dest", str(broken), "--force"]) == 0
+    assert verify_folder(broken) == []
+    capsys.readouterr()
+    assert main(["data", "download", "--url", "http://127.0.0.1:9/"]) == 0
+    assert "already uses" in capsys.readouterr().out

@@ -136,13 +136,16 @@ def test_a_token_turns_token_authentication_on_as_ray_start_does(
 
 
 def _cell_with_checkpoints(folder: Path, pointer: int, complete: dict[int, bool]) -> None:
+    """Checkpoint folders with a vecnormalize file their state lists; an incomplete one lacks its state file."""
     root = folder / ab.TRAIN_RUN / "checkpoints"
     for steps, whole in complete.items():
         step = root / f"step_{steps:010d}"
         step.mkdir(parents=True)
         (step / "model.zip").write_bytes(b"weights")
+        (step / "model_vecnormalize.pkl").write_bytes(b"statistics")
         if whole:
-            (step / "state.json").write_text(json.dumps({"steps": steps}))
+            state = {"steps": steps, "files": ["model.zip", "model_vecnormalize.pkl"]}
+            (step / "state.json").write_text(json.dumps(state))
     root.mkdir(parents=True, exist_ok=True)
     (root / "latest.json").write_text(json.dumps({"steps": pointer, "folder": f"step_{pointer:010d}"}))
 
@@ -155,6 +158,48 @@ def test_a_cell_folder_packed_mid_checkpoint_is_not_shipped(tmp_path: Path) -> N
     assert rb._checkpoint_steps(tmp_path / "mid") == 128
     _cell_with_checkpoints(tmp_path / "whole", 256, {256: True})
     assert rb._archived_checkpoint(rb._pack(tmp_path / "whole")) == 256
+    # packed while the old checkpoint was pruned: a file its state lists is gone
+    (tmp_path / "whole" / ab.TRAIN_RUN / "checkpoints" / "step_0000000256" / "model_vecnormalize.pkl").unlink()
+    assert rb._archived_checkpoint(rb._pack(tmp_path / "whole")) is None
+
+
+class _StubRay:
+    """What ``_Shipper._ship`` uses of ray (``get``) and of the inbox actor (``put.remote``), recording puts."""
+
+    def __init__(self) -> None:
+        self.shipped: list[int] = []
+        self.put = self
+        self.inbox = self
+
+    def remote(self, name: str, steps: int, blob: bytes) -> int:
+        self.shipped.append(steps)
+        return steps
+
+    def get(self, ref: Any) -> Any:
+        return ref
+
+
+def test_the_shipper_ships_each_complete_checkpoint_once_and_never_a_half_written_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    stub = _StubRay()
+    cell = tmp_path / "cell"
+    shipper = object.__new__(rb._Shipper)  # without its thread and without ray
+    shipper._ray, shipper.folder, shipper.name, shipper.inbox, shipper._last = stub, cell, "cell", stub, None
+    _cell_with_checkpoints(cell, 128, {128: True})
+    shipper._ship()
+    shipper._ship()  # nothing new
+    assert stub.shipped == [128]
+    _cell_with_checkpoints(cell, 256, {256: True})
+    # the folder as a pack caught it while step 256 was written: its pointer, not yet its state file
+    _cell_with_checkpoints(tmp_path / "caught", 256, {128: True, 256: False})
+    pack = rb._pack
+    monkeypatch.setattr(rb, "_pack", lambda folder: pack(tmp_path / "caught"))
+    shipper._ship()
+    assert stub.shipped == [128]  # not shipped: the next look does
+    monkeypatch.undo()
+    shipper._ship()
+    assert stub.shipped == [128, 256]
 
 
 def test_packing_skips_checkpoints_being_written_or_replaced(tmp_path: Path) -> None:

@@ -10,7 +10,7 @@ import pytest
 from stable_baselines3 import PPO
 
 import agents.training.callbacks as callbacks
-from agents.training.callbacks import checkpoint_complete, latest_checkpoint, save_checkpoint
+from agents.training.callbacks import checkpoint_complete, latest_checkpoint, recover_checkpoints, save_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -18,12 +18,19 @@ def model() -> Any:
     return PPO("MlpPolicy", "CartPole-v1", n_steps=16, batch_size=16, device="cpu", seed=0)
 
 
-def _write_checkpoint(root: Path, steps: int, files: tuple[str, ...] = ("model.zip", "state.json")) -> Path:
+def _write_checkpoint(
+    root: Path, steps: int, files: tuple[str, ...] = ("model.zip", "state.json"), listed: tuple[str, ...] = ()
+) -> Path:
     folder = root / "checkpoints" / f"step_{steps:010d}"
     folder.mkdir(parents=True)
     for name in files:
-        (folder / name).write_text(json.dumps({"steps": steps}) if name == "state.json" else "weights")
+        state = {"steps": steps, "files": ["model.zip", *listed]}
+        (folder / name).write_text(json.dumps(state) if name == "state.json" else "weights")
     return folder
+
+
+def _names(run: Path) -> list[str]:
+    return sorted(p.name for p in (run / "checkpoints").iterdir())
 
 
 def test_a_save_killed_before_its_state_file_leaves_no_step_folder_and_the_previous_checkpoint(
@@ -49,7 +56,7 @@ def test_a_save_killed_before_its_state_file_leaves_no_step_folder_and_the_previ
     # the next save clears the staging folder the killed one left and completes
     second = save_checkpoint(model, tmp_path, {"best": None})
     assert checkpoint_complete(second) and latest_checkpoint(tmp_path) == second
-    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["latest.json", "step_0000000128"]
+    assert _names(tmp_path) == ["latest.json", "step_0000000128"]
 
 
 def test_a_second_save_at_the_same_step_replaces_the_folder(tmp_path: Path, model: Any) -> None:
@@ -57,12 +64,74 @@ def test_a_second_save_at_the_same_step_replaces_the_folder(tmp_path: Path, mode
     save_checkpoint(model, tmp_path, {"best": None})
     folder = save_checkpoint(model, tmp_path, {"best": {"success_rate": 0.5}})
     assert json.loads((folder / "state.json").read_text())["validation"] == {"best": {"success_rate": 0.5}}
-    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["latest.json", folder.name]
+    assert _names(tmp_path) == ["latest.json", folder.name]
 
 
-def test_a_pointer_to_an_incomplete_folder_falls_back_to_the_newest_complete_one(tmp_path: Path) -> None:
+def test_a_save_killed_between_the_renames_of_a_same_step_replace_is_recovered(
+    tmp_path: Path, model: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    model.num_timesteps = 64
+    save_checkpoint(model, tmp_path, {"best": None})
+    original = Path.rename
+
+    def rename(self: Path, target: Any) -> Any:  # killed after the old folder moved away, before the new moved in
+        if self.name.endswith(".partial") and (self.parent / f".{Path(target).name}.old").exists():
+            raise KeyboardInterrupt
+        return original(self, target)
+
+    monkeypatch.setattr(Path, "rename", rename)
+    with pytest.raises(KeyboardInterrupt):
+        save_checkpoint(model, tmp_path, {"best": {"success_rate": 0.5}})
+    monkeypatch.undo()
+    assert "step_0000000064" not in _names(tmp_path)
+    recover_checkpoints(tmp_path)  # what a resume does first
+    ckpt = latest_checkpoint(tmp_path)
+    assert ckpt is not None and ckpt.name == "step_0000000064"
+    assert json.loads((ckpt / "state.json").read_text())["validation"] == {"best": {"success_rate": 0.5}}
+    assert _names(tmp_path) == ["latest.json", "step_0000000064"]
+
+
+def test_a_checkpoint_lists_its_optional_files_and_is_incomplete_without_one(tmp_path: Path) -> None:
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    normalised = PPO("MlpPolicy", VecNormalize(make_vec_env("CartPole-v1", n_envs=1)), n_steps=16, batch_size=16)
+    normalised.num_timesteps = 32
+    folder = save_checkpoint(normalised, tmp_path, {"best": None})
+    listed = json.loads((folder / "state.json").read_text())["files"]
+    assert listed == ["model.zip", "model_vecnormalize.pkl"] and checkpoint_complete(folder)
+    (folder / "model_vecnormalize.pkl").unlink()  # e.g. a copy that caught the folder while it was pruned
+    assert not checkpoint_complete(folder) and latest_checkpoint(tmp_path) is None
+
+
+def test_a_save_after_resuming_from_an_older_checkpoint_keeps_itself_and_drops_the_abandoned_newer_one(
+    tmp_path: Path, model: Any
+) -> None:
+    _write_checkpoint(tmp_path, 128)
+    _write_checkpoint(tmp_path, 256)  # a run killed after this folder was renamed in, before its pointer
+    (tmp_path / "checkpoints" / "latest.json").write_text(json.dumps({"steps": 128, "folder": "step_0000000128"}))
+    model.num_timesteps = 192  # the resumed run (from 128) saves at 192
+    folder = save_checkpoint(model, tmp_path, {"best": None})
+    assert _names(tmp_path) == ["latest.json", folder.name] and latest_checkpoint(tmp_path) == folder
+    model.num_timesteps = 320
+    newest = save_checkpoint(model, tmp_path, {"best": None}, keep=2)
+    assert _names(tmp_path) == ["latest.json", folder.name, newest.name]
+
+
+def test_staging_folders_a_killed_save_left_are_cleared_at_the_next_save(tmp_path: Path, model: Any) -> None:
+    for name in (".step_0000000096.partial", ".step_0000000032.old"):
+        (tmp_path / "checkpoints" / name).mkdir(parents=True)
+        (tmp_path / "checkpoints" / name / "model.zip").write_text("half")
+    model.num_timesteps = 128
+    folder = save_checkpoint(model, tmp_path, {"best": None})
+    assert _names(tmp_path) == ["latest.json", folder.name]
+
+
+@pytest.mark.parametrize("missing", ["state.json", "model_vecnormalize.pkl"])
+def test_a_pointer_to_an_incomplete_folder_falls_back_to_the_newest_complete_one(tmp_path: Path, missing: str) -> None:
     complete = _write_checkpoint(tmp_path, 128)
-    _write_checkpoint(tmp_path, 256, files=("model.zip",))  # caught without its state file
+    files = tuple(n for n in ("model.zip", "model_vecnormalize.pkl", "state.json") if n != missing)
+    _write_checkpoint(tmp_path, 256, files=files, listed=("model_vecnormalize.pkl",))  # caught without one file
     (tmp_path / "checkpoints" / "latest.json").write_text(json.dumps({"steps": 256, "folder": "step_0000000256"}))
     assert latest_checkpoint(tmp_path) == complete
 
@@ -74,3 +143,5 @@ def test_a_pointer_to_a_removed_folder_falls_back_and_none_complete_means_none(t
     _write_checkpoint(tmp_path, 32, files=("state.json",))
     assert latest_checkpoint(tmp_path) is None
     assert latest_checkpoint(tmp_path / "nowhere") is None
+    complete = _write_checkpoint(tmp_path, 16)
+    assert latest_checkpoint(tmp_path) == complete
