@@ -435,6 +435,9 @@ def found_by_default(dest: Path) -> bool:
 def where_hint(dest: Path, default: bool) -> str:
     """How the project will find ``dest`` (printed after a download)."""
     if default:
+        env = os.environ.get(ENV_VAR)
+        if env and Path(env).expanduser().resolve() == dest.resolve():
+            return f"The project finds it there through ${ENV_VAR}."
         return (
             f"The project finds it there with no configuration (searched: {ENV_VAR}, ./data/eth_ucy, the user cache)."
         )

@@ -464,6 +464,8 @@ def test_without_dest_a_folder_in_use_is_checked_kept_when_it_verifies_and_refus
     assert main(["data", "download", "--url", "http://127.0.0.1:9/", "--timeout", "1"]) == 0
     out = capsys.readouterr().out
     assert f"the project already uses {served_copy} ({label})" in out and "24 files" in out
+    hint = f"finds it there through ${ENV_VAR}" if where == "variable" else "finds it there with no configuration"
+    assert hint in out
     assert not (tmp_path / "home").exists()  # nothing written into the default place
     # a folder in use that does not verify is named with its file, and nothing is fetched or written
     target = served_copy / "val" / "biwi_hotel_val.txt"
