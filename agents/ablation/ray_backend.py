@@ -161,12 +161,14 @@ def _pack(folder: Path) -> bytes:
     """A folder as gzipped tar bytes, files only, skipping temporary files (``.name.tmp``), checkpoints being
     written or replaced (``.step_<n>.partial``, ``.step_<n>.old``) and files that vanish while it is read (a
     training run replaces its old checkpoints)."""
+    from agents.training.callbacks import STAGING_SUFFIXES
+
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w:gz") as tar:
         for dirpath, dirnames, filenames in sorted(os.walk(folder)) if folder.is_dir() else []:
             dirnames.sort()
             parts = Path(dirpath).relative_to(folder).parts
-            if any(p.startswith(".") and p.endswith((".partial", ".old")) for p in parts):
+            if any(p.startswith(".") and p.endswith(STAGING_SUFFIXES) for p in parts):
                 continue
             for name in sorted(filenames):
                 if name.startswith(".") and name.endswith(".tmp"):
@@ -245,10 +247,10 @@ def _checkpoint_steps(folder: Path) -> int | None:
 
 def _archived_checkpoint(blob: bytes) -> int | None:
     """The step of the checkpoint ``checkpoints/latest.json`` points at in a packed cell folder, if that
-    checkpoint is complete in the archive (the files of ``agents.training.callbacks.checkpoint_complete``); else
-    None. A folder packed while the run wrote a new checkpoint can hold a pointer to a folder it caught half-written
-    or removed: such an archive is not shipped."""
-    from agents.training.callbacks import CHECKPOINT_FILES
+    checkpoint is complete in the archive (``agents.training.callbacks.checkpoint_required_files``: the rule on
+    disk); else None. A folder packed while the run wrote a new checkpoint can hold a pointer to a folder it caught
+    half-written or removed: such an archive is not shipped."""
+    from agents.training.callbacks import checkpoint_required_files
 
     root = f"./{TRAIN_RUN}/checkpoints"
 
@@ -266,9 +268,8 @@ def _archived_checkpoint(blob: bytes) -> int | None:
             return None
         folder = f"{root}/{latest['folder']}"
         state = member_json(tar, f"{folder}/state.json")
-    if not isinstance(state, dict) or not isinstance(state.get("files", []), list):
-        return None
-    if not all(f"{folder}/{name}" in names for name in (*CHECKPOINT_FILES, *map(str, state.get("files", [])))):
+    required = checkpoint_required_files(state)
+    if required is None or not all(f"{folder}/{name}" in names for name in required):
         return None
     steps = latest.get("steps")
     return int(steps) if isinstance(steps, int) else None

@@ -242,7 +242,7 @@ CHECKPOINT_FILES = ("model.zip", "state.json")
 CHECKPOINT_LOCK = threading.Lock()
 
 #: Folders a checkpoint passes through: ``.step_<n>.partial`` while written, ``.step_<n>.old`` while replaced.
-_STAGING_SUFFIXES = (".partial", ".old")
+STAGING_SUFFIXES = (".partial", ".old")
 
 
 def save_checkpoint(model: Any, run_dir: Path, validation_state: Mapping[str, Any], keep: int = 1) -> Path:
@@ -285,7 +285,7 @@ def save_checkpoint(model: Any, run_dir: Path, validation_state: Mapping[str, An
 
 def _clear_staging(root: Path) -> None:
     for path in root.glob(".step_*"):
-        if path.is_dir() and path.name.endswith(_STAGING_SUFFIXES):
+        if path.is_dir() and path.name.endswith(STAGING_SUFFIXES):
             shutil.rmtree(path, ignore_errors=True)
 
 
@@ -296,10 +296,18 @@ def checkpoint_complete(folder: Path) -> bool:
         state = json.loads((folder / "state.json").read_text())
     except (OSError, ValueError):
         return False
+    required = checkpoint_required_files(state)
+    return required is not None and all((folder / name).is_file() for name in required)
+
+
+def checkpoint_required_files(state: Any) -> tuple[str, ...] | None:
+    """The files a checkpoint whose ``state.json`` holds ``state`` must have: :data:`CHECKPOINT_FILES` and those
+    the state lists (checkpoints written before the list existed: :data:`CHECKPOINT_FILES` only); None when the
+    state is malformed (such a checkpoint is never complete). One rule for a folder on disk and a packed one."""
     listed = state.get("files", []) if isinstance(state, dict) else None
     if not isinstance(listed, list) or not all(isinstance(name, str) for name in listed):
-        return False
-    return all((folder / name).is_file() for name in (*CHECKPOINT_FILES, *listed))
+        return None
+    return (*CHECKPOINT_FILES, *listed)
 
 
 def recover_checkpoints(run_dir: Path) -> None:
@@ -307,7 +315,7 @@ def recover_checkpoints(run_dir: Path) -> None:
     is renamed into place; every other staging folder is removed."""
     root = run_dir / "checkpoints"
     with CHECKPOINT_LOCK:
-        for suffix in _STAGING_SUFFIXES:  # the newer files first: .partial was written after .old
+        for suffix in STAGING_SUFFIXES:  # the newer files first: .partial was written after .old
             for path in sorted(root.glob(f".step_*{suffix}")):
                 target = root / path.name[1 : -len(suffix)]
                 if path.is_dir() and not target.exists() and checkpoint_complete(path):

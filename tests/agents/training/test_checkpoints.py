@@ -145,3 +145,22 @@ def test_a_pointer_to_a_removed_folder_falls_back_and_none_complete_means_none(t
     assert latest_checkpoint(tmp_path / "nowhere") is None
     complete = _write_checkpoint(tmp_path, 16)
     assert latest_checkpoint(tmp_path) == complete
+
+
+@pytest.mark.parametrize(
+    "state", [None, [], {"files": "model_vecnormalize.pkl"}, {"files": [1]}, {"files": ["a.pkl", None]}]
+)
+def test_a_malformed_state_names_no_files_and_its_folder_is_never_complete(tmp_path: Path, state: Any) -> None:
+    folder = tmp_path / "step_0000000064"
+    folder.mkdir()
+    for name in ("model.zip", "a.pkl", "1"):
+        (folder / name).write_bytes(b"x")
+    (folder / "state.json").write_text(json.dumps(state))
+    assert callbacks.checkpoint_required_files(state) is None
+    assert not checkpoint_complete(folder)
+
+
+def test_the_files_a_state_requires_are_the_fixed_ones_and_those_it_lists() -> None:
+    assert callbacks.checkpoint_required_files({"steps": 64}) == callbacks.CHECKPOINT_FILES
+    listed = callbacks.checkpoint_required_files({"steps": 64, "files": ["model_vecnormalize.pkl"]})
+    assert listed == (*callbacks.CHECKPOINT_FILES, "model_vecnormalize.pkl")
