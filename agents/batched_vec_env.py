@@ -50,12 +50,14 @@ class BatchedVecEnv(VecEnv):
         options = [dict(o) if o else None for o in self._options]
         if all(o == options[0] for o in options):
             obs, info = self.venv.reset(seed=list(self._seeds), options=options[0])
-        else:  # options differ between environments: one reset each
+            self.reset_infos = _unbatch(info, self.num_envs)
+        else:  # options differ between environments: one reset each, each keeping its own reset info
+            self.reset_infos = [{} for _ in range(self.num_envs)]
             for i, opts in enumerate(options):
                 mask = np.zeros(self.num_envs, dtype=bool)
                 mask[i] = True
                 obs, info = self.venv.reset(seed=list(self._seeds), options={**(opts or {}), "reset_mask": mask})
-        self.reset_infos = _unbatch(info, self.num_envs)
+                self.reset_infos[i] = _unbatch(info, self.num_envs)[i]
         self._reset_seeds()
         self._reset_options()
         self._returns[:] = 0.0
@@ -99,20 +101,42 @@ class BatchedVecEnv(VecEnv):
         self.venv.close()
 
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
-        """The attribute of the batched environment (shared by all environments), once per index."""
-        value = getattr(self.venv, attr_name)
+        """The attribute of the batched environment (shared by all environments), once per index; the spaces are
+        one environment's (``observation_space``, ``action_space``: this ``VecEnv``'s, as ``DummyVecEnv`` gives)."""
+        if attr_name in ("observation_space", "action_space"):
+            value = getattr(self, attr_name)
+        else:
+            value = getattr(self.venv, attr_name)
         return [value for _ in self._get_indices(indices)]
 
     def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
-        """Set an attribute of the batched environment (it is shared: every index sees it)."""
+        """Set an attribute of the batched environment. It is shared by every environment, so ``indices`` must
+        select all of them (``NotImplementedError`` otherwise: no attribute of some environments only)."""
+        self._all_indices(indices, f"set_attr({attr_name!r})")
         setattr(self.venv, attr_name, value)
 
     def env_method(
         self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any
     ) -> list[Any]:
-        """Call a method of the batched environment once per index."""
+        """Call a method of the batched environment once per index. ``reset``, ``step`` and ``close`` are refused
+        (``NotImplementedError``): through this they would act on every environment behind this ``VecEnv``'s back;
+        use its own ``reset``, ``step`` and ``close``."""
+        if method_name in ("reset", "step", "close"):
+            raise NotImplementedError(
+                f"env_method({method_name!r}) on the batched environment would {method_name} all "
+                f"{self.num_envs} environments behind this VecEnv (its observations and episode statistics would go "
+                f"stale); call the VecEnv's own {method_name}()"
+            )
         method = getattr(self.venv, method_name)
         return [method(*method_args, **method_kwargs) for _ in self._get_indices(indices)]
+
+    def _all_indices(self, indices: VecEnvIndices, what: str) -> None:
+        chosen = set(self._get_indices(indices))
+        if chosen != set(range(self.num_envs)):
+            raise NotImplementedError(
+                f"{what} with indices={indices!r}: the {self.num_envs} environments are one batched environment that "
+                "shares its attributes, so they can be set for all of them only (indices=None)"
+            )
 
     def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
         return [False for _ in self._get_indices(indices)]

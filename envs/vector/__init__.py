@@ -8,7 +8,7 @@ from typing import Any
 
 import gymnasium
 
-from envs.vector.batched import BatchedCrowdNavEnv, NotBatchedError
+from envs.vector.batched import BatchedCrowdNavEnv, NotBatchedError, check_max_episode_steps
 
 __all__ = ["BatchedCrowdNavEnv", "NotBatchedError", "make_vector_env"]
 
@@ -30,10 +30,11 @@ def make_vector_env(num_envs: int = 1, render_mode: str | None = None, **kwargs:
         UserWarning,
         stacklevel=2,
     )
-    kwargs.pop("max_episode_steps", None)  # the environment has its own time limit
+    limit = check_max_episode_steps(kwargs.pop("max_episode_steps", None))
 
-    def make() -> CrowdNavEnv:
-        return CrowdNavEnv(render_mode=render_mode, **kwargs)
+    def make() -> gymnasium.Env:
+        env = CrowdNavEnv(render_mode=render_mode, **kwargs)
+        return env if limit is None else gymnasium.wrappers.TimeLimit(env, limit)
 
     return gymnasium.vector.SyncVectorEnv(
         [make] * int(num_envs), autoreset_mode=gymnasium.vector.AutoresetMode.NEXT_STEP

@@ -91,6 +91,9 @@ class BatchedCrowdNavEnv(VectorEnv):
     Args:
         num_envs: N, at most 256 (worlds one pymunk space keeps apart).
         render_mode: only None (render a single environment to watch an episode).
+        max_episode_steps: None, or truncate every episode at this many steps as Gymnasium's ``TimeLimit`` wrapper
+            does around a single environment (``gymnasium.make_vec(id, ..., max_episode_steps=n)`` passes it): the
+            step that reaches it is truncated, with the info of a step the environment did not end itself.
         config, predictor, crowd, **kwargs: as :class:`envs.crowd_nav.CrowdNavEnv`.
 
     Under ``reaction="none"`` (the only setting batched) the reset ``info`` names the reaction and its parameters and
@@ -113,14 +116,16 @@ class BatchedCrowdNavEnv(VectorEnv):
         crowd: Any = None,
         **kwargs: Any,
     ) -> None:
-        if not isinstance(num_envs, int | np.integer) or not 1 <= num_envs <= MAX_WORLDS:
+        if not isinstance(num_envs, int | np.integer) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be an integer in [1, {MAX_WORLDS}], got {num_envs!r}")
         if render_mode is not None:
             raise NotBatchedError(
                 f"the batched environment does not render (render_mode={render_mode!r}); render a single "
                 "CrowdNavEnv (gymnasium.make(id, render_mode=...)) to watch an episode"
             )
-        kwargs.pop("max_episode_steps", None)  # the environment has its own time limit
+        #: at most this many steps per episode (None: the episode's own time limit only), as Gymnasium's
+        #: ``TimeLimit`` wrapper of a single environment: ``gymnasium.make_vec(id, max_episode_steps=...)`` passes it
+        self.max_episode_steps = check_max_episode_steps(kwargs.pop("max_episode_steps", None))
         #: the reference environment: its configuration, recordings, forecast source, sampler and constants
         self.env = CrowdNavEnv(config=config, predictor=predictor, crowd=crowd, **kwargs)
         if self.env.reaction != "none":
@@ -129,6 +134,13 @@ class BatchedCrowdNavEnv(VectorEnv):
                 f"config key 'reaction' = {self.env.reaction!r}: the batched environment replays the recordings only "
                 "(reaction='none'); for reacting pedestrians step single environments: CrowdNavEnv, or "
                 "gymnasium.make_vec(id, num_envs=N, vectorization_mode='sync') (a SyncVectorEnv)"
+            )
+        if num_envs > MAX_WORLDS:
+            self.env.close()
+            raise ValueError(
+                f"num_envs must be an integer in [1, {MAX_WORLDS}] (the worlds one pymunk space keeps apart), got "
+                f"{num_envs!r}; for more, step several batched environments or single ones "
+                "(gymnasium.make_vec(id, num_envs=N, vectorization_mode='sync'))"
             )
         env = self.env
         cfg = self.config = env.config
@@ -257,12 +269,18 @@ class BatchedCrowdNavEnv(VectorEnv):
         n = self.num_envs
         if seed is None:
             seeds: list[int | None] = [None] * n
-        elif isinstance(seed, int | np.integer):
+        elif isinstance(seed, int | np.integer) and not isinstance(seed, bool):
             seeds = [int(seed) + i for i in range(n)]
         else:
-            seeds = list(seed)
-            if len(seeds) != n:
-                raise ValueError(f"seed must be None, an int or {n} seeds (one per world), got {len(seeds)}")
+            good = isinstance(seed, Sequence | np.ndarray) and not isinstance(seed, str | bytes)
+            seeds = list(seed) if good else []
+            if not good or len(seeds) != n or not all(_is_seed(x) for x in seeds):
+                raise ValueError(
+                    f"seed must be None, an int or a sequence of {n} seeds (one per world, each an int or None), "
+                    f"got {seed!r}"
+                )
+        if options is not None and not isinstance(options, Mapping):
+            reset_options(options, self.config.goal_tolerance_m)  # raises, naming the allowed keys
         opts = dict(options) if options is not None else None
         mask = np.ones(n, dtype=bool)
         if opts is not None and "reset_mask" in opts:
@@ -345,6 +363,8 @@ class BatchedCrowdNavEnv(VectorEnv):
             r, te, tr = self._reward(stepping, robot0, after, gap_step, gap_now, intruding, visible, ttc, collided,
                                      faults, new_contacts, infos)  # fmt: skip
             rewards[stepping], terminated[stepping], truncated[stepping] = r, te, tr
+            if self.max_episode_steps is not None:  # TimeLimit's rule: truncated once the step count reaches it
+                truncated[stepping] |= self._n[stepping] >= self.max_episode_steps
         self._autoreset = terminated | truncated
         return self._copy_obs(), rewards, terminated, truncated, infos
 
@@ -931,6 +951,20 @@ class BatchedCrowdNavEnv(VectorEnv):
 
     def _copy_obs(self) -> dict[str, np.ndarray]:
         return {key: value.copy() for key, value in self._obs.items()}
+
+
+def check_max_episode_steps(value: Any) -> int | None:
+    """``max_episode_steps`` checked: None or an integer >= 1 (``ValueError`` naming the key, value and what is
+    allowed)."""
+    if value is None:
+        return None
+    if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < 1:
+        raise ValueError(f"max_episode_steps must be None or an integer >= 1 (steps per episode), got {value!r}")
+    return int(value)
+
+
+def _is_seed(value: Any) -> bool:
+    return value is None or (isinstance(value, int | np.integer) and not isinstance(value, bool))
 
 
 def _clip(x: np.ndarray, bound: float) -> np.ndarray:

@@ -68,6 +68,36 @@ def test_transitions_equal_dummy_vec_env_over_single_envs(predictor: str, kind: 
     batched.close()
 
 
+def test_reset_with_options_per_environment_keeps_each_ones_reset_info() -> None:
+    env_kwargs = {"predictor": "cv", "crowd": "synthetic", "synthetic_duration_s": 120.0}
+    dummy = DummyVecEnv([lambda: make_env(env_kwargs, None) for _ in range(3)])
+    batched = BatchedVecEnv(3, env_kwargs)
+    for venv in (dummy, batched):
+        venv.seed(5)
+        venv.set_options([{"time_limit_s": 2.0}, {"time_limit_s": 3.2}, None])
+    obs_d, obs_b = dummy.reset(), batched.reset()
+    _same(obs_d, obs_b, "obs")
+    _same(dummy.reset_infos, batched.reset_infos, "reset_infos")
+    assert [info["time_limit_s"] for info in batched.reset_infos][:2] == [2.0, 3.2]
+    dummy.close()
+    batched.close()
+
+
+def test_the_shared_environment_is_not_reset_or_set_per_index_behind_the_adapter() -> None:
+    venv = BatchedVecEnv(3, {"predictor": "none", "crowd": "empty"})
+    venv.reset()
+    for name in ("reset", "step", "close"):
+        with pytest.raises(NotImplementedError, match=f"env_method\\('{name}'\\).*all 3 environments"):
+            venv.env_method(name, indices=[1])
+    with pytest.raises(NotImplementedError, match="set_attr\\('foo'\\) with indices=\\[0\\]"):
+        venv.set_attr("foo", 5, indices=[0])
+    venv.set_attr("foo", 5)
+    assert venv.get_attr("foo", indices=[0, 2]) == [5, 5]
+    assert venv.get_attr("observation_space") == [venv.observation_space] * 3
+    assert venv.get_attr("action_space", indices=1) == [venv.action_space]
+    venv.close()
+
+
 def test_ppo_learns_on_the_adapter() -> None:
     venv = BatchedVecEnv(2, {"predictor": "cv", "crowd": "synthetic", "synthetic_duration_s": 60.0})
     model = PPO("MultiInputPolicy", venv, n_steps=16, batch_size=16, policy_kwargs={"net_arch": [16]}, device="cpu")

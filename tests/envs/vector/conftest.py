@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 import pytest
 from gymnasium.vector import SyncVectorEnv
+from gymnasium.wrappers import TimeLimit
 
 from envs.crowd_nav import UNDISTURBED, CrowdNavEnv
 from envs.vector import BatchedCrowdNavEnv
@@ -40,17 +41,26 @@ def run_side_by_side(
     policy: Callable[[int, dict[str, np.ndarray], np.random.Generator], np.ndarray] | None = None,
     options: dict[str, Any] | None = None,
     reset_every: int = 0,
+    max_episode_steps: int | None = None,
 ) -> dict[str, int]:
     """Step a :class:`BatchedCrowdNavEnv` and a ``SyncVectorEnv`` of ``CrowdNavEnv`` with the same seeds and actions,
     asserting identical outputs at every step (random actions unless ``policy``); ``reset_every`` > 0 also calls a
     seeded ``reset`` every that many steps. Returns counts: episodes ended, collisions, pop-in events, steps, rows of
     forecasts, and episodes whose compared metrics were not trivial: a finite minimum time to collision
     (``ttc_finite``), a non-zero mean acceleration (``accel``), a success (``spl``). Every ended episode's metrics
-    also hold the undisturbed disturbance metrics, and every reset info the reaction's name and parameters."""
-    sync = SyncVectorEnv([lambda: CrowdNavEnv(**kwargs) for _ in range(num_envs)])
-    batched = BatchedCrowdNavEnv(num_envs=num_envs, **kwargs)
+    also hold the undisturbed disturbance metrics, and every reset info the reaction's name and parameters.
+    ``max_episode_steps``: the single environments in Gymnasium's ``TimeLimit``, the batched one given the same limit
+    (``limited`` counts the truncations at the limit where the environment did not end the episode itself)."""
+
+    def single() -> Any:
+        env = CrowdNavEnv(**kwargs)
+        return env if max_episode_steps is None else TimeLimit(env, max_episode_steps)
+
+    sync = SyncVectorEnv([single for _ in range(num_envs)])
+    extra = {} if max_episode_steps is None else {"max_episode_steps": max_episode_steps}
+    batched = BatchedCrowdNavEnv(num_envs=num_envs, **kwargs, **extra)
     rng = np.random.default_rng(seed)
-    counts = {"ended": 0, "collisions": 0, "popin_events": 0, "steps": 0, "forecast_rows": 0}
+    counts = {"ended": 0, "collisions": 0, "popin_events": 0, "steps": 0, "forecast_rows": 0, "limited": 0}
     counts.update(ttc_finite=0, accel=0, spl=0)
 
     def reset(k: int) -> dict[str, np.ndarray]:
@@ -82,6 +92,8 @@ def run_side_by_side(
         assert_same_info(out_s[4], out_b[4], f"step {t} info")
         obs = out_s[0]
         counts["steps"] += 1
+        ended_itself = out_s[4].get("_episode_metrics", np.zeros(num_envs, dtype=bool))
+        counts["limited"] += int(np.sum(out_s[3] & ~ended_itself))
         if "forecasts" in obs:
             counts["forecast_rows"] += int(obs["mask"].sum())
         if "episode_metrics" in out_s[4]:

@@ -124,6 +124,40 @@ def test_scripted_pop_ins_and_contacts(step_s: float, side_by_side: Any) -> None
         assert counts["popin_events"] >= 3
 
 
+def test_max_episode_steps_truncates_as_gymnasiums_time_limit(data_dir: Path, side_by_side: Any) -> None:
+    # 20 steps: shorter than most episodes (truncated by the limit, no episode metrics), longer than a few (ended by
+    # the environment itself, with its metrics): seed 3 gives both (measured: 19 and 4), and autoresets after each
+    counts = side_by_side(3, {"predictor": "cv", "split": "zara1", "part": "test"}, steps=150, seed=3,
+                          max_episode_steps=20)  # fmt: skip
+    assert counts["limited"] >= 3 and counts["ended"] >= 1
+
+
+def test_make_vec_applies_max_episode_steps_in_both_modes(data_dir: Path) -> None:
+    ends = {}
+    for mode in ("vector_entry_point", "sync"):
+        envs = gymnasium.make_vec(
+            "CrowdNav-CV-v0", num_envs=2, vectorization_mode=mode, max_episode_steps=5, split="zara1", part="test"
+        )
+        envs.reset(seed=0)
+        flags = [envs.step(np.zeros((2, 2), np.float32))[3].tolist() for _ in range(5)]
+        ends[mode] = flags
+        envs.close()
+    assert ends["vector_entry_point"] == ends["sync"] == [[False, False]] * 4 + [[True, True]]
+    with pytest.warns(UserWarning, match="SyncVectorEnv"):  # the fallback to single environments applies it too
+        envs = gymnasium.make_vec(
+            "CrowdNav-NoPred-v0", num_envs=2, max_episode_steps=3, crowd="empty", reaction="pause"
+        )
+    envs.reset(seed=0)
+    assert [envs.step(np.zeros((2, 2), np.float32))[3].tolist() for _ in range(3)][-1] == [True, True]
+    envs.close()
+
+
+@pytest.mark.parametrize("value", [0, -1, 2.5, "9", True])
+def test_a_bad_max_episode_steps_is_refused_naming_it(value: Any) -> None:
+    with pytest.raises(ValueError, match=rf"max_episode_steps must be None or an integer >= 1.*{value!r}"):
+        BatchedCrowdNavEnv(num_envs=2, predictor="none", crowd="empty", max_episode_steps=value)
+
+
 def test_reset_mask_resets_only_the_masked_worlds(data_dir: Path) -> None:
     env = BatchedCrowdNavEnv(num_envs=3, predictor="none", split="zara1", part="test")
     obs, _ = env.reset(seed=0)
@@ -160,6 +194,21 @@ def test_errors_name_what_is_wrong() -> None:
         env.step(np.zeros(2))
     with pytest.raises(ValueError, match="world 1"):
         env.step(np.array([[0.0, 0.0], [np.nan, 0.0]]))
+    for seed in (1.5, "3", [0], [0, 1.0], [0, True]):
+        with pytest.raises(ValueError, match="seed must be None, an int or a sequence of 2 seeds"):
+            env.reset(seed=seed)
+    for options in ([1], [("t0_s", 1.0)], "t0_s"):
+        with pytest.raises(ValueError, match="reset options must be a mapping"):
+            env.reset(seed=0, options=options)
+    with pytest.raises(ValueError, match="num_envs"):
+        BatchedCrowdNavEnv(num_envs=True, predictor="none", crowd="empty")
+    with pytest.raises(ValueError, match=r"num_envs must be an integer in \[1, 256\].*got 300.*sync"):
+        BatchedCrowdNavEnv(num_envs=300, predictor="none", crowd="empty")
+    # more worlds than one space keeps apart: fine where single environments are stepped anyway
+    with pytest.warns(UserWarning, match="SyncVectorEnv"):
+        envs = gymnasium.make_vec("CrowdNav-NoPred-v0", num_envs=300, crowd="empty", reaction="pause")
+    assert isinstance(envs, gymnasium.vector.SyncVectorEnv) and envs.num_envs == 300
+    envs.close()
 
 
 @pytest.mark.parametrize("reaction", ["pause", "orca", "social_force"])
