@@ -454,7 +454,9 @@ class BatchedCrowdNavEnv(VectorEnv):
         return out
 
     def _parse_actions(self, actions: Any) -> np.ndarray:
-        """``(N, 2)`` float64 actions clipped to [-1, 1], as ``CrowdNavEnv._parse_action`` for each world."""
+        """``(N, 2)`` float64 actions clipped to [-1, 1], as ``CrowdNavEnv._parse_action`` for each world. The action
+        of a world reset in this step (``NEXT_STEP`` autoreset) is ignored, as ``SyncVectorEnv`` ignores it: it need
+        not be finite."""
         n = self.num_envs
         try:
             a = np.asarray(actions, dtype=np.float64)
@@ -462,7 +464,7 @@ class BatchedCrowdNavEnv(VectorEnv):
             raise ValueError(f"actions must be {n} x 2 numbers in [-1, 1], got {actions!r}") from None
         if a.shape != (n, 2):
             raise ValueError(f"actions must have shape ({n}, 2), got shape {a.shape}")
-        bad = ~np.isfinite(a).all(axis=1)
+        bad = ~np.isfinite(a).all(axis=1) & ~self._autoreset
         if bad.any():
             w = int(np.flatnonzero(bad)[0])
             raise ValueError(f"action of world {w} must be finite, got {actions[w]!r}")

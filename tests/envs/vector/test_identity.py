@@ -158,6 +158,26 @@ def test_a_bad_max_episode_steps_is_refused_naming_it(value: Any) -> None:
         BatchedCrowdNavEnv(num_envs=2, predictor="none", crowd="empty", max_episode_steps=value)
 
 
+def test_the_action_of_a_world_being_reset_is_ignored_as_sync_vector_env_ignores_it(data_dir: Path) -> None:
+    kwargs = {"predictor": "none", "split": "zara1", "part": "test", "max_episode_steps": 2}
+    sync = gymnasium.make_vec("CrowdNav-NoPred-v0", num_envs=2, vectorization_mode="sync", **kwargs)
+    batched = BatchedCrowdNavEnv(num_envs=2, **kwargs)
+    for envs in (sync, batched):
+        envs.reset(seed=0)
+    still = np.zeros((2, 2), np.float32)
+    for _ in range(2):  # both worlds end at the limit
+        out = [envs.step(still) for envs in (sync, batched)]
+    assert out[0][3].tolist() == out[1][3].tolist() == [True, True]
+    nan_actions = np.full((2, 2), np.nan, np.float32)  # the autoreset step: both worlds are reset
+    after = [envs.step(nan_actions) for envs in (sync, batched)]
+    for key in after[0][0]:
+        np.testing.assert_array_equal(after[1][0][key], after[0][0][key])
+    with pytest.raises(ValueError, match="action of world 0 must be finite"):  # stepping again: refused
+        batched.step(nan_actions)
+    sync.close()
+    batched.close()
+
+
 def test_reset_mask_resets_only_the_masked_worlds(data_dir: Path) -> None:
     env = BatchedCrowdNavEnv(num_envs=3, predictor="none", split="zara1", part="test")
     obs, _ = env.reset(seed=0)
