@@ -55,6 +55,7 @@ class _World:
         self.popin = PopInRule(env._r_sum + POPIN_MARGIN_M)
         self.touch_fault: dict[int, str] = {}
         self.np_random: np.random.Generator | None = None
+        self.np_random_seed: int | None = None  # the seed np_random was made from (seeding.np_random's)
         self.forecast_rng: np.random.Generator | None = None
         self.collision_fault: str | None = None
         self.velocities: list[np.ndarray] = []
@@ -219,6 +220,17 @@ class BatchedCrowdNavEnv(VectorEnv):
 
     # ------------------------------------------------------------------ public helpers
 
+    @property
+    def np_random_seed(self) -> tuple[int | None, ...]:  # type: ignore[override]
+        """Each world's seed, as ``SyncVectorEnv`` gives its environments': the seed its generator was made from at
+        its last seeded (or first) reset; None before its first reset."""
+        return tuple(w.np_random_seed for w in self._worlds)
+
+    @property
+    def np_random(self) -> tuple[np.random.Generator | None, ...]:  # type: ignore[override]
+        """Each world's generator (its episodes are drawn from it), as ``SyncVectorEnv`` gives its environments'."""
+        return tuple(w.np_random for w in self._worlds)
+
     def precompute_forecasts(self, recording: str | None = None) -> int:
         """As :meth:`envs.crowd_nav.CrowdNavEnv.precompute_forecasts` (the forecast source is shared by all worlds)."""
         return self.env.precompute_forecasts(recording)
@@ -379,7 +391,7 @@ class BatchedCrowdNavEnv(VectorEnv):
         world = self._worlds[w]
         cfg = self.config
         if seed is not None or world.np_random is None:
-            world.np_random, _ = seeding.np_random(seed)
+            world.np_random, world.np_random_seed = seeding.np_random(seed)
             try:
                 world.forecast_rng = world.np_random.spawn(1)[0]
             except (TypeError, ValueError):  # a generator without a seed sequence

@@ -178,6 +178,20 @@ def test_the_action_of_a_world_being_reset_is_ignored_as_sync_vector_env_ignores
     batched.close()
 
 
+def test_seeds_and_generators_are_each_worlds_as_sync_vector_envs_are() -> None:
+    sync = gymnasium.make_vec("CrowdNav-NoPred-v0", num_envs=3, vectorization_mode="sync", crowd="empty")
+    batched = BatchedCrowdNavEnv(num_envs=3, predictor="none", crowd="empty")
+    assert batched.np_random_seed == (None, None, None)
+    for seed in (5, [7, None, 9]):
+        for envs in (sync, batched):
+            envs.reset(seed=seed)
+        assert batched.np_random_seed == sync.np_random_seed
+        states = [[g.bit_generator.state for g in envs.np_random] for envs in (sync, batched)]
+        assert states[0] == states[1]
+    sync.close()
+    batched.close()
+
+
 def test_reset_mask_resets_only_the_masked_worlds(data_dir: Path) -> None:
     env = BatchedCrowdNavEnv(num_envs=3, predictor="none", split="zara1", part="test")
     obs, _ = env.reset(seed=0)
