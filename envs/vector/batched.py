@@ -302,10 +302,19 @@ class BatchedCrowdNavEnv(VectorEnv):
         worlds = np.flatnonzero(mask)
         parsed = reset_options(opts, self.config.goal_tolerance_m)
         infos: dict[str, Any] = {}
-        for w in worlds.tolist():
-            infos = self._add_info(infos, self._start_world(w, seeds[w], parsed), w)
-        self._autoreset[worlds] = False
-        self._observe_reset(worlds)
+        done: list[int] = []
+        try:
+            for w in worlds.tolist():
+                infos = self._add_info(infos, self._start_world(w, seeds[w], parsed), w)
+                done.append(w)
+        finally:
+            # a draw that fails for one world (a t0_s past its recording's end) leaves the worlds before it in their
+            # new episodes, observed, and the others as they were: SyncVectorEnv's state after the same error (which
+            # also clears every world's autoreset flag; here a world the failed reset did not reach keeps its own)
+            if done:
+                started = np.asarray(done, dtype=np.int64)
+                self._autoreset[started] = False
+                self._observe_reset(started)
         return self._copy_obs(), infos
 
     def step(self, actions: Any) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:

@@ -9,11 +9,14 @@ from typing import Any
 import gymnasium
 import numpy as np
 import pytest
+from gymnasium.vector import SyncVectorEnv
 
 import crowdnav_mesrnn  # noqa: F401 (registers the ids)
+from envs.crowd_nav import CrowdNavEnv
 from envs.crowds import scripted_recording
 from envs.vector import BatchedCrowdNavEnv
 from tests.envs.conftest import go_to_goal
+from tests.envs.vector.conftest import assert_same_info
 
 
 def _goal_seeking(kwargs: dict[str, Any]) -> Any:
@@ -188,6 +191,49 @@ def test_seeds_and_generators_are_each_worlds_as_sync_vector_envs_are() -> None:
         assert batched.np_random_seed == sync.np_random_seed
         states = [[g.bit_generator.state for g in envs.np_random] for envs in (sync, batched)]
         assert states[0] == states[1]
+    sync.close()
+    batched.close()
+
+
+def test_a_reset_that_fails_for_one_world_leaves_the_others_as_sync_vector_env_does(data_dir: Path) -> None:
+    # t0_s = 500 s lies past the end of some of the training recordings: a reset fails at the first world that
+    # draws one, after the worlds before it drew theirs. A seeded world's draw depends on its seed only, so a probe
+    # finds a seed whose reset fails after world 0 drew its episode.
+    kwargs = {"predictor": "cv", "split": "zara1", "part": "train"}
+    options = {"t0_s": 500.0}
+    probe = BatchedCrowdNavEnv(num_envs=4, **kwargs)
+    seed = None
+    for candidate in range(100, 200):
+        try:
+            probe.reset(seed=candidate, options=options)
+        except ValueError as exc:
+            assert "t0_s" in str(exc)
+            if probe.episodes[0] is not None and probe.episodes[0].t0_s == 500.0:
+                seed = candidate
+                break
+    probe.close()
+    assert seed is not None
+    sync = SyncVectorEnv([lambda: CrowdNavEnv(**kwargs) for _ in range(4)])
+    batched = BatchedCrowdNavEnv(num_envs=4, **kwargs)
+    rng = np.random.default_rng(0)
+    for envs in (sync, batched):
+        envs.reset(seed=0)
+    for _ in range(2):
+        actions = rng.uniform(-1, 1, (4, 2)).astype(np.float32)
+        out = [envs.step(actions) for envs in (sync, batched)]
+        assert not (out[0][2] | out[0][3]).any()  # no autoreset pending at the failing reset
+    for envs in (sync, batched):
+        with pytest.raises(ValueError, match="t0_s"):
+            envs.reset(seed=seed, options=options)
+    assert batched.episodes[0].t0_s == 500.0  # world 0 is in its new episode, the others in their old ones
+    for t in range(80):  # world 0's new episode and the others' old ones go on as SyncVectorEnv's, to their ends
+        actions = rng.uniform(-1, 1, (4, 2)).astype(np.float32)
+        out = [envs.step(actions) for envs in (sync, batched)]
+        for key in out[0][0]:
+            np.testing.assert_array_equal(out[1][0][key], out[0][0][key], err_msg=f"step {t} obs {key}")
+        for i in (1, 2, 3):
+            np.testing.assert_array_equal(out[1][i], out[0][i], err_msg=f"step {t} output {i}")
+        assert_same_info(out[0][4], out[1][4], f"step {t} info")
     sync.close()
     batched.close()
 
