@@ -1,13 +1,16 @@
 """Learning curves: validation success against environment steps, from training run folders.
 
 ``python -m agents.curves RUN_DIR [RUN_DIR ...] --out curves.png [--csv curves.csv] [--title TEXT]``
+``python -m agents.curves [RUN_DIR ...] --from-csv curves.csv [--predictor ARM] --out curves_ARM.png``
 
 Every run of :mod:`agents.training` validates on the training scenes' validation episodes (``episode_time="val"``;
 never the held-out scene) at step 0 (the warm start) and every ``eval.freq_steps`` PPO steps, and writes the
 history to ``evaluations.csv`` (step, episodes, success rate and its 95 % Wilson interval, collision and timeout
 rates, mean return). :func:`read_curve` reads one run's history with its arm, split and seed (from
 ``config.yaml``); :func:`plot_curves` draws one line per run (colour by forecast arm, the Wilson band shaded),
-one panel per split; :func:`curves_csv` writes every run's points in one table.
+one panel per split; :func:`curves_csv` writes every run's points in one table, and :func:`read_curves_csv` reads
+such a table back, so the curves of runs whose folders are gone (a grid's run folders are not kept; its
+``curves.csv`` is committed) are drawn again, and merged with new runs (a run folder given again replaces its rows).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import math
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -103,6 +107,63 @@ def read_curve(run_dir: str | Path, label: str | None = None, episodes: int | No
     return Curve(run, label or f"{predictor} s{seed}", predictor, str(run_info.get("split", "?")), seed, points)
 
 
+def read_curves_csv(path: str | Path) -> list[Curve]:
+    """The curves of a table written by :func:`curves_csv`: one per ``run`` and ``label`` (one run drawn twice under
+    two labels is two curves), in the order the table first names them; points in step order.
+
+    Raises:
+        ValueError: a missing column, or a row whose number is not finite or whose seed is not an integer (naming the
+            file, the line and the column), or a curve whose rows disagree on its predictor, split or seed.
+    """
+    path = Path(path)
+    with open(path, newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        missing = [c for c in CURVE_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{path}: not a curves table (python -m agents.curves --csv): missing column(s) {missing}")
+        curves: dict[tuple[str, str], tuple[tuple[str, str, int], list[dict[str, float]]]] = {}
+        for line, row in enumerate(reader, start=2):
+            where = f"{path}, line {line}"
+            try:
+                seed = int(row["seed"])
+            except (TypeError, ValueError):
+                raise ValueError(f"{where}: column 'seed' is {row['seed']!r}, not an integer") from None
+            point: dict[str, float] = {}
+            for col in CURVE_COLUMNS[5:]:
+                text = row[col]
+                if text in (None, "") and col not in ("step", "success_rate"):
+                    continue  # an optional column a history did not have
+                value = _number(text or "")
+                if not math.isfinite(value):
+                    raise ValueError(f"{where}: column {col!r} is {text!r}, not a finite number")
+                point[col] = value
+            what = (row["predictor"], row["split"], seed)
+            old = curves.setdefault((row["run"], row["label"]), (what, []))
+            if old[0] != what:
+                raise ValueError(
+                    f"{where}: run {row['run']!r} ({row['label']!r}) has predictor, split and seed {what} here, "
+                    f"{old[0]} above"
+                )
+            old[1].append(point)
+    return [
+        Curve(Path(run), label, predictor, split, seed, sorted(points, key=lambda p: p["step"]))
+        for (run, label), ((predictor, split, seed), points) in curves.items()
+    ]
+
+
+def merge_curves(old: Sequence[Curve], new: Sequence[Curve]) -> list[Curve]:
+    """``old`` (e.g. read from a table) with ``new`` added; the curves of ``new`` whose run ``old`` has replace all of
+    ``old``'s curves of that run, where the first of them was."""
+    runs = {str(c.run) for c in new}
+    out: list[Curve] = []
+    for c in old:
+        if str(c.run) not in runs:
+            out.append(c)
+        elif not any(str(o.run) == str(c.run) for o in out):
+            out += [n for n in new if str(n.run) == str(c.run)]
+    return out + [n for n in new if not any(str(o.run) == str(n.run) for o in old)]
+
+
 def curves_csv(curves: Sequence[Curve]) -> str:
     """Every point of every curve as CSV text (columns :data:`CURVE_COLUMNS`)."""
     buf = io.StringIO()
@@ -159,7 +220,16 @@ def plot_curves(curves: Sequence[Curve], out: str | Path, title: str | None = No
 
 
 def add_curves_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("runs", nargs="+", help="run folders of agents.train")
+    p.add_argument("runs", nargs="*", help="run folders of agents.train")
+    p.add_argument(
+        "--from-csv",
+        dest="from_csv",
+        action="append",
+        default=[],
+        metavar="CSV",
+        help="also the runs of a table written by --csv (repeatable); a run folder given too replaces its rows",
+    )
+    p.add_argument("--predictor", default=None, help="draw only the runs of this forecast arm (e.g. mesrnn)")
     p.add_argument("--out", required=True, help="the plot (PNG, SVG or PDF by its suffix)")
     p.add_argument("--csv", default=None, help="also write every point of every run to this CSV")
     p.add_argument("--labels", nargs="+", default=None, help="one label per run (default: '<predictor> s<seed>')")
@@ -169,8 +239,17 @@ def add_curves_arguments(p: argparse.ArgumentParser) -> None:
 def run_from_args(args: argparse.Namespace) -> int:
     if args.labels is not None and len(args.labels) != len(args.runs):
         raise ValueError(f"--labels needs one label per run: {len(args.runs)} runs, {len(args.labels)} labels")
+    if not args.runs and not args.from_csv:
+        raise ValueError("no runs: name run folders, or a table of them with --from-csv")
     labels = args.labels or [None] * len(args.runs)
-    curves = [read_curve(r, label) for r, label in zip(args.runs, labels, strict=True)]
+    curves: list[Curve] = []
+    for table in args.from_csv:
+        curves = merge_curves(curves, read_curves_csv(table))
+    curves = merge_curves(curves, [read_curve(r, label) for r, label in zip(args.runs, labels, strict=True)])
+    if args.predictor is not None:
+        curves = [c for c in curves if c.predictor == args.predictor]
+        if not curves:
+            raise ValueError(f"--predictor {args.predictor!r}: no run of that forecast arm")
     out = plot_curves(curves, args.out, args.title)
     print(f"wrote {out}")
     if args.csv:
